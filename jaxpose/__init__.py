@@ -1,0 +1,52 @@
+"""jaxpose: JAX-native Lie groups, least squares and differentiable robotics modules.
+
+Public API: ``jaxpose.lie`` (groups, algebras, manifold calculus), re-exported here as
+``jp.SO3``, ``jp.SE3``, ... and the functional ops ``jp.exp``, ``jp.log``, ...
+"""
+
+from . import lie
+from .lie import (
+    ALGEBRAS,
+    GROUPS,
+    SE2,
+    SE3,
+    SO2,
+    SO3,
+    LieAlgebra,
+    LieGroup,
+    RxSO3,
+    Sim3,
+    act,
+    adj,
+    adjT,
+    compose,
+    cumprod,
+    euler,
+    exp,
+    from_euler,
+    from_matrix,
+    identity,
+    interpolate,
+    inv,
+    jinvp,
+    jl,
+    jl_inv,
+    jr,
+    jr_inv,
+    log,
+    manifold,
+    matrix,
+    normalize,
+    random,
+    rotation,
+    rxso3,
+    scale,
+    se2,
+    se3,
+    sim3,
+    so2,
+    so3,
+    translation,
+)
+
+__version__ = "0.1.0"

@@ -1,3 +1,55 @@
+"""Lie groups and algebras (PyPose storage layouts) and tangent-space calculus.
+
+Groups: :class:`SO3`, :class:`SE3`, :class:`Sim3`, :class:`RxSO3`, :class:`SO2`,
+:class:`SE2`; algebras: :class:`so3`, :class:`se3`, :class:`sim3`, :class:`rxso3`,
+:class:`so2`, :class:`se2`. See ``docs/conventions.md`` for layouts and Jacobian
+conventions.
+"""
+
+from . import convert, manifold, series
 from .base import LieAlgebra, LieGroup
+from .functional import (
+    act,
+    adj,
+    adjT,
+    compose,
+    cumprod,
+    euler,
+    exp,
+    from_euler,
+    from_matrix,
+    hat,
+    identity,
+    interpolate,
+    inv,
+    jinvp,
+    jl,
+    jl_inv,
+    jr,
+    jr_inv,
+    log,
+    matrix,
+    normalize,
+    random,
+    rotation,
+    scale,
+    translation,
+)
+from .rxso3 import RxSO3, rxso3
+from .se2 import SE2, se2
 from .se3 import SE3, se3
+from .sim3 import Sim3, sim3
+from .so2 import SO2, so2
 from .so3 import SO3, so3
+
+GROUPS = (SO3, SE3, Sim3, RxSO3, SO2, SE2)
+ALGEBRAS = (so3, se3, sim3, rxso3, so2, se2)
+
+__all__ = [
+    "ALGEBRAS", "GROUPS", "LieAlgebra", "LieGroup", "RxSO3", "SE2", "SE3", "SO2", "SO3",
+    "Sim3", "act", "adj", "adjT", "compose", "convert", "cumprod", "euler", "exp",
+    "from_euler", "from_matrix", "hat", "identity", "interpolate", "inv", "jinvp", "jl",
+    "jl_inv", "jr", "jr_inv", "log", "manifold", "matrix", "normalize", "random",
+    "rotation", "rxso3", "scale", "se2", "se3", "series", "sim3", "so2", "so3",
+    "translation",
+]

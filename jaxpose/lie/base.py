@@ -407,11 +407,11 @@ class LieGroup(eqx.Module):
         _check_same_type(self, other, f"{type(self).__name__}.rminus")
         return self._log(self._compose(self._inv(other.data), self.data))
 
-    def cumprod(self: G, axis: int = 0, left: bool = False) -> G:
+    def cumprod(self: G, axis: int = 0, left: bool = True) -> G:
         """Cumulative product along a batch ``axis`` with ``jax.lax.associative_scan``.
 
-        ``left=False``: Yᵢ = X₀·X₁·…·Xᵢ (chaining relative motions);
-        ``left=True``:  Yᵢ = Xᵢ·…·X₁·X₀."""
+        ``left=True`` (PyPose's default): Yᵢ = Xᵢ·…·X₁·X₀;
+        ``left=False``: Yᵢ = X₀·X₁·…·Xᵢ (chaining relative motions, odometry)."""
         nb = len(self.shape)
         if not -nb <= axis < nb:
             raise ValueError(

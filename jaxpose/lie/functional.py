@@ -1,0 +1,172 @@
+"""Module-level pure functions mirroring the group/algebra methods.
+
+``jp.lie.log(X)`` is ``X.log()``, ``jp.lie.compose(X, Y)`` is ``X @ Y`` and so on; they
+exist so pipelines can be written functionally (and so names match PyPose's
+``pp.Exp``, ``pp.Log``, ...). Each checks its argument types and names them in errors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from .base import Array, LieAlgebra, LieGroup
+
+
+def _group(x: Any, fn: str, arg: str = "x") -> LieGroup:
+    if not isinstance(x, LieGroup):
+        raise TypeError(f"{fn}({arg}): expected a Lie group element, got {type(x).__name__}")
+    return x
+
+
+def _algebra(a: Any, fn: str, arg: str = "a") -> LieAlgebra:
+    if not isinstance(a, LieAlgebra):
+        raise TypeError(f"{fn}({arg}): expected a Lie algebra element, got {type(a).__name__}")
+    return a
+
+
+def _group_type(cls: Any, fn: str) -> type[LieGroup]:
+    if not (isinstance(cls, type) and issubclass(cls, LieGroup)):
+        raise TypeError(f"{fn}(group): expected a group class such as SE3, got {cls!r}")
+    return cls
+
+
+def exp(a: LieAlgebra) -> LieGroup:
+    """Exp: algebra element → group element."""
+    return _algebra(a, "exp").exp()
+
+
+def log(x: LieGroup) -> LieAlgebra:
+    """Log: group element → algebra element (rotation angle in [0, π])."""
+    return _group(x, "log").log()
+
+
+def inv(x: LieGroup) -> LieGroup:
+    return _group(x, "inv").inv()
+
+
+def compose(x: LieGroup, y: LieGroup) -> LieGroup:
+    """x · y (same group type, broadcast batch shapes)."""
+    return _group(x, "compose").compose(_group(y, "compose", "y"))
+
+
+def act(x: LieGroup, points: Any) -> Array:
+    """x acting on points (…, p) or homogeneous points (…, p+1)."""
+    return _group(x, "act").act(points)
+
+
+def adj(x: LieGroup, a: Any) -> LieAlgebra:
+    """Adj(x)·a."""
+    return _group(x, "adj").adj(a)
+
+
+def adjT(x: LieGroup, a: Any) -> LieAlgebra:  # noqa: N802
+    """Adj(x)ᵀ·a."""
+    return _group(x, "adjT").adjT(a)
+
+
+def jinvp(x: LieGroup, a: Any) -> LieAlgebra:
+    """Jl⁻¹(Log x)·a (PyPose's Jinvp)."""
+    return _group(x, "jinvp").jinvp(a)
+
+
+def jr(a: LieAlgebra) -> Array:
+    return _algebra(a, "jr").jr()
+
+
+def jl(a: LieAlgebra) -> Array:
+    return _algebra(a, "jl").jl()
+
+
+def jr_inv(a: LieAlgebra) -> Array:
+    return _algebra(a, "jr_inv").jr_inv()
+
+
+def jl_inv(a: LieAlgebra) -> Array:
+    return _algebra(a, "jl_inv").jl_inv()
+
+
+def hat(a: LieAlgebra) -> Array:
+    return _algebra(a, "hat").hat()
+
+
+def matrix(x: LieGroup | LieAlgebra) -> Array:
+    if isinstance(x, LieAlgebra):
+        return x.matrix()
+    return _group(x, "matrix").matrix()
+
+
+def from_matrix(group: type[LieGroup], m: Any, check: bool = True) -> LieGroup:
+    return _group_type(group, "from_matrix").from_matrix(m, check=check)
+
+
+def identity(group: type[LieGroup], shape: Sequence[int] = (), dtype: Any = None) -> LieGroup:
+    return _group_type(group, "identity").identity(shape, dtype)
+
+
+def random(
+    group: type[LieGroup], key: Array, shape: Sequence[int] = (), sigma: float = 1.0,
+    dtype: Any = None,
+) -> LieGroup:
+    return _group_type(group, "random").random(key, shape, sigma, dtype)
+
+
+def translation(x: LieGroup) -> Array:
+    return _group(x, "translation").translation()
+
+
+def rotation(x: LieGroup) -> LieGroup:
+    x = _group(x, "rotation")
+    if not hasattr(x, "rotation"):
+        raise TypeError(f"rotation(x): {type(x).__name__} has no rotation part")
+    return x.rotation()
+
+
+def scale(x: LieGroup) -> Array:
+    return _group(x, "scale").scale()
+
+
+def euler(x: LieGroup) -> Array:
+    x = _group(x, "euler")
+    if not hasattr(x, "euler"):
+        raise TypeError(f"euler(x): {type(x).__name__} has no 3D rotation")
+    return x.euler()
+
+
+def from_euler(e: Any) -> LieGroup:
+    from .so3 import SO3
+
+    return SO3.from_euler(e)
+
+
+def normalize(x: LieGroup) -> LieGroup:
+    return _group(x, "normalize").normalize()
+
+
+def interpolate(x: LieGroup, y: LieGroup, t: Any) -> LieGroup:
+    return _group(x, "interpolate").interpolate(_group(y, "interpolate", "y"), t)
+
+
+def cumprod(x: LieGroup, axis: int = 0, left: bool = True) -> LieGroup:
+    return _group(x, "cumprod").cumprod(axis, left)
+
+
+def stack(xs: Sequence[LieGroup], axis: int = 0) -> LieGroup:
+    """Stack same-type elements along a new batch axis."""
+    if not xs:
+        raise ValueError("stack(xs): expected a non-empty sequence")
+    t = type(_group(xs[0], "stack", "xs[0]"))
+    for i, x in enumerate(xs):
+        if type(x) is not t:
+            raise TypeError(f"stack(xs): xs[{i}] is {type(x).__name__}, expected {t.__name__}")
+    nb = len(xs[0].shape)
+    ax = axis % (nb + 1)
+    return t(jnp.stack([x.data for x in xs], ax))
+
+
+def tree_stack(trees: Sequence[Any]) -> Any:
+    """Stack a sequence of equal-structure pytrees leaf-wise (axis 0)."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
