@@ -50,3 +50,5 @@ from .lie import (
 )
 
 __version__ = "0.1.0"
+
+__all__ = ["__version__", "lie", *lie.__all__]

@@ -146,7 +146,7 @@ class LieAlgebra(eqx.Module):
         return self.shape[0]
 
     def reshape(self: A, *shape: int) -> A:
-        shape = tuple(shape[0]) if len(shape) == 1 and isinstance(shape[0], (tuple, list)) else shape
+        shape = _shape_args(shape)
         return type(self)(self.data.reshape(*shape, self.tangent_dim))
 
     # -- arithmetic (vector space) -------------------------------------------------
@@ -247,7 +247,7 @@ class LieGroup(eqx.Module):
         return self.shape[0]
 
     def reshape(self: G, *shape: int) -> G:
-        shape = tuple(shape[0]) if len(shape) == 1 and isinstance(shape[0], (tuple, list)) else shape
+        shape = _shape_args(shape)
         return type(self)(self.data.reshape(*shape, self.storage_dim))
 
     def broadcast_to(self: G, shape: Sequence[int]) -> G:
@@ -458,6 +458,13 @@ class LieGroup(eqx.Module):
         jl = cls._jl(a)
         eye = jnp.broadcast_to(jnp.eye(cls.tangent_dim, dtype=a.dtype), jl.shape)
         return jnp.linalg.solve(jl, eye)
+
+
+def _shape_args(shape: tuple[Any, ...]) -> tuple[int, ...]:
+    """Accept reshape(2, 3) and reshape((2, 3))."""
+    if len(shape) == 1 and isinstance(shape[0], (tuple, list)):
+        return tuple(shape[0])
+    return tuple(shape)
 
 
 def _batch_index(idx: Any) -> Any:

@@ -26,7 +26,8 @@ def _block_diag_1(m: Array) -> Array:
     """[[m, 0], [0, 1]] for m (..., 3, 3)."""
     z = jnp.zeros((*m.shape[:-2], 3, 1), m.dtype)
     top = jnp.concatenate([m, z], -1)
-    bottom = jnp.concatenate([jnp.swapaxes(z, -1, -2), jnp.ones((*m.shape[:-2], 1, 1), m.dtype)], -1)
+    one = jnp.ones((*m.shape[:-2], 1, 1), m.dtype)
+    bottom = jnp.concatenate([jnp.swapaxes(z, -1, -2), one], -1)
     return jnp.concatenate([top, bottom], -2)
 
 
