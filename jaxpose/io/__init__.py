@@ -1,0 +1,21 @@
+"""File readers and writers: g2o pose graphs and BAL bundle-adjustment problems.
+
+All readers return plain float64/int64 numpy containers (:class:`PoseGraph`,
+:class:`BALProblem`) and raise :class:`FormatError` (``"FILE:LINE: ..."``) on malformed input.
+"""
+
+from .bal import BALProblem, project_bal, read_bal, write_bal
+from .errors import FormatError
+from .g2o import PoseGraph, connected_components, read_g2o, write_g2o
+
+__all__ = [
+    "BALProblem",
+    "FormatError",
+    "PoseGraph",
+    "connected_components",
+    "project_bal",
+    "read_bal",
+    "read_g2o",
+    "write_bal",
+    "write_g2o",
+]

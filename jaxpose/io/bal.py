@@ -1,0 +1,318 @@
+"""Bundle Adjustment in the Large (BAL) problems: :class:`BALProblem`, :func:`read_bal`,
+:func:`write_bal` and the BAL camera model :func:`project_bal` (numpy, float64).
+
+File layout (whitespace-separated tokens; line breaks are not significant)::
+
+    n_cameras n_points n_observations
+    camera point u v                     (n_observations times)
+    9 parameters per camera              (Rodrigues r(3), t(3), f, k1, k2)
+    3 coordinates per point
+
+Camera model: ``P = R(r)·X + t``, ``p = −P[:2] / P[2]``, ``ρ = 1 + k1‖p‖² + k2‖p‖⁴``,
+``pixel = f·ρ·p``; points in front of a camera have ``P[2] < 0``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import FormatError
+
+__all__ = ["BALProblem", "project_bal", "read_bal", "write_bal"]
+
+PathLike = str | os.PathLike[str]
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class BALProblem:
+    """A bundle-adjustment problem; plain float64/int64 numpy arrays.
+
+    Attributes:
+        cameras: (n_cam, 9) Rodrigues rotation (3), translation (3), f, k1, k2.
+        points: (n_pt, 3) world points.
+        camera_index: (n_obs,) int64 camera of each observation.
+        point_index: (n_obs,) int64 point of each observation.
+        observations: (n_obs, 2) pixel coordinates (BAL: origin at the image centre).
+        path: the file it was read from, if any.
+    """
+
+    cameras: np.ndarray
+    points: np.ndarray
+    camera_index: np.ndarray
+    point_index: np.ndarray
+    observations: np.ndarray
+    path: str | None = None
+
+    def __post_init__(self) -> None:
+        set_ = lambda name, value: object.__setattr__(self, name, value)
+        set_("cameras", _checked(self.cameras, np.float64, (None, 9), "cameras"))
+        set_("points", _checked(self.points, np.float64, (None, 3), "points"))
+        set_("camera_index", _checked(self.camera_index, np.int64, (None,), "camera_index"))
+        n_obs = self.camera_index.shape[0]
+        set_("point_index", _checked(self.point_index, np.int64, (n_obs,), "point_index"))
+        set_("observations", _checked(self.observations, np.float64, (n_obs, 2), "observations"))
+        if self.path is not None:
+            set_("path", os.fspath(self.path))
+        for name, n in (("camera_index", self.n_cameras), ("point_index", self.n_points)):
+            idx = getattr(self, name)
+            if idx.size and (idx.min() < 0 or idx.max() >= n):
+                raise ValueError(f"BALProblem.{name}: indices must lie in [0, {n})")
+
+    @property
+    def n_cameras(self) -> int:
+        return int(self.cameras.shape[0])
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_observations(self) -> int:
+        return int(self.observations.shape[0])
+
+    def __repr__(self) -> str:
+        return (
+            f"BALProblem(n_cameras={self.n_cameras}, n_points={self.n_points}, "
+            f"n_observations={self.n_observations}, path={self.path!r})"
+        )
+
+
+def _checked(value: Any, dtype: Any, shape: tuple[int | None, ...], name: str) -> np.ndarray:
+    arr = np.asarray(value)
+    if dtype is np.int64 and arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"BALProblem.{name}: expected integers, got dtype {arr.dtype}")
+    arr = np.asarray(arr, dtype=dtype)
+    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"BALProblem.{name}: expected shape {want}, got {arr.shape}")
+    return arr
+
+
+def project_bal(
+    cameras: np.ndarray,
+    points: np.ndarray,
+    camera_index: np.ndarray | None = None,
+    point_index: np.ndarray | None = None,
+) -> np.ndarray:
+    """BAL projection in numpy float64.
+
+    Args:
+        cameras: (n_cam, 9) or (..., 9) camera parameters.
+        points: (n_pt, 3) or (..., 3) points.
+        camera_index, point_index: (n_obs,) indices pairing cameras with points; when omitted,
+            ``cameras`` and ``points`` are paired elementwise (broadcasting).
+
+    Returns:
+        (n_obs, 2) (or broadcast (..., 2)) predicted pixels.
+    """
+    cam = np.asarray(cameras, np.float64)
+    X = np.asarray(points, np.float64)
+    if camera_index is not None:
+        cam = cam[np.asarray(camera_index)]
+    if point_index is not None:
+        X = X[np.asarray(point_index)]
+    P = rodrigues_rotate(cam[..., :3], X) + cam[..., 3:6]
+    p = -P[..., :2] / P[..., 2:3]
+    n2 = np.sum(p * p, -1, keepdims=True)
+    radial = 1.0 + cam[..., 7:8] * n2 + cam[..., 8:9] * n2 * n2
+    return cam[..., 6:7] * radial * p
+
+
+def rodrigues_rotate(r: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Rotate (..., 3) points by (..., 3) Rodrigues (angle-axis) vectors ``r``."""
+    theta2 = np.sum(r * r, -1, keepdims=True)
+    small = theta2 < 1e-30
+    theta = np.sqrt(np.where(small, 1.0, theta2))
+    k = r / theta
+    c, s = np.cos(theta), np.sin(theta)
+    full = X * c + np.cross(k, X) * s + k * np.sum(k * X, -1, keepdims=True) * (1.0 - c)
+    return np.where(small, X + np.cross(r, X), full)
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def _line_of(lines: list[str], k: int) -> int:
+    """1-based line holding token ``k`` (0-based) of the file; the last line if past the end."""
+    seen = 0
+    last = 1
+    for ln, line in enumerate(lines, 1):
+        n = len(line.split())
+        if n:
+            last = ln
+        seen += n
+        if seen > k:
+            return ln
+    return last
+
+
+def _convert(
+    path: PathLike, lines: list[str], tokens: list[str], start: int, dtype: Any, what: str
+) -> np.ndarray:
+    """1-D array from ``tokens`` (which begin at file token ``start``); errors name the line."""
+    try:
+        return np.array(tokens, dtype=dtype)
+    except (ValueError, OverflowError):
+        pass
+    for k, tok in enumerate(tokens):
+        try:
+            np.array([tok], dtype=dtype)
+        except (ValueError, OverflowError):
+            line = _line_of(lines, start + k)
+            raise FormatError(path, line, f"expected {what}, found {tok!r}") from None
+    raise AssertionError("unreachable: conversion failed but no bad token found")
+
+
+def read_bal(path: PathLike) -> BALProblem:
+    """Read a BAL problem file.
+
+    Returns:
+        A :class:`BALProblem` with float64 parameters and int64 indices.
+
+    Raises:
+        FormatError: ``"FILE:LINE: ..."`` for a bad header, non-integer or out-of-range
+            indices, non-numeric or non-finite values, too few values for the counts in the
+            header, or values left over after them; the line is that of the offending token.
+    """
+    text = Path(path).read_text(encoding="utf-8", errors="replace")
+    lines = text.split("\n")
+    tokens = text.split()
+    if len(tokens) < 3:
+        raise FormatError(
+            path,
+            _line_of(lines, len(tokens)),
+            f"expected a header 'n_cameras n_points n_observations', found {len(tokens)} values",
+        )
+    header = _convert(path, lines, tokens[:3], 0, np.int64, "a non-negative integer count")
+    for k, what in enumerate(("n_cameras", "n_points", "n_observations")):
+        if header[k] < 0:
+            raise FormatError(
+                path, _line_of(lines, k), f"expected a non-negative {what}, found {header[k]}"
+            )
+    n_cam, n_pt, n_obs = (int(v) for v in header)
+    sections = [
+        ("observations 'camera point u v'", 4 * n_obs),
+        ("camera parameters (9 per camera)", 9 * n_cam),
+        ("point coordinates (3 per point)", 3 * n_pt),
+    ]
+    total = 3 + sum(n for _, n in sections)
+    if len(tokens) < total:
+        start = 3
+        for what, n in sections:
+            if len(tokens) < start + n:
+                raise FormatError(
+                    path,
+                    _line_of(lines, len(tokens)),
+                    f"expected {n} {what} as the header '{n_cam} {n_pt} {n_obs}' says, "
+                    f"found the end of the file after {len(tokens) - start}",
+                )
+            start += n
+    if len(tokens) > total:
+        raise FormatError(
+            path,
+            _line_of(lines, total),
+            f"expected the end of the file after {total} values (header "
+            f"'{n_cam} {n_pt} {n_obs}'), found more: {tokens[total]!r}",
+        )
+
+    o = 3
+    obs_tokens = tokens[o : o + 4 * n_obs]
+    cams = _convert_strided(path, lines, obs_tokens, o, 0, np.int64, "an integer camera index")
+    pts = _convert_strided(path, lines, obs_tokens, o, 1, np.int64, "an integer point index")
+    for idx, n, col, what in ((cams, n_cam, 0, "camera"), (pts, n_pt, 1, "point")):
+        bad = np.flatnonzero((idx < 0) | (idx >= n))
+        if bad.size:
+            r = int(bad[0])
+            raise FormatError(
+                path,
+                _line_of(lines, o + 4 * r + col),
+                f"observation {r}: expected a {what} index in [0, {n}), found {idx[r]}",
+            )
+    uv = _convert(path, lines, obs_tokens, o, np.float64, "a number")  # indices parse too
+    uv = uv.reshape(n_obs, 4)[:, 2:]
+    _finite(path, lines, uv, o, 4, 2, "observation", ("u", "v"))
+    o += 4 * n_obs
+    cameras = _convert(path, lines, tokens[o : o + 9 * n_cam], o, np.float64, "a number")
+    cameras = cameras.reshape(n_cam, 9)
+    names = ("rx", "ry", "rz", "tx", "ty", "tz", "f", "k1", "k2")
+    _finite(path, lines, cameras, o, 9, 0, "camera", names)
+    o += 9 * n_cam
+    points = _convert(path, lines, tokens[o : o + 3 * n_pt], o, np.float64, "a number")
+    points = points.reshape(n_pt, 3)
+    _finite(path, lines, points, o, 3, 0, "point", ("x", "y", "z"))
+    return BALProblem(
+        cameras=cameras,
+        points=points,
+        camera_index=cams,
+        point_index=pts,
+        observations=uv,
+        path=os.fspath(path),
+    )
+
+
+def _convert_strided(
+    path: PathLike,
+    lines: list[str],
+    block: list[str],
+    start: int,
+    col: int,
+    dtype: Any,
+    what: str,
+) -> np.ndarray:
+    """Column ``col`` of a block of 4-token records starting at file token ``start``."""
+    column = block[col::4]
+    try:
+        return np.array(column, dtype=dtype).reshape(len(column))
+    except (ValueError, OverflowError):
+        pass
+    for r, tok in enumerate(column):
+        try:
+            np.array([tok], dtype=dtype)
+        except (ValueError, OverflowError):
+            line = _line_of(lines, start + 4 * r + col)
+            raise FormatError(path, line, f"expected {what}, found {tok!r}") from None
+    raise AssertionError("unreachable: conversion failed but no bad token found")
+
+
+def _finite(
+    path: PathLike,
+    lines: list[str],
+    values: np.ndarray,
+    start: int,
+    stride: int,
+    offset: int,
+    what: str,
+    names: tuple[str, ...],
+) -> None:
+    """Raise at the line of the first non-finite entry of a (rows, len(names)) block."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        r, c = (int(v) for v in np.argwhere(bad)[0])
+        line = _line_of(lines, start + stride * r + offset + c)
+        raise FormatError(
+            path, line, f"{what} {r}: expected a finite {names[c]}, found {values[r, c]}"
+        )
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def write_bal(path: PathLike, problem: BALProblem) -> None:
+    """Write ``problem`` in BAL layout (full float precision: reading it back is exact)."""
+    out = [f"{problem.n_cameras} {problem.n_points} {problem.n_observations}"]
+    out += [
+        f"{c} {p} {u!r} {v!r}"
+        for c, p, (u, v) in zip(
+            problem.camera_index.tolist(),
+            problem.point_index.tolist(),
+            problem.observations.tolist(),
+        )
+    ]
+    out += map(repr, problem.cameras.reshape(-1).tolist())
+    out += map(repr, problem.points.reshape(-1).tolist())
+    Path(path).write_text("\n".join(out) + "\n", encoding="utf-8")

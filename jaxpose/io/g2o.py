@@ -1,0 +1,602 @@
+"""g2o pose graphs: :class:`PoseGraph`, :func:`read_g2o`, :func:`write_g2o`.
+
+Supported lines (anything else is skipped; unknown ``VERTEX*``/``EDGE*`` tags raise a warning
+because dropping them changes the problem)::
+
+    VERTEX_SE3:QUAT id x y z qx qy qz qw
+    EDGE_SE3:QUAT   i j x y z qx qy qz qw  I11 I12 .. I16 I22 .. I66   (21 values)
+    VERTEX_SE2      id x y θ
+    EDGE_SE2        i j dx dy dθ  I11 I12 I13 I22 I23 I33              (6 values)
+    FIX             id [id ...]
+    # comment
+
+Information matrices are given as the row-major upper triangle, tangent order translation
+first: ``(x, y, z, rx, ry, rz)`` for SE3 and ``(x, y, θ)`` for SE2, the same order as the
+``se3``/``se2`` algebras, so they weight the residual ``Log(Z⁻¹·Xi⁻¹·Xj)`` unchanged.
+
+Poses use jaxpose storage: SE3 ``[tx, ty, tz, qx, qy, qz, qw]`` (quaternions normalised on
+read) and SE2 ``[tx, ty, cos θ, sin θ]``.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import FormatError
+
+__all__ = ["PoseGraph", "connected_components", "read_g2o", "write_g2o"]
+
+PathLike = str | os.PathLike[str]
+
+# kind -> (storage dim, tangent dim)
+_DIMS = {"SE3": (7, 6), "SE2": (4, 3)}
+_VERTEX_TAG = {"SE3": "VERTEX_SE3:QUAT", "SE2": "VERTEX_SE2"}
+_EDGE_TAG = {"SE3": "EDGE_SE3:QUAT", "SE2": "EDGE_SE2"}
+_MIN_QUAT_NORM = 1e-6  # below this a quaternion is treated as zero (no rotation defined)
+
+
+def _info_names(axes: tuple[str, ...]) -> list[str]:
+    d = len(axes)
+    return [f"I[{axes[r]},{axes[c]}]" for r in range(d) for c in range(r, d)]
+
+
+# tag -> (kind, role, value field names after the ids); line layout: tag, ids, values
+_SPECS: dict[str, tuple[str, str, list[str]]] = {
+    "VERTEX_SE3:QUAT": ("SE3", "vertex", ["x", "y", "z", "qx", "qy", "qz", "qw"]),
+    "EDGE_SE3:QUAT": (
+        "SE3",
+        "edge",
+        ["x", "y", "z", "qx", "qy", "qz", "qw", *_info_names(("x", "y", "z", "rx", "ry", "rz"))],
+    ),
+    "VERTEX_SE2": ("SE2", "vertex", ["x", "y", "theta"]),
+    "EDGE_SE2": ("SE2", "edge", ["dx", "dy", "dtheta", *_info_names(("x", "y", "theta"))]),
+}
+
+
+_LAYOUT = {
+    "VERTEX_SE3:QUAT": "VERTEX_SE3:QUAT id x y z qx qy qz qw",
+    "EDGE_SE3:QUAT": "EDGE_SE3:QUAT i j x y z qx qy qz qw + 21 information values",
+    "VERTEX_SE2": "VERTEX_SE2 id x y theta",
+    "EDGE_SE2": "EDGE_SE2 i j dx dy dtheta + 6 information values",
+}
+
+
+def _empty_index() -> np.ndarray:
+    return np.zeros(0, np.int64)
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class PoseGraph:
+    """A pose graph read from (or written to) a g2o file; plain float64/int64 numpy arrays.
+
+    Attributes:
+        kind: ``"SE3"`` or ``"SE2"``.
+        vertex_ids: (n,) int64 ids as in the file (file order; sorted for edges-only files).
+        poses: (n, 7) SE3 ``[tx,ty,tz,qx,qy,qz,qw]`` or (n, 4) SE2 ``[tx,ty,cos θ,sin θ]``.
+        edges: (m, 2) int64 indices into ``poses`` (not ids), ``(i, j)``.
+        measurements: (m, 7) or (m, 4) ``Z_ij``, same layouts; residual ``Log(Z⁻¹·Xi⁻¹·Xj)``.
+        information: (m, 6, 6) or (m, 3, 3) symmetric positive definite, translation first.
+        path: the file it was read from, if any.
+        fixed: (k,) int64 indices of vertices named on ``FIX`` lines (empty if none).
+    """
+
+    kind: str
+    vertex_ids: np.ndarray
+    poses: np.ndarray
+    edges: np.ndarray
+    measurements: np.ndarray
+    information: np.ndarray
+    path: str | None = None
+    fixed: np.ndarray = field(default_factory=_empty_index)
+
+    def __post_init__(self) -> None:
+        if self.kind not in _DIMS:
+            raise ValueError(f"PoseGraph.kind: expected 'SE3' or 'SE2', got {self.kind!r}")
+        d, t = _DIMS[self.kind]
+        set_ = lambda name, value: object.__setattr__(self, name, value)
+        set_("vertex_ids", _checked(self.vertex_ids, np.int64, (None,), "vertex_ids"))
+        n = self.vertex_ids.shape[0]
+        set_("poses", _checked(self.poses, np.float64, (n, d), "poses"))
+        set_("edges", _checked(self.edges, np.int64, (None, 2), "edges"))
+        m = self.edges.shape[0]
+        set_("measurements", _checked(self.measurements, np.float64, (m, d), "measurements"))
+        set_("information", _checked(self.information, np.float64, (m, t, t), "information"))
+        set_("fixed", _checked(self.fixed, np.int64, (None,), "fixed"))
+        if self.path is not None:
+            set_("path", os.fspath(self.path))
+        for name in ("edges", "fixed"):
+            idx = getattr(self, name)
+            if idx.size and (idx.min() < 0 or idx.max() >= n):
+                raise ValueError(f"PoseGraph.{name}: indices must lie in [0, {n}), got {idx}")
+
+    @property
+    def n_poses(self) -> int:
+        """Number of vertices n."""
+        return int(self.poses.shape[0])
+
+    @property
+    def n_edges(self) -> int:
+        """Number of edges m."""
+        return int(self.edges.shape[0])
+
+    def __repr__(self) -> str:
+        return (
+            f"PoseGraph(kind={self.kind!r}, n_poses={self.n_poses}, n_edges={self.n_edges}, "
+            f"fixed={self.fixed.tolist()}, path={self.path!r})"
+        )
+
+
+def _checked(value: Any, dtype: Any, shape: tuple[int | None, ...], name: str) -> np.ndarray:
+    """``value`` as a numpy array of ``dtype`` whose shape matches ``shape`` (None: any)."""
+    arr = np.asarray(getattr(value, "data", value))  # accepts jaxpose groups and jax arrays
+    if dtype is np.int64 and arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"PoseGraph.{name}: expected integers, got dtype {arr.dtype}")
+    arr = np.asarray(arr, dtype=dtype)
+    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"PoseGraph.{name}: expected shape {want}, got {arr.shape}")
+    return arr
+
+
+# ----------------------------------------------------------------------------- numpy poses
+# Small float64 helpers shared with jaxpose.datasets (numpy, not JAX: readers and data
+# generators run before any device is involved and must not depend on jax_enable_x64).
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) ``[x, y, z, w]`` quaternions."""
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        -1,
+    )
+
+
+def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate (..., 3) vectors by unit (..., 4) quaternions."""
+    u, w = q[..., :3], q[..., 3:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def _conj(q: np.ndarray) -> np.ndarray:
+    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+
+def _compose(kind: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a · b`` for (..., 7) SE3 or (..., 4) SE2 storage."""
+    if kind == "SE3":
+        q = _quat_mul(a[..., 3:], b[..., 3:])
+        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        return np.concatenate([a[..., :3] + _quat_rotate(a[..., 3:], b[..., :3]), q], -1)
+    c, s = a[..., 2], a[..., 3]
+    bx, by = b[..., 0], b[..., 1]
+    cs = np.stack([c * b[..., 2] - s * b[..., 3], s * b[..., 2] + c * b[..., 3]], -1)
+    cs = cs / np.linalg.norm(cs, axis=-1, keepdims=True)
+    t = np.stack([a[..., 0] + c * bx - s * by, a[..., 1] + s * bx + c * by], -1)
+    return np.concatenate([t, cs], -1)
+
+
+def _inverse(kind: str, x: np.ndarray) -> np.ndarray:
+    """``x⁻¹`` for (..., 7) SE3 or (..., 4) SE2 storage."""
+    if kind == "SE3":
+        qc = _conj(x[..., 3:])
+        return np.concatenate([-_quat_rotate(qc, x[..., :3]), qc], -1)
+    c, s, tx, ty = x[..., 2], x[..., 3], x[..., 0], x[..., 1]
+    return np.stack([-(c * tx + s * ty), s * tx - c * ty, c, -s], -1)
+
+
+def _identity(kind: str) -> np.ndarray:
+    return np.array([0, 0, 0, 0, 0, 0, 1.0]) if kind == "SE3" else np.array([0, 0, 1.0, 0])
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def _convert(
+    path: PathLike, rows: list[list[str]], lines: list[int], k: int, dtype: Any, what: str
+) -> np.ndarray:
+    """(len(rows), k) array from token rows; a bad token raises FormatError at its line."""
+    if not rows:
+        return np.zeros((0, k), dtype)
+    try:
+        return np.array(rows, dtype=dtype).reshape(len(rows), k)
+    except (ValueError, OverflowError):
+        pass
+    for row, ln in zip(rows, lines):
+        for tok in row:
+            try:
+                np.array([tok], dtype=dtype)
+            except (ValueError, OverflowError):
+                raise FormatError(path, ln, f"expected {what}, found {tok!r}") from None
+    raise AssertionError("unreachable: conversion failed but no bad token found")
+
+
+def _check_finite(
+    path: PathLike, values: np.ndarray, lines: list[int], tag: str, names: list[str]
+) -> None:
+    bad = ~np.isfinite(values)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise FormatError(
+            path, lines[r], f"{tag}: expected a finite value for {names[c]}, found {values[r, c]}"
+        )
+
+
+def _unit_quaternions(path: PathLike, q: np.ndarray, lines: list[int], tag: str) -> np.ndarray:
+    norm = np.linalg.norm(q, axis=-1)
+    bad = np.flatnonzero(norm < _MIN_QUAT_NORM)
+    if bad.size:
+        r = bad[0]
+        raise FormatError(
+            path,
+            lines[r],
+            f"{tag}: expected a non-zero quaternion (qx qy qz qw; it is normalised on read), "
+            f"found {q[r].tolist()} with norm {norm[r]:.3g}",
+        )
+    return q / norm[:, None]
+
+
+def _poses_from_values(kind: str, v: np.ndarray) -> np.ndarray:
+    """(k, 7) SE3 from [t, q] (already normalised) or (k, 4) SE2 from [x, y, θ]."""
+    if kind == "SE3":
+        return v
+    return np.stack([v[:, 0], v[:, 1], np.cos(v[:, 2]), np.sin(v[:, 2])], -1)
+
+
+def _information(
+    path: PathLike, upper: np.ndarray, lines: list[int], tag: str, ids: np.ndarray
+) -> np.ndarray:
+    """(m, t, t) symmetric matrices from row-major upper triangles; checked by Cholesky."""
+    m, k = upper.shape
+    t = int(round((np.sqrt(8 * k + 1) - 1) / 2))
+    r, c = np.triu_indices(t)
+    info = np.zeros((m, t, t))
+    info[:, r, c] = upper
+    info[:, c, r] = upper
+    try:
+        np.linalg.cholesky(info)
+        return info
+    except np.linalg.LinAlgError:
+        pass
+    for e in range(m):
+        try:
+            np.linalg.cholesky(info[e])
+        except np.linalg.LinAlgError:
+            eig = np.linalg.eigvalsh(info[e])
+            raise FormatError(
+                path,
+                lines[e],
+                f"{tag} {ids[e, 0]} {ids[e, 1]} (edge {e}): expected a symmetric positive "
+                f"definite information matrix, found one whose Cholesky factorisation fails "
+                f"(smallest eigenvalue {eig[0]:.6g})",
+            ) from None
+    return info  # pragma: no cover - batched and per-edge Cholesky disagree
+
+
+def _index_of(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted ids and the permutation mapping sorted positions to original indices."""
+    order = np.argsort(ids, kind="stable")
+    return ids[order], order
+
+
+def _lookup(sorted_ids: np.ndarray, order: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Indices of ``query`` ids; -1 where absent."""
+    pos = np.clip(np.searchsorted(sorted_ids, query), 0, max(len(sorted_ids) - 1, 0))
+    if not len(sorted_ids):
+        return np.full(query.shape, -1, np.int64)
+    found = sorted_ids[pos] == query
+    return np.where(found, order[pos], -1)
+
+
+def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
+    """Read a g2o pose graph (SE3 or SE2).
+
+    Args:
+        path: file to read.
+        kind: ``"SE3"`` or ``"SE2"`` to require that kind; by default it is inferred from the
+            tags (a file mixing SE2 and SE3 tags is an error).
+
+    Returns:
+        A :class:`PoseGraph`. Quaternions are normalised (zero ones are rejected); SE2 angles
+        become ``(cos θ, sin θ)``; ``FIX id`` lines are collected in ``fixed``.
+
+    Files with edges but no ``VERTEX`` lines (e.g. manhattan.g2o) get vertices for every id
+    named by an edge (``vertex_ids`` sorted ascending) and initial poses from the measurements:
+    the smallest id starts at the identity; whenever a vertex is set, the odometry chain from
+    it (edges ``id → id+1``, the first such edge in file order) is followed as far as it
+    goes; vertices still unset are then reached breadth-first over any edge (edges traversed
+    backwards use ``Z⁻¹``), starting from the earliest set vertices. If the edges form several
+    disconnected pieces, each further piece starts at the identity at its smallest id and a
+    warning says so (the solver needs a fixed pose or prior in each piece).
+
+    Raises:
+        FormatError: ``"FILE:LINE: ..."`` for a wrong number of values, non-numeric or
+            non-finite values, zero quaternions, duplicate vertex ids, edges or FIX lines
+            naming missing vertices, information matrices that are not positive definite,
+            SE2/SE3 tags mixed (or not the requested ``kind``), or no pose-graph lines.
+    """
+    if kind is not None and kind not in _DIMS:
+        raise ValueError(f"read_g2o: kind must be 'SE3', 'SE2' or None, got {kind!r}")
+    text = Path(path).read_text(encoding="utf-8", errors="replace")
+    lines = text.split("\n")
+    rows: dict[str, list[list[str]]] = {"vertex": [], "edge": []}
+    row_lines: dict[str, list[int]] = {"vertex": [], "edge": []}
+    fix_rows: list[tuple[int, list[str]]] = []
+    unknown: dict[str, tuple[int, int]] = {}
+    seen: tuple[str, int] | None = None  # (tag, line) that set the kind
+    for ln, raw in enumerate(lines, 1):
+        toks = raw.split()
+        if not toks or toks[0].startswith("#"):
+            continue
+        tag = toks[0]
+        spec = _SPECS.get(tag)
+        if spec is None:
+            if tag == "FIX":
+                if len(toks) < 2:
+                    raise FormatError(path, ln, "FIX: expected 'FIX id [id ...]', found no id")
+                fix_rows.append((ln, toks[1:]))
+            elif tag.startswith(("VERTEX", "EDGE")):
+                first, count = unknown.get(tag, (ln, 0))
+                unknown[tag] = (first, count + 1)
+            continue
+        tag_kind, role, names = spec
+        if kind is None:
+            kind, seen = tag_kind, (tag, ln)
+        elif tag_kind != kind:
+            why = f"line {seen[1]} has {seen[0]}" if seen else f"kind={kind!r} was requested"
+            raise FormatError(
+                path, ln, f"expected {kind} tags only ({why}), found {tag}: SE2 and SE3 mixed"
+            )
+        n_ids = 1 if role == "vertex" else 2
+        if len(toks) != 1 + n_ids + len(names):
+            raise FormatError(
+                path,
+                ln,
+                f"expected {n_ids + len(names)} values after {tag} ({_LAYOUT[tag]}), "
+                f"found {len(toks) - 1}",
+            )
+        rows[role].append(toks[1:])
+        row_lines[role].append(ln)
+
+    if unknown:
+        listed = ", ".join(f"{t} ({c}x, first on line {f})" for t, (f, c) in unknown.items())
+        warnings.warn(f"{os.fspath(path)}: skipped unsupported lines: {listed}", stacklevel=2)
+    if not rows["vertex"] and not rows["edge"]:
+        raise FormatError(
+            path,
+            max(1, len(lines) - (lines[-1] == "")),
+            "expected VERTEX_SE3:QUAT/EDGE_SE3:QUAT or VERTEX_SE2/EDGE_SE2 lines, found none",
+        )
+    assert kind is not None
+    t = _DIMS[kind][1]
+    vtag, etag = _VERTEX_TAG[kind], _EDGE_TAG[kind]
+    vnames, enames = _SPECS[vtag][2], _SPECS[etag][2]
+    n_meas = len(enames) - t * (t + 1) // 2
+
+    # vertices
+    vrows, vlines = rows["vertex"], row_lines["vertex"]
+    vids = _convert(path, [r[:1] for r in vrows], vlines, 1, np.int64, f"an integer {vtag} id")
+    vids = vids[:, 0]
+    vvals = _convert(path, [r[1:] for r in vrows], vlines, len(vnames), np.float64, "a number")
+    _check_finite(path, vvals, vlines, vtag, vnames)
+    if kind == "SE3":
+        vvals = np.concatenate(
+            [vvals[:, :3], _unit_quaternions(path, vvals[:, 3:], vlines, vtag)], 1
+        )
+    sorted_ids, order = _index_of(vids)
+    dup = np.flatnonzero(sorted_ids[1:] == sorted_ids[:-1])
+    if dup.size:
+        later = [order[k + 1] for k in dup]  # stable sort: order[k] precedes order[k + 1]
+        k = dup[int(np.argmin(later))]
+        raise FormatError(
+            path,
+            vlines[order[k + 1]],
+            f"{vtag}: expected unique vertex ids, found id {sorted_ids[k]} again "
+            f"(first defined on line {vlines[order[k]]})",
+        )
+
+    # edges
+    erows, elines = rows["edge"], row_lines["edge"]
+    eids = _convert(path, [r[:2] for r in erows], elines, 2, np.int64, f"an integer {etag} id")
+    evals = _convert(path, [r[2:] for r in erows], elines, len(enames), np.float64, "a number")
+    _check_finite(path, evals, elines, etag, enames)
+    meas = evals[:, :n_meas]
+    if kind == "SE3":
+        meas = np.concatenate([meas[:, :3], _unit_quaternions(path, meas[:, 3:], elines, etag)], 1)
+    meas = _poses_from_values(kind, meas)
+
+    # fixed ids
+    fix_ids: list[int] = []
+    fix_lines: list[int] = []
+    for ln, toks in fix_rows:
+        ids_ = _convert(path, [toks], [ln], len(toks), np.int64, "an integer FIX id")
+        fix_ids.extend(ids_[0].tolist())
+        fix_lines.extend([ln] * len(toks))
+    fix_arr = np.asarray(fix_ids, np.int64)
+
+    if vrows:
+        edges = _lookup(sorted_ids, order, eids)
+        missing = np.argwhere(edges < 0)
+        if missing.size:
+            e, side = missing[0]
+            raise FormatError(
+                path,
+                elines[e],
+                f"{etag} {eids[e, 0]} {eids[e, 1]}: expected vertex {eids[e, side]} to be "
+                f"defined by a {vtag} line, found none",
+            )
+        fixed = _lookup(sorted_ids, order, fix_arr)
+        poses = _poses_from_values(kind, vvals)
+        vertex_ids = vids
+    else:
+        vertex_ids = np.unique(eids)
+        edges = np.searchsorted(vertex_ids, eids).reshape(-1, 2)
+        fixed = _lookup(vertex_ids, np.arange(len(vertex_ids)), fix_arr)
+        poses = None
+    if (fixed < 0).any():
+        k = int(np.flatnonzero(fixed < 0)[0])
+        where = f"a {vtag} line" if vrows else "an edge"
+        raise FormatError(
+            path,
+            fix_lines[k],
+            f"FIX: expected vertex {fix_arr[k]} to be defined by {where}, found none",
+        )
+    fixed = np.asarray(list(dict.fromkeys(fixed.tolist())), np.int64)
+    info = _information(path, evals[:, n_meas:], elines, etag, eids)
+
+    if poses is None:
+        poses, n_components = _initialise(kind, vertex_ids, edges, meas)
+        if n_components > 1:
+            warnings.warn(
+                f"{os.fspath(path)}: the edges form {n_components} disconnected pieces; each "
+                "piece after the first starts at the identity at its smallest vertex id",
+                stacklevel=2,
+            )
+    return PoseGraph(
+        kind=kind,
+        vertex_ids=vertex_ids,
+        poses=poses,
+        edges=edges,
+        measurements=meas,
+        information=info,
+        path=os.fspath(path),
+        fixed=fixed,
+    )
+
+
+def _adjacency(n: int, edges: np.ndarray) -> list[list[tuple[int, int, bool]]]:
+    """Per vertex, ``(edge, neighbour, forward)`` in edge order; forward means vertex is i."""
+    adj: list[list[tuple[int, int, bool]]] = [[] for _ in range(n)]
+    for e, (i, j) in enumerate(edges.tolist()):
+        adj[i].append((e, j, True))
+        adj[j].append((e, i, False))
+    return adj
+
+
+def _initialise(
+    kind: str, vertex_ids: np.ndarray, edges: np.ndarray, meas: np.ndarray
+) -> tuple[np.ndarray, int]:
+    """Initial poses for an edges-only graph (see :func:`read_g2o`); returns (poses, pieces)."""
+    n = len(vertex_ids)
+    ids = vertex_ids.tolist()
+    odometry: dict[int, int] = {}
+    for e, (i, j) in enumerate(edges.tolist()):
+        if ids[j] == ids[i] + 1 and i not in odometry:
+            odometry[i] = e
+    adj = _adjacency(n, edges)
+    poses = np.zeros((n, _DIMS[kind][0]))
+    done = np.zeros(n, bool)
+    queue: deque[int] = deque()
+
+    def settle(v: int, pose: np.ndarray) -> None:
+        while True:
+            poses[v], done[v] = pose, True
+            queue.append(v)
+            e = odometry.get(v)
+            if e is None or done[edges[e, 1]]:
+                return
+            v, pose = int(edges[e, 1]), _compose(kind, pose, meas[e])
+
+    pieces = 0
+    for start in range(n):  # vertex_ids is sorted, so this is smallest id first
+        if done[start]:
+            continue
+        pieces += 1
+        settle(start, _identity(kind))
+        while queue:
+            v = queue.popleft()
+            for e, w, forward in adj[v]:
+                if not done[w]:
+                    z = meas[e] if forward else _inverse(kind, meas[e])
+                    settle(w, _compose(kind, poses[v], z))
+    return poses, pieces
+
+
+def connected_components(graph: PoseGraph) -> np.ndarray:
+    """(n,) int64 label per vertex; vertices joined by edges (either direction) share a label.
+
+    Labels are 0, 1, ... in order of each piece's first vertex. A solver needs one fixed pose
+    (or a prior) per piece.
+    """
+    n = graph.n_poses
+    parent = np.arange(n)
+
+    def find(v: int) -> int:
+        root = v
+        while parent[root] != root:
+            root = parent[root]
+        while parent[v] != root:
+            parent[v], v = root, parent[v]
+        return root
+
+    for i, j in graph.edges.tolist():
+        ri, rj = find(i), find(j)
+        if ri != rj:
+            parent[max(ri, rj)] = min(ri, rj)
+    roots = np.array([find(v) for v in range(n)], np.int64)
+    _, labels = np.unique(roots, return_inverse=True)
+    return labels.astype(np.int64)
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _fmt(values: list[float]) -> str:
+    return " ".join(map(repr, values))  # shortest text that reads back to the same float
+
+
+def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
+    """Write ``graph`` as a g2o file (full float precision, so reading it back is exact).
+
+    Args:
+        path: file to write (overwritten).
+        graph: the pose graph; its vertex ids, edges, measurements, information and fixed
+            vertices are written.
+        poses: optional (n, 7) / (n, 4) array (or jaxpose group) replacing ``graph.poses``,
+            e.g. the optimised poses.
+
+    SE2 angles are written as ``atan2(sin, cos)``; information matrices as their upper
+    triangle. Vertices come first, then ``FIX`` lines, then edges.
+    """
+    t = _DIMS[graph.kind][1]
+    if poses is None:
+        poses = graph.poses
+    else:
+        poses = np.asarray(getattr(poses, "data", poses), dtype=np.float64)
+        if poses.shape != graph.poses.shape:
+            raise ValueError(
+                f"write_g2o: poses must have shape {graph.poses.shape} like graph.poses "
+                f"({graph.kind} storage), got {poses.shape}"
+            )
+    if graph.kind == "SE2":
+        poses = np.stack([poses[:, 0], poses[:, 1], np.arctan2(poses[:, 3], poses[:, 2])], -1)
+        meas = graph.measurements
+        meas = np.stack([meas[:, 0], meas[:, 1], np.arctan2(meas[:, 3], meas[:, 2])], -1)
+    else:
+        meas = graph.measurements
+    r, c = np.triu_indices(t)
+    upper = graph.information[:, r, c]
+    vtag, etag = _VERTEX_TAG[graph.kind], _EDGE_TAG[graph.kind]
+    ids = graph.vertex_ids.tolist()
+    out = [f"{vtag} {i} {_fmt(p)}" for i, p in zip(ids, poses.tolist())]
+    out += [f"FIX {ids[k]}" for k in graph.fixed.tolist()]
+    ends = graph.vertex_ids[graph.edges].tolist()
+    out += [
+        f"{etag} {i} {j} {_fmt(z)} {_fmt(w)}"
+        for (i, j), z, w in zip(ends, meas.tolist(), upper.tolist())
+    ]
+    Path(path).write_text("\n".join(out) + "\n", encoding="utf-8")
