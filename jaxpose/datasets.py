@@ -219,6 +219,7 @@ def synthetic_pose_graph(
     rng = np.random.default_rng(seed)
     gt, candidates = _trajectory(kind, shape, n, rng)
     gt = _compose(kind, _inverse(kind, gt[:1]), gt)  # re-anchor: first pose at the identity
+    gt[0] = [0, 0, 0, 0, 0, 0, 1] if kind == "SE3" else [0, 0, 1, 0]  # exactly
 
     if loop_closures is None:
         loops = candidates
