@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .io.bal import BALProblem, project_bal
-from .io.g2o import PoseGraph, _compose, _inverse, _quat_mul
+from .io.g2o import PoseGraph, _compose, _compose1, _inverse, _quat_mul
 
 __all__ = ["synthetic_bal", "synthetic_pose_graph"]
 
@@ -244,11 +244,11 @@ def synthetic_pose_graph(
     weights = np.where(sig > 0, 1.0 / np.where(sig > 0, sig, 1.0) ** 2, 1.0)
     info = np.broadcast_to(np.diag(weights), (m, len(sig), len(sig))).copy()
 
-    poses = np.empty_like(gt)
-    poses[0] = gt[0]
     odometry = {int(i): e for e, (i, j) in enumerate(edges.tolist()) if j == i + 1}
+    chain = [gt[0].tolist()]
     for k in range(n - 1):
-        poses[k + 1] = _compose(kind, poses[k], meas[odometry[k]])
+        chain.append(_compose1(kind, chain[-1], meas[odometry[k]].tolist()))
+    poses = np.asarray(chain, np.float64)
     graph = PoseGraph(
         kind=kind,
         vertex_ids=np.arange(n, dtype=np.int64),

@@ -20,6 +20,7 @@ read) and SE2 ``[tx, ty, cos θ, sin θ]``.
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from collections import deque
@@ -197,6 +198,34 @@ def _inverse(kind: str, x: np.ndarray) -> np.ndarray:
         return np.concatenate([-_quat_rotate(qc, x[..., :3]), qc], -1)
     c, s, tx, ty = x[..., 2], x[..., 3], x[..., 0], x[..., 1]
     return np.stack([-(c * tx + s * ty), s * tx - c * ty, c, -s], -1)
+
+
+def _compose1(kind: str, a: list[float], b: list[float]) -> list[float]:
+    """``a · b`` for one pose as plain floats (the sequential chaining loops; ~100x faster
+    than numpy on single poses)."""
+    if kind == "SE3":
+        ax, ay, az, aw = a[3:]
+        bx, by, bz, bw = b[3:]
+        qx = aw * bx + ax * bw + ay * bz - az * by
+        qy = aw * by - ax * bz + ay * bw + az * bx
+        qz = aw * bz + ax * by - ay * bx + az * bw
+        qw = aw * bw - ax * bx - ay * by - az * bz
+        n = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        vx, vy, vz = b[:3]  # rotate b's translation by a's rotation: v + w·t + u × t
+        tx, ty, tz = 2 * (ay * vz - az * vy), 2 * (az * vx - ax * vz), 2 * (ax * vy - ay * vx)
+        return [
+            a[0] + vx + aw * tx + (ay * tz - az * ty),
+            a[1] + vy + aw * ty + (az * tx - ax * tz),
+            a[2] + vz + aw * tz + (ax * ty - ay * tx),
+            qx / n,
+            qy / n,
+            qz / n,
+            qw / n,
+        ]
+    c, s = a[2], a[3]
+    cc, ss = c * b[2] - s * b[3], s * b[2] + c * b[3]
+    n = math.hypot(cc, ss)
+    return [a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], cc / n, ss / n]
 
 
 def _identity(kind: str) -> np.ndarray:
@@ -493,37 +522,38 @@ def _initialise(
     """Initial poses for an edges-only graph (see :func:`read_g2o`); returns (poses, pieces)."""
     n = len(vertex_ids)
     ids = vertex_ids.tolist()
+    ends = edges.tolist()
     odometry: dict[int, int] = {}
-    for e, (i, j) in enumerate(edges.tolist()):
+    for e, (i, j) in enumerate(ends):
         if ids[j] == ids[i] + 1 and i not in odometry:
             odometry[i] = e
     adj = _adjacency(n, edges)
-    poses = np.zeros((n, _DIMS[kind][0]))
-    done = np.zeros(n, bool)
+    forward = meas.tolist()
+    backward = _inverse(kind, meas).tolist()
+    poses: list[list[float] | None] = [None] * n
     queue: deque[int] = deque()
 
-    def settle(v: int, pose: np.ndarray) -> None:
+    def settle(v: int, pose: list[float]) -> None:
         while True:
-            poses[v], done[v] = pose, True
+            poses[v] = pose
             queue.append(v)
             e = odometry.get(v)
-            if e is None or done[edges[e, 1]]:
+            if e is None or poses[ends[e][1]] is not None:
                 return
-            v, pose = int(edges[e, 1]), _compose(kind, pose, meas[e])
+            v, pose = ends[e][1], _compose1(kind, pose, forward[e])
 
     pieces = 0
     for start in range(n):  # vertex_ids is sorted, so this is smallest id first
-        if done[start]:
+        if poses[start] is not None:
             continue
         pieces += 1
-        settle(start, _identity(kind))
+        settle(start, _identity(kind).tolist())
         while queue:
             v = queue.popleft()
-            for e, w, forward in adj[v]:
-                if not done[w]:
-                    z = meas[e] if forward else _inverse(kind, meas[e])
-                    settle(w, _compose(kind, poses[v], z))
-    return poses, pieces
+            for e, w, fwd in adj[v]:
+                if poses[w] is None:
+                    settle(w, _compose1(kind, poses[v], forward[e] if fwd else backward[e]))
+    return np.asarray(poses, np.float64).reshape(n, _DIMS[kind][0]), pieces
 
 
 def connected_components(graph: PoseGraph) -> np.ndarray:
