@@ -1,0 +1,77 @@
+"""Second-order least squares over pytrees of Lie groups and arrays.
+
+``least_squares(residual_fn, params, args, solver=LevenbergMarquardt(...))`` minimises
+``0.5 · Σ ρ(rᵀ W r)`` and returns a :class:`Solution`. Solvers also expose
+``init``/``step`` for hand-driven iterations. See the module docstrings of
+:mod:`~jaxpose.optim.problem` (conventions), :mod:`~jaxpose.optim.strategies`,
+:mod:`~jaxpose.optim.kernels`, :mod:`~jaxpose.optim.correctors`,
+:mod:`~jaxpose.optim.linear`, :mod:`~jaxpose.optim.stopping` and
+:mod:`~jaxpose.optim.implicit`.
+"""
+
+from .correctors import Corrector, FastTriggs, Triggs
+from .implicit import ImplicitAdjoint, UnrolledAdjoint
+from .kernels import (
+    Arctan,
+    Cauchy,
+    GemanMcClure,
+    Huber,
+    Kernel,
+    PseudoHuber,
+    Scale,
+    SoftLOne,
+    Tolerant,
+    Trivial,
+    Tukey,
+    Welsch,
+)
+from .linear import CG, LU, QR, SVD, Cholesky, LinearSolver
+from .problem import Problem
+from .solution import Solution
+from .solve import least_squares
+from .solver import GN, LM, AbstractSolver, GaussNewton, LevenbergMarquardt, SolverState
+from .stopping import Status, StopOnPlateau, Stopping
+from .strategies import Adaptive, Constant, Dogleg, Strategy, TrustRegion
+
+__all__ = [
+    "least_squares",
+    "Solution",
+    "Status",
+    "Problem",
+    "AbstractSolver",
+    "GaussNewton",
+    "LevenbergMarquardt",
+    "GN",
+    "LM",
+    "SolverState",
+    "Strategy",
+    "Constant",
+    "Adaptive",
+    "TrustRegion",
+    "Dogleg",
+    "Kernel",
+    "Trivial",
+    "Huber",
+    "PseudoHuber",
+    "Cauchy",
+    "SoftLOne",
+    "Arctan",
+    "Tolerant",
+    "Scale",
+    "Tukey",
+    "GemanMcClure",
+    "Welsch",
+    "Corrector",
+    "FastTriggs",
+    "Triggs",
+    "LinearSolver",
+    "Cholesky",
+    "QR",
+    "LU",
+    "CG",
+    "SVD",
+    "Stopping",
+    "StopOnPlateau",
+    "ImplicitAdjoint",
+    "UnrolledAdjoint",
+]

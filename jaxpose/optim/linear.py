@@ -1,0 +1,91 @@
+"""Dense linear solvers for the (damped) Gauss-Newton step, built on lineax.
+
+Every solver answers ``solve(jac, res, hess, grad, diag_add) -> δ`` for the system
+
+    (H + diag(a)) δ = −g,      H = J̃ᵀJ̃ (n, n), g = J̃ᵀẽ (n,), a = diag_add (n,) ≥ 0,
+
+with J̃ (m, n) and ẽ (m,) the whitened, kernel-corrected Jacobian and residual. The
+damping vector ``a`` is rebuilt from the undamped H for every trial, so damping never
+compounds across rejected steps. Normal-equation solvers (Cholesky, LU, CG, SVD) use H
+and g; :class:`QR` solves the equivalent augmented least-squares problem
+``[J̃; diag(√a)] δ ≈ [−ẽ; 0]`` without squaring the condition number. No solver raises on
+a singular or indefinite system: the step comes back non-finite (or, for SVD, as the
+minimum-norm pseudo-inverse solution) and the optimiser treats it as a failed trial.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+
+Array = jax.Array
+
+
+class LinearSolver(eqx.Module):
+    """Base class for the step's linear solve."""
+
+    def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        raise NotImplementedError
+
+    def _normal(self, hess: Array, diag_add: Array, tags: object = ()) -> lx.MatrixLinearOperator:
+        a = hess + jnp.diag(diag_add)
+        return lx.MatrixLinearOperator(a, tags)
+
+
+class Cholesky(LinearSolver):
+    """Cholesky of the damped normal matrix (default; H + diag(a) must be SPD)."""
+
+    def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        op = self._normal(hess, diag_add, lx.positive_semidefinite_tag)
+        return lx.linear_solve(op, -grad, lx.Cholesky(), throw=False).value
+
+
+class LU(LinearSolver):
+    """LU with partial pivoting of the damped normal matrix."""
+
+    def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        op = self._normal(hess, diag_add)
+        return lx.linear_solve(op, -grad, lx.LU(), throw=False).value
+
+
+class QR(LinearSolver):
+    """Householder QR of the augmented Jacobian [J̃; diag(√a)] (m + n, n)."""
+
+    def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        aug = jnp.concatenate([jac, jnp.diag(jnp.sqrt(jnp.maximum(diag_add, 0.0)))], 0)
+        rhs = jnp.concatenate([-res, jnp.zeros_like(diag_add)])
+        return lx.linear_solve(lx.MatrixLinearOperator(aug), rhs, lx.QR(), throw=False).value
+
+
+class SVD(LinearSolver):
+    """Pseudo-inverse via SVD of the damped normal matrix: the minimum-norm step for
+    rank-deficient systems (singular values below ``rcond·σ_max`` are dropped)."""
+
+    rcond: float | None = None
+
+    def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        op = self._normal(hess, diag_add)
+        return lx.linear_solve(op, -grad, lx.SVD(rcond=self.rcond), throw=False).value
+
+
+class CG(LinearSolver):
+    """Conjugate gradients on the damped normal matrix (matrix-free in lineax).
+
+    ``rtol``/``atol`` are CG's residual tolerances; ``max_steps`` defaults to 10·n."""
+
+    rtol: float = 1e-10
+    atol: float = 1e-12
+    max_steps: int | None = eqx.field(default=None, static=True)
+
+    def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        n = grad.shape[0]
+        steps = 10 * max(n, 1) if self.max_steps is None else self.max_steps
+        op = self._normal(hess, diag_add, lx.positive_semidefinite_tag)
+        tol_floor = 10 * jnp.finfo(grad.dtype).eps
+        solver = lx.CG(rtol=max(self.rtol, float(tol_floor)), atol=self.atol, max_steps=steps)
+        return lx.linear_solve(op, -grad, solver, throw=False).value
+
+
+__all__ = ["LinearSolver", "Cholesky", "LU", "QR", "SVD", "CG"]

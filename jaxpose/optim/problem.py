@@ -1,0 +1,261 @@
+"""The least-squares problem: residual function, weights, kernels and linearisation.
+
+Conventions
+-----------
+* ``residual_fn(params, args)`` returns a pytree of arrays. Each leaf of shape
+  ``(*batch, d)`` holds ``prod(batch)`` residual *blocks* of dimension d (the last axis,
+  as in PyPose); a 0-d leaf is one block of dimension 1. Kernels act on each block's
+  squared whitened norm.
+* ``weights``: per-block information matrices W (symmetric positive definite). ``None``,
+  one array used for every residual leaf, or a pytree matching the residual with an
+  array or ``None`` per leaf. A weight for a leaf of shape ``(*batch, d)`` is a scalar
+  (W = w·I) or has shape ``(..., d, d)`` broadcastable to ``(*batch, d, d)``.
+* cost = ``0.5 · Σ_blocks ρ(rᵀ W r)``, ρ(s) = s without a kernel.
+* Whitening: W = L Lᵀ (Cholesky), e = Lᵀ r, so ‖e‖² = rᵀ W r; the Jacobian rows are
+  whitened the same way, then corrected for the kernel. Cost, step and gain ratio all
+  use these same whitened quantities, so weights act consistently everywhere.
+* Flattening: residual rows follow ``jax.flatten_util.ravel_pytree`` of the residual
+  pytree; tangent columns follow ``ravel_pytree(manifold.zero_tangent(params))``. Group
+  leaves contribute ``tangent_dim`` columns (right perturbation X·Exp(δ)), never storage
+  (quaternion) columns. A user ``jacobian(params, args)`` must return this (m, n) matrix.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ..lie import manifold
+from .correctors import Corrector, FastTriggs
+from .kernels import Kernel
+
+Array = jax.Array
+PyTree = Any
+
+
+class Linearization(NamedTuple):
+    """Whitened, kernel-corrected residual ẽ (m,) and Jacobian J̃ (m, n) plus the cost."""
+
+    res: Array
+    jac: Array
+    cost: Array
+
+
+def _is_kernel_leaf(x: Any) -> bool:
+    return x is None or isinstance(x, Kernel)
+
+
+def _is_weight_leaf(x: Any) -> bool:
+    return x is None or eqx.is_array_like(x)
+
+
+def _block_dim(shape: tuple[int, ...]) -> tuple[int, tuple[int, ...]]:
+    if len(shape) == 0:
+        return 1, ()
+    return int(shape[-1]), tuple(shape[:-1])
+
+
+class Problem(eqx.Module):
+    """A residual function plus everything that shapes its cost (see module docstring).
+
+    ``jacobian``: ``"auto"`` (jacfwd when the tangent is no larger than the residual,
+    jacrev otherwise), ``"fwd"``, ``"rev"``, or a callable ``(params, args) -> (m, n)``.
+    ``corrector`` defaults to :class:`FastTriggs` when a kernel is given."""
+
+    residual_fn: Callable[[PyTree, PyTree], PyTree]
+    weights: PyTree = None
+    kernel: PyTree = None
+    corrector: Corrector | None = None
+    jacobian: str | Callable[..., Array] = eqx.field(default="auto")
+
+    def __check_init__(self) -> None:
+        if not callable(self.residual_fn):
+            raise TypeError(
+                f"residual_fn: expected a callable residual_fn(params, args), got "
+                f"{type(self.residual_fn).__name__}"
+            )
+        if not (callable(self.jacobian) or self.jacobian in ("auto", "fwd", "rev")):
+            raise ValueError(
+                f"jacobian={self.jacobian!r}: expected 'auto', 'fwd', 'rev' or a callable "
+                f"jacobian(params, args) -> (m, n) array"
+            )
+        if self.corrector is not None and not isinstance(self.corrector, Corrector):
+            raise TypeError(
+                f"corrector: expected a jaxpose.optim Corrector (FastTriggs, Triggs) or None, "
+                f"got {type(self.corrector).__name__}"
+            )
+
+    # ------------------------------------------------------------------------------
+    # trace-time validation
+    # ------------------------------------------------------------------------------
+    def check(self, params: PyTree, args: PyTree) -> None:
+        """Validate weights, kernels and a user Jacobian against the residual's shapes."""
+        try:
+            out = jax.eval_shape(self.residual_fn, params, args)
+        except Exception as err:  # noqa: BLE001 - re-raise with the argument named
+            raise type(err)(f"residual_fn(params, args) failed to trace: {err}") from err
+        leaves, treedef = jax.tree.flatten(out)
+        if not leaves:
+            raise ValueError("residual_fn: returned no arrays (an empty pytree)")
+        for leaf in leaves:
+            if not jnp.issubdtype(leaf.dtype, jnp.floating):
+                raise TypeError(f"residual_fn: returned a {leaf.dtype} array; expected floats")
+        self._weight_leaves(leaves, treedef)
+        self._kernel_leaves(leaves, treedef)
+        if callable(self.jacobian):
+            m = sum(int(np.prod(leaf.shape)) for leaf in leaves)
+            n = manifold.tangent_size(params)
+            j = jax.eval_shape(self.jacobian, params, args)
+            if not hasattr(j, "shape") or tuple(j.shape) != (m, n):
+                got = getattr(j, "shape", type(j).__name__)
+                raise ValueError(
+                    f"jacobian(params, args): expected a dense tangent-space Jacobian of shape "
+                    f"({m}, {n}) (residual size, tangent size), got {got}"
+                )
+
+    def _weight_leaves(self, leaves: list[Any], treedef: Any) -> list[Any]:
+        if self.weights is None:
+            return [None] * len(leaves)
+        if eqx.is_array_like(self.weights):
+            wl = [self.weights] * len(leaves)
+        else:
+            wl, wdef = jax.tree.flatten(self.weights, is_leaf=_is_weight_leaf)
+            if wdef != treedef:
+                raise ValueError(
+                    f"weights: expected None, one array, or a pytree matching the residual "
+                    f"structure {treedef}; got structure {wdef}"
+                )
+        for i, (w, leaf) in enumerate(zip(wl, leaves)):
+            if w is None:
+                continue
+            wshape = tuple(jnp.shape(w))
+            d, batch = _block_dim(tuple(leaf.shape))
+            ok = len(wshape) == 0
+            if len(wshape) >= 2 and wshape[-2:] == (d, d):
+                try:
+                    ok = tuple(np.broadcast_shapes(wshape[:-2], batch)) == batch
+                except ValueError:
+                    ok = False
+            if not ok:
+                raise ValueError(
+                    f"weights: residual leaf {i} has shape {tuple(leaf.shape)} (blocks of "
+                    f"dimension {d}); expected a scalar or an information matrix of shape "
+                    f"(..., {d}, {d}) broadcastable to {(*batch, d, d)}, got shape {wshape}"
+                )
+        return wl
+
+    def _kernel_leaves(self, leaves: list[Any], treedef: Any) -> list[Kernel | None]:
+        if self.kernel is None:
+            return [None] * len(leaves)
+        if isinstance(self.kernel, Kernel):
+            return [self.kernel] * len(leaves)
+        kl, kdef = jax.tree.flatten(self.kernel, is_leaf=_is_kernel_leaf)
+        if kdef != treedef or not all(_is_kernel_leaf(k) for k in kl):
+            raise ValueError(
+                f"kernel: expected a Kernel, None, or a pytree of Kernel/None matching the "
+                f"residual structure {treedef}; got {self.kernel!r}"
+            )
+        return kl
+
+    # ------------------------------------------------------------------------------
+    # evaluation
+    # ------------------------------------------------------------------------------
+    def _blocks(self, out: PyTree, jac: Array | None) -> Linearization:
+        """Whiten, robustify and flatten residual leaves (and Jacobian rows if given)."""
+        leaves, treedef = jax.tree.flatten(out)
+        weights = self._weight_leaves(leaves, treedef)
+        kernels = self._kernel_leaves(leaves, treedef)
+        corrector = self.corrector if self.corrector is not None else FastTriggs()
+        dtype = jnp.result_type(*leaves)
+        res_parts, jac_parts, cost = [], [], jnp.zeros((), dtype)
+        offset = 0
+        for leaf, w, k in zip(leaves, weights, kernels):
+            d, batch = _block_dim(tuple(leaf.shape))
+            nb = int(np.prod(batch))
+            size = nb * d
+            e = jnp.reshape(leaf, (nb, d)).astype(dtype)
+            jb = None if jac is None else jnp.reshape(jac[offset : offset + size], (nb, d, -1))
+            offset += size
+            if w is not None:
+                w = jnp.asarray(w, dtype)
+                if w.ndim == 0:
+                    lw = jnp.sqrt(w)
+                    lw = eqx.error_if(
+                        lw, ~jnp.isfinite(lw) | (w <= 0), "weights: a scalar weight is not positive"
+                    )
+                    e = lw * e
+                    jb = None if jb is None else lw * jb
+                else:
+                    wb = jnp.reshape(jnp.broadcast_to(w, (*batch, d, d)), (nb, d, d))
+                    chol = jnp.linalg.cholesky(wb)
+                    chol = eqx.error_if(
+                        chol,
+                        ~jnp.all(jnp.isfinite(chol)),
+                        "weights: an information matrix is not symmetric positive definite",
+                    )
+                    e = jnp.einsum("bij,bi->bj", chol, e)  # e = Lᵀ r
+                    jb = None if jb is None else jnp.einsum("bij,bin->bjn", chol, jb)
+            s = jnp.sum(e * e, axis=-1)
+            if k is None:
+                cost = cost + 0.5 * jnp.sum(s)
+            else:
+                cost = cost + 0.5 * jnp.sum(k(s))
+                if jb is not None:
+                    e, jb = corrector(k, e, jb)
+            res_parts.append(jnp.reshape(e, (-1,)))
+            if jb is not None:
+                jac_parts.append(jnp.reshape(jb, (size, -1)))
+        res = jnp.concatenate(res_parts)
+        jac_out = None if jac is None else jnp.concatenate(jac_parts, 0)
+        return Linearization(res, jac_out, cost)
+
+    def cost(self, params: PyTree, args: PyTree) -> Array:
+        """``0.5 · Σ ρ(rᵀ W r)`` at ``params`` (a scalar)."""
+        return self._blocks(self.residual_fn(params, args), None).cost
+
+    def linearize(self, params: PyTree, args: PyTree) -> Linearization:
+        """Residual, tangent-space Jacobian (whitened, corrected) and cost at ``params``."""
+        if callable(self.jacobian):
+            out = self.residual_fn(params, args)
+            jac = jnp.asarray(self.jacobian(params, args))
+            return self._blocks(out, jac)
+        flat0, unravel = ravel_pytree(manifold.zero_tangent(params))
+        holder: list[Any] = []
+
+        def f(eps: Array) -> tuple[Array, Array]:
+            out = self.residual_fn(manifold.retract(params, unravel(eps)), args)
+            flat, unravel_out = ravel_pytree(out)
+            holder.append(unravel_out)
+            return flat, flat
+
+        mode = self.jacobian
+        if mode == "auto":
+            out_shape = jax.eval_shape(self.residual_fn, params, args)
+            m = sum(int(np.prod(leaf.shape)) for leaf in jax.tree.leaves(out_shape))
+            mode = "fwd" if flat0.size <= m else "rev"
+        jac_fn = jax.jacfwd if mode == "fwd" else jax.jacrev
+        jac, flat_out = jac_fn(f, has_aux=True)(flat0)
+        out = holder[-1](flat_out)
+        return self._blocks(out, jac)
+
+
+def as_problem(residual_fn: Callable[..., PyTree] | Problem, **kwargs: Any) -> Problem:
+    """Wrap a residual function (or pass a :class:`Problem` through unchanged)."""
+    if isinstance(residual_fn, Problem):
+        extra = {k: v for k, v in kwargs.items() if v is not None and v != "auto"}
+        if extra:
+            raise ValueError(
+                f"least_squares: got a Problem together with {sorted(extra)}; set them on "
+                f"the Problem instead"
+            )
+        return residual_fn
+    return Problem(residual_fn, **kwargs)
+
+
+__all__ = ["Problem", "Linearization", "as_problem"]

@@ -1,0 +1,150 @@
+"""``least_squares``: the one-call solver over pytrees of Lie groups and arrays."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+
+from .correctors import Corrector
+from .implicit import ImplicitAdjoint, UnrolledAdjoint, implicit_solve
+from .problem import Problem, as_problem
+from .solution import Solution
+from .solver import AbstractSolver, LevenbergMarquardt, SolverState
+from .stopping import StopOnPlateau, Stopping
+
+PyTree = Any
+
+
+def _to_solution(state: SolverState, history: bool) -> Solution:
+    return Solution(
+        params=state.best_params,
+        status=state.status,
+        num_steps=state.num_steps,
+        num_accepted=state.num_accepted,
+        cost=state.best_cost,
+        initial_cost=state.initial_cost,
+        grad_norm=jnp.max(jnp.abs(state.system.grad), initial=0.0),
+        history=state.history if history else None,
+    )
+
+
+def _runner(
+    solver: AbstractSolver, stopping: Stopping, *, verbose: bool, history: bool, unrolled: bool
+) -> Callable[[Problem, PyTree, PyTree], Solution]:
+    def run(problem: Problem, params: PyTree, args: PyTree) -> Solution:
+        state = solver.init(problem, params, args, stopping=stopping, history=history)
+
+        def body(s: SolverState) -> SolverState:
+            return solver.step(problem, s, args, stopping=stopping, verbose=verbose)
+
+        def cond(s: SolverState) -> jax.Array:
+            return ~s.done
+
+        if stopping.budget > 0:
+            if unrolled:
+                state = eqxi.while_loop(
+                    cond, body, state, max_steps=stopping.budget, kind="checkpointed"
+                )
+            else:
+                state = jax.lax.while_loop(cond, body, state)
+        return _to_solution(state, history)
+
+    return run
+
+
+def least_squares(
+    residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem,
+    params: PyTree,
+    args: PyTree = None,
+    solver: AbstractSolver | None = None,
+    *,
+    weights: PyTree = None,
+    kernel: PyTree = None,
+    corrector: Corrector | None = None,
+    max_steps: int = 100,
+    cost_atol: float = 0.0,
+    cost_rtol: float = 1e-10,
+    gtol: float = 1e-10,
+    xtol: float = 1e-10,
+    max_rejects: int = 16,
+    stop: StopOnPlateau | None = None,
+    adjoint: str | ImplicitAdjoint | UnrolledAdjoint = "implicit",
+    jacobian: str | Callable[..., jax.Array] = "auto",
+    verbose: bool = False,
+    history: bool = False,
+) -> Solution:
+    """Minimise ``0.5 · Σ_blocks ρ(rᵀ W r)`` with r = ``residual_fn(params, args)``.
+
+    ``params`` is any pytree of :class:`~jaxpose.lie.LieGroup` elements (updated by the
+    right retraction X·Exp(δ)) and arrays (updated by addition). The residual is any
+    pytree of arrays; each leaf ``(*batch, d)`` is a set of d-dimensional blocks (see
+    :class:`~jaxpose.optim.Problem` for ``weights``, ``kernel`` and ``jacobian``). The
+    whole iteration is one ``lax.while_loop`` (a checkpointed one for
+    ``adjoint="unrolled"``), so this function jits and vmaps; under ``vmap`` every
+    problem keeps its own damping, acceptance and stopping.
+
+    Args:
+        solver: :class:`LevenbergMarquardt` (default, TrustRegion strategy, Cholesky) or
+            :class:`GaussNewton`.
+        corrector: :class:`FastTriggs` (default when a kernel is given) or :class:`Triggs`.
+        max_steps: iteration (trial step) budget.
+        cost_atol, cost_rtol: an accepted step decreasing the cost by at most
+            ``cost_atol + cost_rtol·cost`` ends the solve (converged).
+        gtol: converged when the tangent gradient satisfies ‖g‖_∞ ≤ gtol.
+        xtol: converged when a finite trial step has ‖δ‖₂ ≤ xtol.
+        max_rejects: consecutive rejected trials before giving up (DIVERGED, or
+            NON_FINITE when the trials were NaN/Inf).
+        stop: optional :class:`StopOnPlateau` rule.
+        adjoint: ``"implicit"`` (implicit function theorem, one linear solve in the
+            backward pass; see :mod:`jaxpose.optim.implicit`) or ``"unrolled"``
+            (autodiff through the iterations); or an :class:`ImplicitAdjoint` instance.
+        verbose: print one line per iteration from inside jit.
+        history: record the cost after every iteration in ``Solution.history``.
+
+    Returns:
+        :class:`Solution` with the best ``params``, ``status``, ``num_steps``, costs.
+
+    Raises:
+        ValueError / TypeError at trace time for malformed weights, kernels or options;
+        an ``eqx.error_if`` runtime error if ``residual_fn`` (or its Jacobian) is NaN/Inf
+        at the initial ``params``.
+    """
+    solver = LevenbergMarquardt() if solver is None else solver
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(
+            f"solver: expected GaussNewton or LevenbergMarquardt, got {type(solver).__name__}"
+        )
+    problem = as_problem(
+        residual_fn, weights=weights, kernel=kernel, corrector=corrector, jacobian=jacobian
+    )
+    stopping = Stopping(
+        max_steps=max_steps,
+        cost_atol=cost_atol,
+        cost_rtol=cost_rtol,
+        gtol=gtol,
+        xtol=xtol,
+        max_rejects=max_rejects,
+        plateau=stop,
+    )
+    if isinstance(adjoint, str):
+        if adjoint not in ("implicit", "unrolled"):
+            raise ValueError(f"adjoint={adjoint!r}: expected 'implicit' or 'unrolled'")
+        adjoint = ImplicitAdjoint() if adjoint == "implicit" else UnrolledAdjoint()
+    if not isinstance(adjoint, (ImplicitAdjoint, UnrolledAdjoint)):
+        raise TypeError(
+            f"adjoint: expected 'implicit', 'unrolled' or ImplicitAdjoint, got "
+            f"{type(adjoint).__name__}"
+        )
+    problem.check(params, args)
+    unrolled = isinstance(adjoint, UnrolledAdjoint)
+    run = _runner(solver, stopping, verbose=verbose, history=history, unrolled=unrolled)
+    if unrolled:
+        return run(problem, params, args)
+    return implicit_solve(run, problem, params, args, adjoint)
+
+
+__all__ = ["least_squares"]

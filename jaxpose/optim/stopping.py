@@ -1,0 +1,152 @@
+"""Termination: status codes, tolerances and PyPose's StopOnPlateau rule.
+
+All tests are evaluated per problem from scalar state, so under ``vmap`` every problem
+stops on its own. One *iteration* is one trial step (accepted or rejected).
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+
+class Status(enum.IntEnum):
+    """Why a solve stopped (stored as an int32 array in the solution)."""
+
+    RUNNING = -1  #: not finished (only seen when driving ``step`` by hand)
+    CONVERGED = 0  #: a tolerance or the plateau rule was met
+    MAX_STEPS = 1  #: the iteration budget ran out first
+    DIVERGED = 2  #: ``max_rejects`` consecutive finite trials failed to lower the cost
+    NON_FINITE = 3  #: residual/Jacobian became NaN/Inf (``max_rejects`` times in a row,
+    #: or at an accepted point); the best finite estimate is kept
+
+
+class StopOnPlateau(eqx.Module):
+    """PyPose's ``StopOnPlateau`` semantics per iteration.
+
+    * stop after ``steps`` iterations (caps ``max_steps``);
+    * count consecutive iterations whose cost decrease ``last − cost`` is below
+      ``decreasing`` (a rejected trial decreases by 0); stop (CONVERGED) once the count
+      reaches ``patience``.
+
+    As in PyPose's code (its docstring says "relative"), ``decreasing`` is an absolute
+    decrease by default; ``relative=True`` compares ``(last − cost) / last`` instead.
+    Units: this library's cost ``0.5·Σρ`` (PyPose's loss is ``Σρ``, twice as large).
+    Unlike PyPose, a rejected trial does not stop the solve by itself: it only counts
+    towards the patience (PyPose retries inside one step and stops on any rejection).
+    """
+
+    steps: int = eqx.field(static=True)
+    patience: int = eqx.field(default=5, static=True)
+    decreasing: float = 1e-3
+    relative: bool = eqx.field(default=False, static=True)
+
+    def __check_init__(self) -> None:
+        if not (isinstance(self.steps, int) and self.steps >= 1):
+            raise ValueError(f"StopOnPlateau(steps={self.steps!r}): expected an int >= 1")
+        if not (isinstance(self.patience, int) and self.patience >= 1):
+            raise ValueError(f"StopOnPlateau(patience={self.patience!r}): expected an int >= 1")
+
+
+class Stopping(eqx.Module):
+    """Tolerances (all per problem, cost in units of ``0.5·Σρ``).
+
+    * ``max_steps``: iteration budget (→ MAX_STEPS);
+    * ``cost_atol``/``cost_rtol``: an accepted step with decrease
+      ``last − cost ≤ cost_atol + cost_rtol·last`` → CONVERGED;
+    * ``gtol``: ``‖g‖_∞ ≤ gtol`` at the current estimate (g = tangent gradient) →
+      CONVERGED;
+    * ``xtol``: a finite trial step with ``‖δ‖₂ ≤ xtol`` (no meaningful step left) →
+      CONVERGED;
+    * ``max_rejects``: that many consecutive rejected trials → DIVERGED (or NON_FINITE
+      if the last one was not finite);
+    * ``plateau``: optional :class:`StopOnPlateau`.
+    """
+
+    max_steps: int = eqx.field(default=100, static=True)
+    cost_atol: float = 0.0
+    cost_rtol: float = 1e-10
+    gtol: float = 1e-10
+    xtol: float = 1e-10
+    max_rejects: int = eqx.field(default=16, static=True)
+    plateau: StopOnPlateau | None = None
+
+    def __check_init__(self) -> None:
+        if not (isinstance(self.max_steps, int) and self.max_steps >= 0):
+            raise ValueError(f"max_steps={self.max_steps!r}: expected an int >= 0")
+        if not (isinstance(self.max_rejects, int) and self.max_rejects >= 1):
+            raise ValueError(f"max_rejects={self.max_rejects!r}: expected an int >= 1")
+        for name in ("cost_atol", "cost_rtol", "gtol", "xtol"):
+            val = getattr(self, name)
+            if isinstance(val, (int, float)) and val < 0:
+                raise ValueError(f"{name}={val!r}: expected a non-negative tolerance")
+        if self.plateau is not None and not isinstance(self.plateau, StopOnPlateau):
+            raise TypeError(f"stop: expected StopOnPlateau or None, got {type(self.plateau)}")
+
+    @property
+    def budget(self) -> int:
+        """Effective iteration budget (``max_steps`` capped by ``plateau.steps``)."""
+        if self.plateau is None:
+            return self.max_steps
+        return min(self.max_steps, self.plateau.steps)
+
+
+class Trial(NamedTuple):
+    """What one iteration measured (inputs to :func:`check`)."""
+
+    step: Array  # iteration count after this trial (int32)
+    last: Array  # cost before the trial
+    cost: Array  # cost after the trial (== last if rejected)
+    accepted: Array  # bool
+    finite: Array  # bool: trial step, residual and Jacobian all finite
+    step_norm: Array  # ‖δ‖₂
+    grad_inf: Array  # ‖g‖_∞ at the (possibly new) current estimate
+    rejects: Array  # consecutive rejected trials so far (int32)
+    plateau_count: Array  # consecutive non-decreasing iterations so far (int32)
+
+
+def plateau_count(stopping: Stopping, last: Array, cost: Array, count: Array) -> Array:
+    """Update the StopOnPlateau counter after one iteration."""
+    if stopping.plateau is None:
+        return count
+    dec = last - cost
+    if stopping.plateau.relative:
+        dec = dec / jnp.maximum(jnp.abs(last), jnp.finfo(last.dtype).tiny)
+    return jnp.where(dec < stopping.plateau.decreasing, count + 1, 0)
+
+
+def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
+    """(done, status) after one iteration; precedence NON_FINITE > CONVERGED > DIVERGED
+    > MAX_STEPS."""
+    decrease = t.last - t.cost
+    conv = t.accepted & (decrease <= stopping.cost_atol + stopping.cost_rtol * t.last)
+    conv = conv | (t.grad_inf <= stopping.gtol)
+    conv = conv | (t.finite & (t.step_norm <= stopping.xtol))
+    if stopping.plateau is not None:
+        conv = conv | (t.plateau_count >= stopping.plateau.patience)
+    stalled = t.rejects >= stopping.max_rejects
+    nonfinite = stalled & ~t.finite
+    diverged = stalled & t.finite
+    out_of_steps = t.step >= stopping.budget
+    status = jnp.where(
+        nonfinite,
+        Status.NON_FINITE,
+        jnp.where(
+            conv,
+            Status.CONVERGED,
+            jnp.where(
+                diverged, Status.DIVERGED, jnp.where(out_of_steps, Status.MAX_STEPS, Status.RUNNING)
+            ),
+        ),
+    )
+    status = status.astype(jnp.int32)
+    return status != Status.RUNNING, status
+
+
+__all__ = ["Status", "StopOnPlateau", "Stopping", "Trial", "check", "plateau_count"]
