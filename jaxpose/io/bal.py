@@ -152,19 +152,31 @@ def _line_of(lines: list[str], k: int) -> int:
 
 
 def _convert(
-    path: PathLike, lines: list[str], tokens: list[str], start: int, dtype: Any, what: str
+    path: PathLike,
+    lines: list[str],
+    tokens: list[str],
+    start: int,
+    dtype: Any,
+    record: str,
+    names: tuple[str, ...],
 ) -> np.ndarray:
-    """1-D array from ``tokens`` (which begin at file token ``start``); errors name the line."""
+    """1-D array from ``tokens`` (file tokens from ``start`` on), records of ``len(names)``
+    fields; a bad token raises FormatError naming its line, record and field."""
     try:
         return np.array(tokens, dtype=dtype)
     except (ValueError, OverflowError):
         pass
+    what = "an integer" if dtype is np.int64 else "a number"
     for k, tok in enumerate(tokens):
         try:
             np.array([tok], dtype=dtype)
         except (ValueError, OverflowError):
+            r, c = divmod(k, len(names))
+            where = record if record == "header" else f"{record} {r}"
             line = _line_of(lines, start + k)
-            raise FormatError(path, line, f"expected {what}, found {tok!r}") from None
+            raise FormatError(
+                path, line, f"{where}: expected {what} for {names[c]}, found {tok!r}"
+            ) from None
     raise AssertionError("unreachable: conversion failed but no bad token found")
 
 
@@ -188,11 +200,14 @@ def read_bal(path: PathLike) -> BALProblem:
             _line_of(lines, len(tokens)),
             f"expected a header 'n_cameras n_points n_observations', found {len(tokens)} values",
         )
-    header = _convert(path, lines, tokens[:3], 0, np.int64, "a non-negative integer count")
-    for k, what in enumerate(("n_cameras", "n_points", "n_observations")):
+    counts = ("n_cameras", "n_points", "n_observations")
+    header = _convert(path, lines, tokens[:3], 0, np.int64, "header", counts)
+    for k, what in enumerate(counts):
         if header[k] < 0:
             raise FormatError(
-                path, _line_of(lines, k), f"expected a non-negative {what}, found {header[k]}"
+                path,
+                _line_of(lines, k),
+                f"header: expected a non-negative {what}, found {header[k]}",
             )
     n_cam, n_pt, n_obs = (int(v) for v in header)
     sections = [
@@ -222,8 +237,8 @@ def read_bal(path: PathLike) -> BALProblem:
 
     o = 3
     obs_tokens = tokens[o : o + 4 * n_obs]
-    cams = _convert_strided(path, lines, obs_tokens, o, 0, np.int64, "an integer camera index")
-    pts = _convert_strided(path, lines, obs_tokens, o, 1, np.int64, "an integer point index")
+    cams = _convert_strided(path, lines, obs_tokens, o, 0, "camera index")
+    pts = _convert_strided(path, lines, obs_tokens, o, 1, "point index")
     for idx, n, col, what in ((cams, n_cam, 0, "camera"), (pts, n_pt, 1, "point")):
         bad = np.flatnonzero((idx < 0) | (idx >= n))
         if bad.size:
@@ -233,18 +248,20 @@ def read_bal(path: PathLike) -> BALProblem:
                 _line_of(lines, o + 4 * r + col),
                 f"observation {r}: expected a {what} index in [0, {n}), found {idx[r]}",
             )
-    uv = _convert(path, lines, obs_tokens, o, np.float64, "a number")  # indices parse too
+    fields = ("camera", "point", "u", "v")  # the indices are integers, so they parse too
+    uv = _convert(path, lines, obs_tokens, o, np.float64, "observation", fields)
     uv = uv.reshape(n_obs, 4)[:, 2:]
     _finite(path, lines, uv, o, 4, 2, "observation", ("u", "v"))
     o += 4 * n_obs
-    cameras = _convert(path, lines, tokens[o : o + 9 * n_cam], o, np.float64, "a number")
-    cameras = cameras.reshape(n_cam, 9)
     names = ("rx", "ry", "rz", "tx", "ty", "tz", "f", "k1", "k2")
+    cameras = _convert(path, lines, tokens[o : o + 9 * n_cam], o, np.float64, "camera", names)
+    cameras = cameras.reshape(n_cam, 9)
     _finite(path, lines, cameras, o, 9, 0, "camera", names)
     o += 9 * n_cam
-    points = _convert(path, lines, tokens[o : o + 3 * n_pt], o, np.float64, "a number")
+    xyz = ("x", "y", "z")
+    points = _convert(path, lines, tokens[o : o + 3 * n_pt], o, np.float64, "point", xyz)
     points = points.reshape(n_pt, 3)
-    _finite(path, lines, points, o, 3, 0, "point", ("x", "y", "z"))
+    _finite(path, lines, points, o, 3, 0, "point", xyz)
     return BALProblem(
         cameras=cameras,
         points=points,
@@ -256,26 +273,21 @@ def read_bal(path: PathLike) -> BALProblem:
 
 
 def _convert_strided(
-    path: PathLike,
-    lines: list[str],
-    block: list[str],
-    start: int,
-    col: int,
-    dtype: Any,
-    what: str,
+    path: PathLike, lines: list[str], block: list[str], start: int, col: int, what: str
 ) -> np.ndarray:
-    """Column ``col`` of a block of 4-token records starting at file token ``start``."""
+    """Integer column ``col`` of a block of 4-token records starting at file token ``start``."""
     column = block[col::4]
     try:
-        return np.array(column, dtype=dtype).reshape(len(column))
+        return np.array(column, dtype=np.int64).reshape(len(column))
     except (ValueError, OverflowError):
         pass
     for r, tok in enumerate(column):
         try:
-            np.array([tok], dtype=dtype)
+            np.array([tok], dtype=np.int64)
         except (ValueError, OverflowError):
             line = _line_of(lines, start + 4 * r + col)
-            raise FormatError(path, line, f"expected {what}, found {tok!r}") from None
+            msg = f"observation {r}: expected an integer {what}, found {tok!r}"
+            raise FormatError(path, line, msg) from None
     raise AssertionError("unreachable: conversion failed but no bad token found")
 
 

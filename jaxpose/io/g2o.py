@@ -236,21 +236,24 @@ def _identity(kind: str) -> np.ndarray:
 
 
 def _convert(
-    path: PathLike, rows: list[list[str]], lines: list[int], k: int, dtype: Any, what: str
+    path: PathLike, rows: list[list[str]], lines: list[int], dtype: Any, tag: str, names: list[str]
 ) -> np.ndarray:
-    """(len(rows), k) array from token rows; a bad token raises FormatError at its line."""
+    """(len(rows), len(names)) array from token rows; a bad token raises FormatError naming
+    its line and field."""
     if not rows:
-        return np.zeros((0, k), dtype)
+        return np.zeros((0, len(names)), dtype)
     try:
-        return np.array(rows, dtype=dtype).reshape(len(rows), k)
+        return np.array(rows, dtype=dtype).reshape(len(rows), len(names))
     except (ValueError, OverflowError):
         pass
+    what = "an integer" if dtype is np.int64 else "a number"
     for row, ln in zip(rows, lines):
-        for tok in row:
+        for name, tok in zip(names, row):
             try:
                 np.array([tok], dtype=dtype)
             except (ValueError, OverflowError):
-                raise FormatError(path, ln, f"expected {what}, found {tok!r}") from None
+                msg = f"{tag}: expected {what} for {name}, found {tok!r}"
+                raise FormatError(path, ln, msg) from None
     raise AssertionError("unreachable: conversion failed but no bad token found")
 
 
@@ -418,9 +421,8 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
 
     # vertices
     vrows, vlines = rows["vertex"], row_lines["vertex"]
-    vids = _convert(path, [r[:1] for r in vrows], vlines, 1, np.int64, f"an integer {vtag} id")
-    vids = vids[:, 0]
-    vvals = _convert(path, [r[1:] for r in vrows], vlines, len(vnames), np.float64, "a number")
+    vids = _convert(path, [r[:1] for r in vrows], vlines, np.int64, vtag, ["id"])[:, 0]
+    vvals = _convert(path, [r[1:] for r in vrows], vlines, np.float64, vtag, vnames)
     _check_finite(path, vvals, vlines, vtag, vnames)
     if kind == "SE3":
         vvals = np.concatenate(
@@ -440,8 +442,8 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
 
     # edges
     erows, elines = rows["edge"], row_lines["edge"]
-    eids = _convert(path, [r[:2] for r in erows], elines, 2, np.int64, f"an integer {etag} id")
-    evals = _convert(path, [r[2:] for r in erows], elines, len(enames), np.float64, "a number")
+    eids = _convert(path, [r[:2] for r in erows], elines, np.int64, etag, ["i", "j"])
+    evals = _convert(path, [r[2:] for r in erows], elines, np.float64, etag, enames)
     _check_finite(path, evals, elines, etag, enames)
     meas = evals[:, :n_meas]
     if kind == "SE3":
@@ -452,7 +454,7 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
     fix_ids: list[int] = []
     fix_lines: list[int] = []
     for ln, toks in fix_rows:
-        ids_ = _convert(path, [toks], [ln], len(toks), np.int64, "an integer FIX id")
+        ids_ = _convert(path, [toks], [ln], np.int64, "FIX", ["id"] * len(toks))
         fix_ids.extend(ids_[0].tolist())
         fix_lines.extend([ln] * len(toks))
     fix_arr = np.asarray(fix_ids, np.int64)

@@ -105,20 +105,32 @@ def bal_lines(header="1 2 2", obs=("0 0 1.5 2.5", "0 1 -3 4"), cam=CAM, pts=PT +
 BAD = {
     # name: (lines, expected line, message fragment)
     "short header": (["1 2"], 1, "expected a header"),
-    "non-integer header": (bal_lines(header="1 2.0 2"), 1, "found '2.0'"),
+    "non-integer header": (
+        bal_lines(header="1 2.0 2"),
+        1,
+        "header: expected an integer for n_points, found '2.0'",
+    ),
     "negative count": (bal_lines(header="1 2 -2"), 1, "non-negative n_observations"),
     "camera index out of range": (bal_lines(obs=("0 0 1 2", "1 1 3 4")), 3, "camera index"),
     "point index out of range": (bal_lines(obs=("0 0 1 2", "0 2 3 4")), 3, r"in \[0, 2\)"),
     "negative index": (bal_lines(obs=("0 -1 1 2", "0 1 3 4")), 2, "found -1"),
     "non-integer index": (bal_lines(obs=("0 0 1 2", "0 1.0 3 4")), 3, "integer point index"),
-    "non-numeric observation": (bal_lines(obs=("0 0 1 2", "0 1 3 x4")), 3, "found 'x4'"),
+    "non-numeric observation": (
+        bal_lines(obs=("0 0 1 2", "0 1 3 x4")),
+        3,
+        "observation 1: expected a number for v, found 'x4'",
+    ),
     "nan observation": (bal_lines(obs=("0 0 nan 2", "0 1 3 4")), 2, "finite u"),
     "inf camera parameter": (
         bal_lines(cam=CAM[:6] + ["inf"] + CAM[7:]),
         10,
         "camera 0: expected a finite f",
     ),
-    "non-numeric point": (bal_lines(pts=PT + ["0.1", "?", "0.3"]), 17, "found '?'"),
+    "non-numeric point": (
+        bal_lines(pts=PT + ["0.1", "?", "0.3"]),
+        17,
+        "point 1: expected a number for y, found '[?]'",
+    ),
     "truncated points": (bal_lines(pts=PT + ["0.1"]), 16, "expected 6 point coordinates"),
     "truncated observations": (["1 2 3", "0 0 1 2", "0 1 3 4"], 3, "expected 12 observations"),
     "extra values": (bal_lines() + ["7"], 19, "found more: '7'"),
