@@ -8,9 +8,11 @@ with J̃ (m, n) and ẽ (m,) the whitened, kernel-corrected Jacobian and residua
 damping vector ``a`` is rebuilt from the undamped H for every trial, so damping never
 compounds across rejected steps. Normal-equation solvers (Cholesky, LU, CG, SVD) use H
 and g; :class:`QR` solves the equivalent augmented least-squares problem
-``[J̃; diag(√a)] δ ≈ [−ẽ; 0]`` without squaring the condition number. No solver raises on
-a singular or indefinite system: the step comes back non-finite (or, for SVD, as the
-minimum-norm pseudo-inverse solution) and the optimiser treats it as a failed trial.
+``[J̃; diag(√a)] δ ≈ [−ẽ; 0]`` without squaring the condition number (it is not rank
+revealing: undamped it needs J̃ of full column rank). No solver raises on a singular or
+indefinite system: the step comes back non-finite or meaningless (SVD instead returns the
+minimum-norm pseudo-inverse step) and the optimiser treats a non-finite one as a failed
+trial. Any positive damping (LM) makes every solver well posed.
 """
 
 from __future__ import annotations

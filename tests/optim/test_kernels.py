@@ -1,0 +1,113 @@
+"""Robust kernels: closed-form values, first/second derivatives vs autodiff, float32."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxpose.optim as jo
+
+S = np.array([0.0, 1e-8, 0.3, 0.5, 1.0, 2.0, 3.0, 7.5, 40.0])
+
+
+def _softplus(x):
+    return np.log1p(np.exp(-abs(x))) + max(x, 0.0)
+
+
+# closed forms written out independently of the implementation (scalar math/numpy)
+REFS = {
+    "Huber": (jo.Huber(1.3), lambda s: s if s <= 1.69 else 2 * 1.3 * math.sqrt(s) - 1.69),
+    "PseudoHuber": (jo.PseudoHuber(0.7), lambda s: 2 * 0.49 * (math.sqrt(1 + s / 0.49) - 1)),
+    "Cauchy": (jo.Cauchy(1.5), lambda s: 2.25 * math.log(1 + s / 2.25)),
+    "SoftLOne": (jo.SoftLOne(0.8), lambda s: 2 * (0.8 * math.sqrt(1 / 0.64 + s) - 1)),
+    "Arctan": (jo.Arctan(1.2), lambda s: 1.44 * math.atan(s / 1.44)),
+    "Tolerant": (jo.Tolerant(1.0, -1.0),
+                 lambda s: -_softplus(-(s - 1.0)) + _softplus(1.0)),
+    "TolerantCeres": (jo.Tolerant(2.0, 0.5),
+                      lambda s: 0.5 * _softplus((s - 2.0) / 0.5) - 0.5 * _softplus(-4.0)),
+    "Scale": (jo.Scale(0.3), lambda s: 0.3 * s),
+    "Tukey": (jo.Tukey(1.1), lambda s: 1.21 / 3 * (1 - (1 - s / 1.21) ** 3) if s <= 1.21
+              else 1.21 / 3),
+    "GemanMcClure": (jo.GemanMcClure(0.9), lambda s: 0.81 * s / (0.81 + s)),
+    "Welsch": (jo.Welsch(1.7), lambda s: 2.89 * (1 - math.exp(-s / 2.89))),
+    "Trivial": (jo.Trivial(), lambda s: s),
+}
+
+
+@pytest.mark.parametrize("name", sorted(REFS))
+def test_values_match_closed_form(name):
+    kernel, ref = REFS[name]
+    got = np.asarray(kernel(jnp.asarray(S)))
+    want = np.array([ref(float(s)) for s in S])
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+    assert abs(float(kernel(jnp.asarray(0.0)))) < 1e-15  # ρ(0) = 0
+
+
+@pytest.mark.parametrize("name", sorted(REFS))
+def test_derivatives_match_autodiff(name):
+    kernel, _ = REFS[name]
+    d1 = jax.vmap(jax.grad(kernel))
+    d2 = jax.vmap(jax.grad(jax.grad(kernel)))
+    # stay off the non-smooth points of Huber (δ²) and Tukey (δ²) for the 2nd derivative
+    s = jnp.asarray(S[1:])
+    np.testing.assert_allclose(kernel.derivative(s), d1(s), rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(kernel.second_derivative(s), d2(s), rtol=1e-9, atol=1e-14)
+    # finite and correct at s = 0 under both derivative modes
+    z = jnp.zeros((1,))
+    assert np.all(np.isfinite(d1(z))) and np.all(np.isfinite(d2(z)))
+    np.testing.assert_allclose(kernel.derivative(z), d1(z), rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(REFS))
+def test_float32_path(name):
+    kernel, ref = REFS[name]
+    s32 = jnp.asarray(S, jnp.float32)
+    for fn in (kernel, kernel.derivative, kernel.second_derivative):
+        out = fn(s32)
+        assert out.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(out)))
+    np.testing.assert_allclose(kernel(s32), [ref(float(s)) for s in S], rtol=2e-6, atol=1e-6)
+
+
+def test_kernel_shapes_and_robustness_properties():
+    s = jnp.linspace(0.0, 50.0, 101)
+    for name, (kernel, _) in REFS.items():
+        d = kernel.derivative(s)
+        assert d.shape == s.shape
+        if name not in ("Trivial", "Scale", "TolerantCeres"):
+            # robust kernels down-weight large residuals
+            assert float(d[-1]) < float(d[1]), name
+    # bounded kernels saturate at their documented bounds
+    big = jnp.asarray(1e12)
+    assert float(jo.Tukey(1.1)(big)) == pytest.approx(1.21 / 3)
+    assert float(jo.GemanMcClure(0.9)(big)) == pytest.approx(0.81, rel=1e-9)
+    assert float(jo.Welsch(1.7)(big)) == pytest.approx(2.89)
+    assert float(jo.Arctan(1.2)(big)) == pytest.approx(1.44 * math.pi / 2, rel=1e-9)
+
+
+def test_invalid_parameters_raise():
+    with pytest.raises(ValueError, match="delta"):
+        jo.Huber(0.0)
+    with pytest.raises(ValueError, match="delta"):
+        jo.Cauchy(-1.0)
+    with pytest.raises(ValueError, match="b"):
+        jo.Tolerant(1.0, 0.0)
+
+
+@pytest.mark.peer
+def test_values_match_pypose():
+    torch = pytest.importorskip("torch")
+    ppk = pytest.importorskip("pypose.optim.kernel")
+    x = torch.tensor(S, dtype=torch.float64)
+    pairs = [
+        (ppk.Huber(1.3), jo.Huber(1.3)), (ppk.PseudoHuber(0.7), jo.PseudoHuber(0.7)),
+        (ppk.Cauchy(1.5), jo.Cauchy(1.5)), (ppk.SoftLOne(0.8), jo.SoftLOne(0.8)),
+        (ppk.Arctan(1.2), jo.Arctan(1.2)), (ppk.Tolerant(1.0, -1.0), jo.Tolerant(1.0, -1.0)),
+        (ppk.Scale(0.3), jo.Scale(0.3)),
+    ]
+    for theirs, ours in pairs:
+        np.testing.assert_allclose(ours(jnp.asarray(S)), theirs(x).numpy(), rtol=1e-12,
+                                   atol=1e-14, err_msg=type(ours).__name__)
