@@ -1,0 +1,1 @@
+"""Control: LQR, iLQR with box limits, differentiable MPC."""

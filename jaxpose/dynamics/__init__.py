@@ -1,0 +1,33 @@
+"""Discrete-time systems, linearisation, rollouts and integrators.
+
+``System`` (base: ``state_transition(x, u, t)``, ``observation(x, u, t)``), ``LTI``,
+``LTV``, ``NLS`` (per-element ``jacfwd`` linearisation), :func:`rollout` (``lax.scan``),
+``ContinuousSystem`` / ``Discretized`` with Euler and RK4 steps, and benchmark models.
+"""
+
+from .integrators import (
+    ContinuousSystem,
+    Discretized,
+    euler_step,
+    integrate,
+    rk4_step,
+)
+from .models import Bicycle, CartPole, Pendulum
+from .system import LTI, LTV, NLS, Linearization, System, rollout
+
+__all__ = [
+    "LTI",
+    "LTV",
+    "NLS",
+    "Bicycle",
+    "CartPole",
+    "ContinuousSystem",
+    "Discretized",
+    "Linearization",
+    "Pendulum",
+    "System",
+    "euler_step",
+    "integrate",
+    "rk4_step",
+    "rollout",
+]

@@ -1,0 +1,109 @@
+"""Argument validation shared by dynamics, filters and control.
+
+Shape and type checks run at trace time. Value checks (positive semi-definiteness,
+finiteness) run only on concrete arrays: under ``jit``/``grad`` tracing the values are
+unknown and the check is skipped (solvers then report a status instead).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Array = jax.Array
+
+
+def is_concrete(x: Any) -> bool:
+    """True when ``x`` holds known values (not a tracer)."""
+    return not isinstance(x, jax.core.Tracer)
+
+
+def as_array(x: Any, name: str, ndim: int | tuple[int, ...] | None = None) -> Array:
+    """Floating JAX array with an optional exact ``ndim`` (or allowed set)."""
+    if x is None:
+        raise TypeError(f"{name}: expected an array, got None")
+    if isinstance(x, (str, bytes, dict, set)):
+        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}")
+    try:
+        arr = jnp.asarray(x)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}") from err
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+            raise TypeError(f"{name}: expected a real floating array, got {arr.dtype}")
+        arr = arr.astype(jnp.result_type(float))
+    if ndim is not None:
+        allowed = (ndim,) if isinstance(ndim, int) else ndim
+        if arr.ndim not in allowed:
+            want = " or ".join(str(d) for d in allowed)
+            raise ValueError(
+                f"{name}: expected an array with {want} dimensions, got shape {tuple(arr.shape)}"
+            )
+    return arr
+
+
+def check_shape(arr: Array, shape: tuple[int | None, ...], name: str, what: str = "") -> None:
+    """Exact shape check; ``None`` entries match any size."""
+    ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
+    if not ok:
+        want = "(" + ", ".join("·" if s is None else str(s) for s in shape) + ")"
+        extra = f" ({what})" if what else ""
+        raise ValueError(f"{name}: expected shape {want}{extra}, got {tuple(arr.shape)}")
+
+
+def check_last(arr: Array, size: int, name: str, what: str) -> None:
+    """``arr.shape[-1] == size`` with an error naming the argument and its meaning."""
+    if arr.ndim == 0 or arr.shape[-1] != size:
+        raise ValueError(
+            f"{name}: expected last dimension {size} ({what}), got shape {tuple(arr.shape)}"
+        )
+
+
+def check_psd(mat: Array, name: str, *, strict: bool = False, symmetric: bool = True) -> None:
+    """Raise if a concrete matrix (or stack) is not symmetric positive (semi-)definite.
+
+    ``strict`` requires positive definiteness (covariances that are inverted);
+    ``symmetric=False`` checks only the symmetric part (quadratic-form weights). Tolerances
+    scale with the matrix norm and the dtype's precision."""
+    if mat.ndim < 2 or mat.shape[-1] != mat.shape[-2]:
+        raise ValueError(f"{name}: expected square matrices (..., k, k), got {tuple(mat.shape)}")
+    if not is_concrete(mat):
+        return
+    m = np.asarray(mat, dtype=np.float64)
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"{name}: contains non-finite values")
+    eps = float(jnp.finfo(mat.dtype).eps)
+    scale = max(1.0, float(np.max(np.abs(m)))) if m.size else 1.0
+    asym = float(np.max(np.abs(m - np.swapaxes(m, -1, -2)))) if m.size else 0.0
+    if symmetric and asym > 1e3 * eps * scale:
+        raise ValueError(f"{name}: expected a symmetric matrix (max |M − Mᵀ| = {asym:.3g})")
+    if m.size == 0:
+        return
+    w = np.linalg.eigvalsh(0.5 * (m + np.swapaxes(m, -1, -2)))
+    lo = float(np.min(w))
+    if strict and lo <= 0.0:
+        raise ValueError(
+            f"{name}: expected a positive-definite matrix, smallest eigenvalue {lo:.3g}"
+        )
+    if lo < -1e2 * eps * scale * m.shape[-1]:
+        raise ValueError(
+            f"{name}: expected a positive semi-definite matrix, smallest eigenvalue {lo:.3g}"
+        )
+
+
+def check_horizon(horizon: Any, name: str = "horizon") -> int:
+    """A positive Python int (static: it sets array shapes)."""
+    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):
+        raise TypeError(f"{name}: expected a positive int, got {type(horizon).__name__}")
+    if int(horizon) <= 0:
+        raise ValueError(f"{name}: expected a positive int, got {int(horizon)}")
+    return int(horizon)
+
+
+def check_finite(x: Array, name: str) -> None:
+    """Raise on concrete non-finite values (no-op under tracing)."""
+    if is_concrete(x) and not bool(jnp.all(jnp.isfinite(x))):
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
