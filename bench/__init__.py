@@ -1,0 +1,1 @@
+"""Benchmarks: jaxpose side by side with its peers (see DESIGN.md, "Benchmarks")."""

@@ -1,0 +1,547 @@
+"""Lie-group micro-benchmark (the seed paper's): jaxpose vs PyPose vs jaxlie on so3.
+
+    f1 = Log(Exp(x)),  f2 = Log(Exp(x)·Exp(y)),  f3 = Exp(x)·p
+
+each as values and as batched Jacobians (one 3×3 Jacobian per independent batch element:
+f1, f2 w.r.t. x, f3 w.r.t. x), at several batch sizes, side by side in one process on
+the same inputs. jaxpose and jaxlie: ``jit`` (+ ``vmap(jacfwd)`` for Jacobians); PyPose
+on torch CPU, Jacobians the way PyPose users write them: one backward pass per output
+row (``torch.autograd.grad`` with a one-hot ``grad_outputs``).
+
+Usage::
+
+    python bench/lie_ops.py [--quick] [--dtype float32|float64]
+                            [--batches 1000,100000,1000000] [--out FILE.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import jax
+import numpy as np
+
+from bench._common import (
+    Peer,
+    Timing,
+    environment,
+    fmt_batch,
+    fmt_rate,
+    fmt_ratio,
+    fmt_seconds,
+    import_peer,
+    markdown_table,
+    time_callable,
+    time_jax,
+)
+
+FUNCS = ("f1", "f2", "f3")
+KINDS = ("value", "jac")
+FUNC_DOC = {
+    "f1": "Log(Exp(x))",
+    "f2": "Log(Exp(x)·Exp(y))",
+    "f3": "Exp(x)·p",
+}
+MAX_ANGLE = 1.5  # |x|, |y| ≤ 1.5 so Log(Exp(x)·Exp(y)) stays below π (no 2π ambiguity)
+
+
+# ----------------------------------------------------------------------------------
+# Inputs
+# ----------------------------------------------------------------------------------
+def make_inputs(batch: int, dtype: str, seed: int = 0) -> dict[str, np.ndarray]:
+    """x, y: rotation vectors (uniform axis, angle uniform in [0, MAX_ANGLE]); p: points."""
+    rng = np.random.default_rng(seed)
+
+    def rotvec() -> np.ndarray:
+        axis = rng.normal(size=(batch, 3))
+        axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+        return axis * rng.uniform(0.0, MAX_ANGLE, size=(batch, 1))
+
+    x, y = rotvec(), rotvec()
+    p = rng.normal(size=(batch, 3))
+    return {k: v.astype(dtype) for k, v in {"x": x, "y": y, "p": p}.items()}
+
+
+def second_arg(fname: str) -> str | None:
+    return {"f1": None, "f2": "y", "f3": "p"}[fname]
+
+
+# ----------------------------------------------------------------------------------
+# Contestants: JAX-based (jaxpose, jaxlie, prototypes)
+# ----------------------------------------------------------------------------------
+def _jaxpose_funcs() -> dict[str, Callable[..., Any]]:
+    from jaxpose.lie.so3 import SO3
+
+    return {
+        "f1": lambda x: SO3.exp(x).log().data,
+        "f2": lambda x, y: (SO3.exp(x) @ SO3.exp(y)).log().data,
+        "f3": lambda x, p: SO3.exp(x) @ p,
+    }
+
+
+def _jaxlie_funcs(jaxlie: Any) -> dict[str, Callable[..., Any]]:
+    S = jaxlie.SO3
+    return {
+        "f1": lambda x: S.exp(x).log(),
+        "f2": lambda x, y: (S.exp(x) @ S.exp(y)).log(),
+        "f3": lambda x, p: S.exp(x) @ p,
+    }
+
+
+def _jax_programs(
+    funcs: dict[str, Callable[..., Any]], vmap_values: bool
+) -> dict[tuple[str, str], Callable[..., Any]]:
+    """Values (batched natively or by vmap) and vmap(jacfwd) Jacobians w.r.t. x."""
+    progs: dict[tuple[str, str], Callable[..., Any]] = {}
+    for name, f in funcs.items():
+        progs[(name, "value")] = jax.vmap(f) if vmap_values else f
+        progs[(name, "jac")] = jax.vmap(jax.jacfwd(f, argnums=0))
+    return progs
+
+
+@dataclass
+class JaxContestant:
+    """A contestant run through ``jax.jit``; programs keyed by (function, kind)."""
+
+    name: str
+    programs: dict[tuple[str, str], Callable[..., Any]]
+
+    def run(self, fname: str, kind: str, inputs: dict[str, Any], cfg: Config):
+        args = [inputs["x"]] + ([inputs[a]] if (a := second_arg(fname)) else [])
+        timing, out = time_jax(self.programs[(fname, kind)], *args, **cfg.timing_kw)
+        return timing, np.asarray(out)
+
+
+# ----------------------------------------------------------------------------------
+# PROTOTYPE — NOT jaxpose. A suggested rewrite of jaxpose/lie/quaternion.py's exp, log,
+# multiply and rotate, timed with --prototype to prove the suggestion (see the closing
+# report of bench/lie_ops.py). Three changes:
+#  1. No libm transcendentals: XLA:CPU lowers sin/cos/atan2 to scalar libm calls
+#     (~20-50 ns per element) while + * / sqrt round vectorise (~1 ns). exp uses Taylor
+#     polynomials in t = (θ/2)² below θ/2 = π/4 and Cody-Waite range reduction above;
+#     log is branch-free: three half-angle steps bring atan's argument into s < 0.04
+#     where the atan(x)/x series converges, all from n² (smooth at n = 0).
+#  2. Structure of arrays: work on (…,) components and stack once at the end, instead
+#     of slicing (…, 3)/(…, 4) arrays, summing over the last axis and concatenating.
+#  3. custom_jvp rules whose scalar coefficients (and their t-derivatives, by an
+#     elementwise jvp) are computed once per element and materialised with
+#     optimization_barrier; without it XLA:CPU re-fuses the whole primal polynomial
+#     chain into every tangent/basis column of vmap(jacfwd) (9x duplicated, and the
+#     (B, 3, 3) output fusion is not vectorised).
+# Polynomials are truncated per dtype (float32 needs about half the terms of float64).
+# Higher derivatives still work: the rules are themselves differentiable.
+# ----------------------------------------------------------------------------------
+def _proto_poly(kind: str, dtype: Any) -> tuple[float, ...]:
+    """Taylor coefficients in u² on the reduced range, truncated for ``dtype``."""
+    import math
+
+    rel = 1e-9 if np.dtype(dtype) == np.float32 else 1e-18
+    if kind == "sin":  # sin(r)/r in r², |r| ≤ π/4
+        c, x0 = [(-1) ** k / math.factorial(2 * k + 1) for k in range(30)], (math.pi / 4) ** 2
+    elif kind == "cos":  # cos(r) in r², |r| ≤ π/4
+        c, x0 = [(-1) ** k / math.factorial(2 * k) for k in range(30)], (math.pi / 4) ** 2
+    else:  # atan(x)/x in x², x² < 0.04
+        c, x0 = [(-1) ** k / (2 * k + 1) for k in range(60)], 0.04
+    n = next(k for k in range(len(c)) if abs(c[k]) * x0**k < rel)
+    return tuple(c[: n + 1])
+
+
+def _proto_horner(coeffs: tuple[float, ...], t: Any) -> Any:
+    out = coeffs[-1]
+    for c in coeffs[-2::-1]:
+        out = out * t + c
+    return out
+
+
+def _proto_exp_coeffs(t: Any) -> tuple[Any, Any]:
+    """(sin(h)/(2h), cos h) from t = h², without sin/cos calls."""
+    import jax.numpy as jnp
+
+    S, C = _proto_poly("sin", t.dtype), _proto_poly("cos", t.dtype)
+    t0 = (np.pi / 4) ** 2
+    small = t < t0
+    ts = jnp.where(small, t, 0.0)  # series branch: polynomials in t (smooth at 0)
+    s_small, w_small = 0.5 * _proto_horner(S, ts), _proto_horner(C, ts)
+    h = jnp.sqrt(jnp.where(small, t0, t))  # reduced branch: h ≥ π/4
+    k = jnp.round(h * (2 / np.pi))
+    r = (h - k * 1.5707963267341256) - k * 6.077100506506192e-11  # Cody-Waite π/2
+    r2 = r * r
+    sr, cr = r * _proto_horner(S, r2), _proto_horner(C, r2)
+    q = k - 4.0 * jnp.floor(0.25 * k)  # quadrant 0..3
+    sin_h = jnp.where(q == 0, sr, jnp.where(q == 1, cr, jnp.where(q == 2, -sr, -cr)))
+    cos_h = jnp.where(q == 0, cr, jnp.where(q == 1, -sr, jnp.where(q == 2, -cr, sr)))
+    return jnp.where(small, s_small, sin_h / (2.0 * h)), jnp.where(small, w_small, cos_h)
+
+
+def _proto_log_coeff(n2: Any, w: Any) -> Any:
+    """2·atan2(n, w)/n for w ≥ 0 from n² (branch-free, no atan2)."""
+    import jax.numpy as jnp
+
+    A = _proto_poly("atan", n2.dtype)
+    d = jnp.sqrt(n2 + w * w) + w  # α = 2·atan(n/d)
+    s0 = n2 / (d * d)
+    g1 = 1.0 / (1.0 + jnp.sqrt(1.0 + s0))  # tan(x/2) = tan x / (1 + sec x)
+    s1 = s0 * g1 * g1
+    g2 = 1.0 / (1.0 + jnp.sqrt(1.0 + s1))
+    return 16.0 * g1 * g2 * _proto_horner(A, s1 * g2 * g2) / d
+
+
+def _proto_barrier(*xs: Any) -> Any:
+    return jax.lax.optimization_barrier(xs)
+
+
+@jax.custom_jvp
+def _proto_exp(x: Any, y: Any, z: Any) -> tuple[Any, Any, Any, Any]:
+    """Quaternion components of Exp([x, y, z])."""
+    s, w = _proto_barrier(*_proto_exp_coeffs(0.25 * (x * x + y * y + z * z)))
+    return x * s, y * s, z * s, w
+
+
+@_proto_exp.defjvp
+def _proto_exp_jvp(primals: Any, tangents: Any) -> Any:
+    import jax.numpy as jnp
+
+    x, y, z = primals
+    dx, dy, dz = tangents
+    t = 0.25 * (x * x + y * y + z * z)
+    (s, w), (s_t, w_t) = jax.jvp(_proto_exp_coeffs, (t,), (jnp.ones_like(t),))
+    s, w, s_t, w_t = _proto_barrier(s, w, s_t, w_t)
+    dt = 0.5 * (x * dx + y * dy + z * dz)
+    ds = s_t * dt
+    return (x * s, y * s, z * s, w), (dx * s + x * ds, dy * s + y * ds, dz * s + z * ds, w_t * dt)
+
+
+@jax.custom_jvp
+def _proto_log(qx: Any, qy: Any, qz: Any, qw: Any) -> tuple[Any, Any, Any]:
+    """Log of a quaternion (angle in [0, π])."""
+    import jax.numpy as jnp
+
+    sign = jnp.where(qw < 0, -1.0, 1.0).astype(qx.dtype)
+    (f,) = _proto_barrier(sign * _proto_log_coeff(qx * qx + qy * qy + qz * qz, qw * sign))
+    return qx * f, qy * f, qz * f
+
+
+@_proto_log.defjvp
+def _proto_log_jvp(primals: Any, tangents: Any) -> Any:
+    import jax.numpy as jnp
+
+    qx, qy, qz, qw = primals
+    dqx, dqy, dqz, dqw = tangents
+    sign = jnp.where(qw < 0, -1.0, 1.0).astype(qx.dtype)
+    n2, w = qx * qx + qy * qy + qz * qz, qw * sign
+    one, zero = jnp.ones_like(n2), jnp.zeros_like(n2)
+    f, f_n2 = jax.jvp(_proto_log_coeff, (n2, w), (one, zero))
+    f_w = jax.jvp(_proto_log_coeff, (n2, w), (zero, one))[1]
+    f, f_n2, f_w = _proto_barrier(sign * f, sign * f_n2, f_w)  # f is odd in the sign
+    df = f_n2 * 2.0 * (qx * dqx + qy * dqy + qz * dqz) + f_w * dqw
+    return (qx * f, qy * f, qz * f), (dqx * f + qx * df, dqy * f + qy * df, dqz * f + qz * df)
+
+
+def _proto_mul(a: tuple[Any, ...], b: tuple[Any, ...]) -> tuple[Any, Any, Any, Any]:
+    x1, y1, z1, w1 = a
+    x2, y2, z2, w2 = b
+    return (
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+    )
+
+
+def _proto_rotate(q: tuple[Any, ...], p: tuple[Any, ...]) -> tuple[Any, Any, Any]:
+    x, y, z, w = q
+    px, py, pz = p
+    tx, ty, tz = 2 * (y * pz - z * py), 2 * (z * px - x * pz), 2 * (x * py - y * px)
+    return (
+        px + w * tx + y * tz - z * ty,
+        py + w * ty + z * tx - x * tz,
+        pz + w * tz + x * ty - y * tx,
+    )
+
+
+def _proto_funcs() -> dict[str, Callable[..., Any]]:
+    import jax.numpy as jnp
+
+    def split(a: Any) -> tuple[Any, ...]:
+        return tuple(a[..., i] for i in range(a.shape[-1]))
+
+    def stack(c: tuple[Any, ...]) -> Any:
+        return jnp.stack(c, -1)
+
+    return {
+        "f1": lambda x: stack(_proto_log(*_proto_exp(*split(x)))),
+        "f2": lambda x, y: stack(
+            _proto_log(*_proto_mul(_proto_exp(*split(x)), _proto_exp(*split(y))))
+        ),
+        "f3": lambda x, p: stack(_proto_rotate(_proto_exp(*split(x)), split(p))),
+    }
+
+# ----------------------------------------------------------------------------------
+# Contestant: PyPose (torch CPU)
+# ----------------------------------------------------------------------------------
+@dataclass
+class PyPoseContestant:
+    """PyPose LieTensors on torch CPU; Jacobians by one backward pass per output row."""
+
+    pp: Any
+    torch: Any
+    name: str = "PyPose"
+
+    def _f(self, fname: str) -> Callable[..., Any]:
+        pp = self.pp
+        return {
+            "f1": lambda x: pp.so3(x).Exp().Log().tensor(),
+            "f2": lambda x, y: (pp.so3(x).Exp() * pp.so3(y).Exp()).Log().tensor(),
+            "f3": lambda x, p: pp.so3(x).Exp().Act(p),
+        }[fname]
+
+    def run(self, fname: str, kind: str, inputs: dict[str, Any], cfg: Config):
+        torch = self.torch
+        f = self._f(fname)
+        x = torch.from_numpy(inputs["x"])
+        rest = [torch.from_numpy(inputs[a])] if (a := second_arg(fname)) else []
+        if kind == "value":
+            def call() -> Any:
+                with torch.no_grad():
+                    return f(x, *rest)
+        else:
+            onehots = []
+            for i in range(3):
+                e = torch.zeros_like(x)
+                e[:, i] = 1.0
+                onehots.append(e)
+
+            def call() -> Any:
+                xg = x.detach().requires_grad_(True)
+                out = f(xg, *rest)
+                rows = [
+                    torch.autograd.grad(out, xg, grad_outputs=onehots[i], retain_graph=i < 2)[0]
+                    for i in range(3)
+                ]
+                return torch.stack(rows, -2)  # (B, 3 outputs, 3 inputs)
+
+        timing, out = time_callable(call, **cfg.timing_kw)
+        return timing, out.detach().numpy()
+
+
+# ----------------------------------------------------------------------------------
+# Driver
+# ----------------------------------------------------------------------------------
+@dataclass
+class Config:
+    dtype: str = "float32"
+    batches: tuple[int, ...] = (1_000, 100_000, 1_000_000)
+    timing_kw: dict[str, Any] = field(default_factory=dict)
+    prototype: bool = False
+    funcs: tuple[str, ...] = FUNCS
+    kinds: tuple[str, ...] = KINDS
+
+
+@dataclass
+class Cell:
+    fname: str
+    kind: str
+    batch: int
+    timings: dict[str, Timing | None]
+    maxdiff: dict[str, float | None]  # vs jaxpose
+
+
+def bar_for(kind: str, batch: int) -> float | None:
+    """Required jaxpose/PyPose speed ratio from issue #2 (None: no bar at this B)."""
+    if batch <= 1_000:
+        return 10.0
+    if batch >= 100_000:
+        return 1.0 if kind == "value" else 2.0
+    return None
+
+
+def build_contestants(cfg: Config, skip: Sequence[str] = ()) -> tuple[list[Any], list[Peer]]:
+    """jaxpose plus whichever peers are installed (missing ones are reported skipped)."""
+    contestants: list[Any] = [JaxContestant("jaxpose", _jax_programs(_jaxpose_funcs(), False))]
+    peers: list[Peer] = []
+    pp = import_peer("pypose") if "pypose" not in skip else Peer("pypose", None, None, "--skip")
+    peers.append(pp)
+    if pp.available:
+        import torch
+
+        contestants.append(PyPoseContestant(pp.module, torch))
+    jl = import_peer("jaxlie") if "jaxlie" not in skip else Peer("jaxlie", None, None, "--skip")
+    peers.append(jl)
+    if jl.available:
+        contestants.append(JaxContestant("jaxlie", _jax_programs(_jaxlie_funcs(jl.module), True)))
+    if cfg.prototype:
+        contestants.append(JaxContestant("proto", _jax_programs(_proto_funcs(), False)))
+    return contestants, peers
+
+
+def run(cfg: Config, skip: Sequence[str] = (), log: Callable[[str], None] | None = None):
+    """Run every cell; returns (cells, peers, contestant names)."""
+    if cfg.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    log = log or (lambda s: None)
+    contestants, peers = build_contestants(cfg, skip)
+    names = [c.name for c in contestants]
+    cells: list[Cell] = []
+    for batch in cfg.batches:
+        host = make_inputs(batch, cfg.dtype)
+        dev = {k: jax.device_put(v) for k, v in host.items()}
+        for fname in cfg.funcs:
+            for kind in cfg.kinds:
+                timings: dict[str, Timing | None] = {}
+                outs: dict[str, np.ndarray] = {}
+                for c in contestants:
+                    t0 = time.perf_counter()
+                    inputs = dev if isinstance(c, JaxContestant) else host
+                    timings[c.name], outs[c.name] = c.run(fname, kind, inputs, cfg)
+                    log(f"  B={batch:>8} {fname} {kind:5} {c.name:8} "
+                        f"{fmt_rate(timings[c.name].rate(batch))} op/s "
+                        f"({time.perf_counter() - t0:.1f} s)")
+                ref = outs["jaxpose"].astype(np.float64)
+                maxdiff = {
+                    n: float(np.max(np.abs(o.astype(np.float64) - ref))) if o.size else 0.0
+                    for n, o in outs.items() if n != "jaxpose"
+                }
+                cells.append(Cell(fname, kind, batch, timings, maxdiff))
+    return cells, peers, names
+
+
+def _rate(cell: Cell, name: str) -> float | None:
+    t = cell.timings.get(name)
+    return None if t is None else t.rate(cell.batch)
+
+
+def _compile(cell: Cell, name: str) -> str:
+    t = cell.timings.get(name)
+    return fmt_seconds(t.compile_s) if t is not None else "—"
+
+
+def verdict(cell: Cell) -> str:
+    """'pass' / 'FAIL' against the bars of issue #2 (peers that are missing: n/a)."""
+    jp, pp, jl = _rate(cell, "jaxpose"), _rate(cell, "PyPose"), _rate(cell, "jaxlie")
+    need = bar_for(cell.kind, cell.batch)
+    checks = []
+    if pp is not None and need is not None:
+        checks.append(jp / pp >= need)
+    if jl is not None:
+        checks.append(jp / jl >= 1.0)
+    if not checks:
+        return "n/a"
+    return "pass" if all(checks) else "FAIL"
+
+
+def tolerance(dtype: str) -> float:
+    return 2e-3 if dtype == "float32" else 1e-9
+
+
+def report(cells: Sequence[Cell], peers: Sequence[Peer], names: Sequence[str],
+           cfg: Config) -> str:
+    """Markdown: environment, speed table, compile times, agreement table."""
+    lines = [
+        f"# Lie-group benchmark (so3, {cfg.dtype})",
+        "",
+        f"- machine: {environment()}",
+        "- peers: " + "; ".join(p.label() for p in peers),
+    ]
+    if any(p.name == "pypose" and p.available for p in peers):
+        import torch
+
+        lines.append(f"- torch {torch.__version__}, {torch.get_num_threads()} threads")
+    lines += [
+        "- f1 = Log(Exp(x)), f2 = Log(Exp(x)·Exp(y)), f3 = Exp(x)·p; `jac` = one 3×3 "
+        "Jacobian per batch element w.r.t. x",
+        "- op/s = B / (best steady-state seconds per call); ratios > 1 mean jaxpose is "
+        "faster; bar: B ≤ 1e3 jaxpose ≥ 10x PyPose, B ≥ 1e5 ≥ 1x (values) / 2x "
+        "(Jacobians), and ≥ 1x jaxlie everywhere",
+        "",
+    ]
+    extra = [n for n in names if n not in ("jaxpose", "PyPose", "jaxlie")]
+    header = ["f", "kind", "B", "jaxpose op/s", "PyPose op/s", "jaxlie op/s",
+              "jaxpose/PyPose", "jaxpose/jaxlie"]
+    for n in extra:
+        header += [f"{n} op/s", f"{n}/PyPose", f"{n}/jaxlie"]
+    header += ["bar"]
+    rows = []
+    for c in cells:
+        jp, pp, jl = _rate(c, "jaxpose"), _rate(c, "PyPose"), _rate(c, "jaxlie")
+        row = [c.fname, c.kind, fmt_batch(c.batch), fmt_rate(jp), fmt_rate(pp), fmt_rate(jl),
+               fmt_ratio(jp, pp), fmt_ratio(jp, jl)]
+        for n in extra:
+            r = _rate(c, n)
+            row += [fmt_rate(r), fmt_ratio(r, pp), fmt_ratio(r, jl)]
+        rows.append(row + [verdict(c)])
+    lines += ["## Throughput", "", markdown_table(header, rows), ""]
+
+    jit_names = [n for n in names if n != "PyPose"]
+    header = ["f", "kind", "B"] + [f"{n} compile" for n in jit_names]
+    rows = [[c.fname, c.kind, fmt_batch(c.batch)] + [_compile(c, n) for n in jit_names]
+            for c in cells]
+    lines += ["## Compile time (lower + compile, once per shape)", "",
+              markdown_table(header, rows), ""]
+
+    tol = tolerance(cfg.dtype)
+    others = [n for n in names if n != "jaxpose"]
+    header = ["f", "kind", "B"] + [f"max abs diff vs {n}" for n in others] + ["agree"]
+    rows = []
+    for c in cells:
+        diffs = [c.maxdiff.get(n) for n in others]
+        ok = all(d is None or d <= tol for d in diffs)
+        rows.append([c.fname, c.kind, fmt_batch(c.batch)]
+                    + ["—" if d is None else f"{d:.1e}" for d in diffs]
+                    + ["yes" if ok else f"NO (tol {tol:g})"])
+    lines += ["## Agreement with jaxpose (same inputs)", "", markdown_table(header, rows), ""]
+    return "\n".join(lines)
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repeats (and B ≤ 1e5)")
+    ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    ap.add_argument("--batches", type=str, default=None,
+                    help="comma-separated batch sizes (default 1000,100000,1000000)")
+    ap.add_argument("--out", type=str, default=None, help="also write the markdown here")
+    ap.add_argument("--skip", type=str, default="", help="peers to skip, e.g. pypose,jaxlie")
+    ap.add_argument("--funcs", type=str, default=",".join(FUNCS), help="subset of f1,f2,f3")
+    ap.add_argument("--kinds", type=str, default=",".join(KINDS), help="subset of value,jac")
+    ap.add_argument("--prototype", action="store_true",
+                    help="also time the PROTOTYPE rewrite below (not jaxpose)")
+    ap.add_argument("-v", "--verbose", action="store_true", help="progress to stderr")
+    return ap.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> str:
+    """Run the benchmark, print the markdown report and return it."""
+    args = parse_args(argv)
+    if args.batches:
+        batches = tuple(int(float(b)) for b in args.batches.split(",") if b)
+    else:
+        batches = (1_000, 100_000) if args.quick else (1_000, 100_000, 1_000_000)
+    timing_kw = (
+        {"repeats": 3, "min_time": 0.01, "max_time": 1.0}
+        if args.quick else {"repeats": 9, "min_time": 0.1, "max_time": 6.0}
+    )
+    funcs = tuple(f for f in args.funcs.split(",") if f)
+    kinds = tuple(k for k in args.kinds.split(",") if k)
+    if not set(funcs) <= set(FUNCS) or not set(kinds) <= set(KINDS):
+        raise SystemExit(f"--funcs must be among {FUNCS}, --kinds among {KINDS}")
+    cfg = Config(args.dtype, batches, timing_kw, args.prototype, funcs, kinds)
+    log = (lambda s: print(s, file=sys.stderr, flush=True)) if args.verbose else None
+    cells, peers, names = run(cfg, [s for s in args.skip.split(",") if s], log)
+    text = report(cells, peers, names, cfg)
+    print(text)
+    if args.out:
+        with open(args.out, "w", encoding="utf-8") as fh:
+            fh.write(text + "\n")
+    return text
+
+
+if __name__ == "__main__":
+    main()

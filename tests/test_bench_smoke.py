@@ -1,0 +1,46 @@
+"""Smoke test for bench/lie_ops.py: it runs end to end at a tiny batch and the three
+contestants agree (so the benchmark never rots). Peers that are missing are skipped."""
+
+import re
+
+import pytest
+
+lie_ops = pytest.importorskip("bench.lie_ops")
+
+
+def _agreement_rows(text: str) -> list[str]:
+    section = text.split("## Agreement")[1]
+    return [ln for ln in section.splitlines() if re.match(r"\| f\d \|", ln)]
+
+
+def test_lie_ops_runs_and_contestants_agree():
+    # f2 exercises exp, compose and log of every contestant, values and Jacobians; f3 the
+    # group action. (All three functions at every size: python bench/lie_ops.py --quick.)
+    text = lie_ops.main(["--quick", "--batches", "16", "--funcs", "f2"])
+    assert "## Throughput" in text and "## Compile time" in text
+    rows = _agreement_rows(text)
+    assert len(rows) == 2  # f2 value and jac
+    assert all(r.rstrip().endswith("| yes |") for r in rows), text
+    text = lie_ops.main(["--quick", "--batches", "16", "--funcs", "f3", "--kinds", "value"])
+    rows = _agreement_rows(text)
+    assert len(rows) == 1 and all(r.rstrip().endswith("| yes |") for r in rows), text
+
+
+def test_bars_and_formatting():
+    assert lie_ops.bar_for("value", 1_000) == 10.0
+    assert lie_ops.bar_for("jac", 1_000_000) == 2.0
+    assert lie_ops.bar_for("value", 100_000) == 1.0
+    from bench._common import fmt_batch, fmt_rate, fmt_ratio, markdown_table
+
+    assert fmt_batch(1_000_000) == "1e6" and fmt_batch(16) == "16"
+    assert fmt_rate(1.3e6) == "1.30e6" and fmt_ratio(3.0, 1.5) == "2.0x"
+    assert fmt_ratio(1.0, None) == "—"
+    table = markdown_table(["a", "b"], [["x", "1.0x"]])
+    assert table.splitlines()[1] == "|---|---:|"
+
+
+def test_missing_peer_is_reported_not_faked():
+    from bench._common import import_peer
+
+    peer = import_peer("surely_not_an_installed_module_xyz")
+    assert not peer.available and "not installed" in peer.label()
