@@ -1,0 +1,146 @@
+"""Factors: residual functions over a few variables, evaluated in groups with ``vmap``.
+
+A :class:`Factor` describes *m* factors of one type at once: a residual function written
+for a single factor, the variables each factor touches (a variable-type name and an
+index array of length m per slot), per-factor data (a pytree with leading axis m, e.g.
+the measurements), and an information matrix per factor (or one shared).
+
+Cost convention: ``0.5 · Σ ρ(rᵀ Ω r)`` over factors, with ρ the identity unless a robust
+kernel is given. Whitening uses the upper Cholesky factor S of Ω (Ω = SᵀS): r̃ = S r.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..lie.base import LieGroup
+
+Array = jax.Array
+
+
+class Factor(eqx.Module):
+    """A group of *m* factors of the same type.
+
+    Args:
+        residual: ``residual(*variables, data) -> (r,)`` for ONE factor (vmapped here).
+            Each variable is a group element (unbatched) or an array of shape (d,).
+        variables: one ``(type_name, indices)`` pair per slot; ``indices`` has shape (m,).
+        data: pytree with leading axis m passed to ``residual`` (or None).
+        information: (m, r, r), (r, r) or None (identity); symmetric positive definite.
+        kernel: optional robust kernel ρ(s) of the squared whitened norm s = |r̃|²
+            (any callable; the kernels of :mod:`jaxpose.optim` qualify).
+        name: label used in messages and progress output.
+    """
+
+    residual: Callable[..., Array] = eqx.field(static=True)
+    slots: tuple[str, ...] = eqx.field(static=True)
+    indices: tuple[Array, ...]
+    data: Any
+    sqrt_info: Array | None
+    kernel: Callable[[Array], Array] | None = eqx.field(static=True)
+    name: str = eqx.field(static=True)
+    count: int = eqx.field(static=True)
+
+    def __init__(
+        self,
+        residual: Callable[..., Array],
+        variables: Sequence[tuple[str, Any]],
+        data: Any = None,
+        information: Any = None,
+        kernel: Callable[[Array], Array] | None = None,
+        name: str | None = None,
+    ):
+        if not callable(residual):
+            raise TypeError(f"Factor(residual): expected a callable, got {type(residual).__name__}")
+        if not variables:
+            raise ValueError("Factor(variables): expected at least one (type_name, indices) slot")
+        slots, idx = [], []
+        count = None
+        for k, slot in enumerate(variables):
+            if not (isinstance(slot, tuple) and len(slot) == 2 and isinstance(slot[0], str)):
+                raise TypeError(
+                    f"Factor(variables[{k}]): expected a (type_name, indices) pair, got {slot!r}"
+                )
+            ind = np.asarray(slot[1])
+            if ind.ndim != 1 or not np.issubdtype(ind.dtype, np.integer):
+                raise ValueError(
+                    f"Factor(variables[{k}]): indices must be a 1-D integer array, "
+                    f"got shape {ind.shape} dtype {ind.dtype}"
+                )
+            if count is None:
+                count = ind.shape[0]
+            elif ind.shape[0] != count:
+                raise ValueError(
+                    f"Factor(variables[{k}]): {ind.shape[0]} indices, but slot 0 has {count}"
+                )
+            slots.append(slot[0])
+            idx.append(jnp.asarray(ind, jnp.int32))
+        assert count is not None
+        for leaf in jax.tree.leaves(data, is_leaf=lambda x: isinstance(x, LieGroup)):
+            lead = leaf.shape[0] if not isinstance(leaf, LieGroup) else (leaf.shape or (None,))[0]
+            if lead != count:
+                raise ValueError(
+                    f"Factor(data): every leaf needs leading axis {count} (one per factor), "
+                    f"got a leaf with shape {getattr(leaf, 'shape', None)}"
+                )
+        self.residual = residual
+        self.slots = tuple(slots)
+        self.indices = tuple(idx)
+        self.data = data
+        self.sqrt_info = None if information is None else _sqrt_information(information, count)
+        self.kernel = kernel
+        self.name = name or getattr(residual, "__name__", "factor")
+        self.count = int(count)
+
+
+def _sqrt_information(information: Any, count: int) -> Array:
+    """Upper Cholesky factor S (Ω = SᵀS), (m, r, r); rejects non-SPD matrices eagerly."""
+    om = np.asarray(information, dtype=np.float64)
+    if om.ndim == 2:
+        om = np.broadcast_to(om, (count, *om.shape))
+    if om.ndim != 3 or om.shape[0] != count or om.shape[1] != om.shape[2]:
+        raise ValueError(
+            f"Factor(information): expected shape ({count}, r, r) or (r, r), got {om.shape}"
+        )
+    if not np.all(np.isfinite(om)):
+        bad = int(np.argmax(~np.all(np.isfinite(om), axis=(1, 2))))
+        raise ValueError(f"Factor(information): factor {bad} has a non-finite information matrix")
+    if not np.allclose(om, np.swapaxes(om, 1, 2), rtol=1e-9, atol=1e-12):
+        bad = int(np.argmax(~np.all(np.isclose(om, np.swapaxes(om, 1, 2)), axis=(1, 2))))
+        raise ValueError(
+            f"Factor(information): factor {bad} has a non-symmetric information matrix"
+        )
+    try:
+        lower = np.linalg.cholesky(om)
+    except np.linalg.LinAlgError:
+        eig = np.linalg.eigvalsh(om).min(axis=1)
+        bad = int(np.argmin(eig))
+        raise ValueError(
+            f"Factor(information): factor {bad} has an information matrix that is not "
+            f"positive definite (smallest eigenvalue {eig[bad]:.3g})"
+        ) from None
+    return jnp.asarray(np.swapaxes(lower, 1, 2))
+
+
+# ----------------------------------------------------------------------------------
+# Common residuals (for one factor; vmapped by the graph)
+# ----------------------------------------------------------------------------------
+def between_residual(xi: LieGroup, xj: LieGroup, z: LieGroup) -> Array:
+    """Relative-pose residual ``Log(Z⁻¹ · Xi⁻¹ · Xj)`` (g2o / GTSAM BetweenFactor)."""
+    return z.inv().compose(xi.inv().compose(xj)).log().data
+
+
+def prior_residual(x: LieGroup, z: LieGroup) -> Array:
+    """Prior residual ``Log(Z⁻¹ · X)``."""
+    return z.inv().compose(x).log().data
+
+
+def vector_prior_residual(x: Array, z: Array) -> Array:
+    """Prior on a Euclidean variable: ``x − z``."""
+    return x - z

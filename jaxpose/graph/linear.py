@@ -1,0 +1,127 @@
+"""Linear solvers for the damped sparse normal equations (H + λD) δ = −g.
+
+* :func:`solve_sparse_direct` — sparse Cholesky (CHOLMOD, through the ``cholespy``
+  package) called with ``jax.pure_callback``; works under ``jit`` and (sequentially) under
+  ``vmap``. Without cholespy it falls back to SciPy's SuperLU, which is much slower on
+  large graphs (measured on sphere2500: 355 s for one SuperLU factorisation vs 1.0 s with
+  CHOLMOD on a loaded 2-core machine).
+* :func:`solve_pcg` — matrix-free conjugate gradient with a block-Jacobi preconditioner,
+  written with ``lax.while_loop`` (jit/vmap/differentiable, runs on any backend).
+* :func:`solve_dense` — assembles H densely and uses Cholesky (small problems; fully
+  differentiable and vmappable).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Array = jax.Array
+
+
+def _cholmod_solve(
+    data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, b: np.ndarray
+) -> np.ndarray:
+    try:
+        from cholespy import CholeskySolverD, MatrixType
+    except ImportError:
+        return _scipy_solve(data, indices, indptr, b)
+    n = b.shape[0]
+    try:
+        solver = CholeskySolverD(
+            n, np.array(indptr, dtype=np.int32), np.array(indices, dtype=np.int32),
+            np.array(data, dtype=np.float64), MatrixType.CSR,
+        )
+        x = np.zeros(n)
+        solver.solve(np.array(b, dtype=np.float64), x)
+    except (ValueError, RuntimeError):  # not positive definite: signal through NaN
+        x = np.full(n, np.nan)
+    return x.astype(b.dtype)
+
+
+def _scipy_solve(
+    data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, b: np.ndarray
+) -> np.ndarray:
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    n = b.shape[0]
+    # H is symmetric, so its CSR arrays read as CSC describe the same matrix.
+    mat = scipy.sparse.csc_matrix(
+        (np.asarray(data, np.float64), np.asarray(indices), np.asarray(indptr)), shape=(n, n)
+    )
+    try:
+        lu = scipy.sparse.linalg.splu(
+            mat, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}
+        )
+        x = lu.solve(np.asarray(b, np.float64))
+    except RuntimeError:  # exactly singular: report through non-finite values
+        x = np.full(n, np.nan)
+    return x.astype(b.dtype)
+
+
+def solve_sparse_direct(data: Array, indices: Array, indptr: Array, b: Array) -> Array:
+    """Solve A x = b for symmetric positive definite A in CSR (data, indices, indptr)."""
+    out = jax.ShapeDtypeStruct(b.shape, b.dtype)
+    return jax.pure_callback(_cholmod_solve, out, data, indices, indptr, b, vmap_method="sequential")
+
+
+def solve_pcg(
+    matvec: Callable[[Array], Array],
+    b: Array,
+    precond: Callable[[Array], Array],
+    rtol: float | Array = 1e-8,
+    max_iters: int = 1000,
+) -> tuple[Array, Array]:
+    """Preconditioned CG from x = 0 until ‖r‖ ≤ rtol·‖b‖. Returns (x, iterations)."""
+    b_norm = jnp.linalg.norm(b)
+    tol2 = (rtol * b_norm) ** 2
+
+    def cond(state):
+        _, r, _, _, k = state
+        return (jnp.vdot(r, r) > tol2) & (k < max_iters)
+
+    def body(state):
+        x, r, p, rz, k = state
+        ap = matvec(p)
+        pap = jnp.vdot(p, ap)
+        alpha = jnp.where(pap > 0, rz / jnp.where(pap > 0, pap, 1.0), 0.0)
+        x = x + alpha * p
+        r = r - alpha * ap
+        z = precond(r)
+        rz_new = jnp.vdot(r, z)
+        beta = jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)
+        return x, r, z + beta * p, rz_new, k + 1
+
+    z0 = precond(b)
+    init = (jnp.zeros_like(b), b, z0, jnp.vdot(b, z0), jnp.asarray(0))
+    x, _, _, _, k = jax.lax.while_loop(cond, body, init)
+    return x, k
+
+
+def block_jacobi(blocks: tuple[Array, ...]) -> Callable[[Array], Array]:
+    """Preconditioner from per-type diagonal blocks (n, d, d): applies their inverses."""
+    inverses = tuple(jnp.linalg.inv(b) for b in blocks)
+
+    def apply(v: Array) -> Array:
+        out, start = [], 0
+        for inv in inverses:
+            n, d = inv.shape[0], inv.shape[1]
+            seg = v[start : start + n * d].reshape(n, d)
+            out.append(jnp.einsum("nij,nj->ni", inv, seg).reshape(-1))
+            start += n * d
+        return jnp.concatenate(out)
+
+    return apply
+
+
+def solve_dense(data: Array, indices: Array, indptr: Array, b: Array) -> Array:
+    """Densify the CSR matrix and solve with Cholesky (small problems only)."""
+    n = b.shape[0]
+    rows = jnp.repeat(jnp.arange(n), jnp.diff(indptr), total_repeat_length=data.shape[0])
+    dense = jnp.zeros((n, n), data.dtype).at[rows, indices].add(data)
+    factor = jax.scipy.linalg.cho_factor(dense)
+    return jax.scipy.linalg.cho_solve(factor, b)
