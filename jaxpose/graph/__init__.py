@@ -1,6 +1,12 @@
 """Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM."""
 
-from .factor import Factor, between_residual, prior_residual, vector_prior_residual
+from .factor import (
+    Factor,
+    between_jacobian,
+    between_residual,
+    prior_residual,
+    vector_prior_residual,
+)
 from .problem import FactorGraph, Linearization, cost, linearize
 from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STALLED, GraphSolution, solve, summary
 

@@ -35,6 +35,9 @@ class Factor(eqx.Module):
         information: (m, r, r), (r, r) or None (identity); symmetric positive definite.
         kernel: optional robust kernel ρ(s) of the squared whitened norm s = |r̃|²
             (any callable; the kernels of :mod:`jaxpose.optim` qualify).
+        jacobian: optional analytic Jacobian ``jacobian(*variables, data) -> (r, J_1, …)``
+            for ONE factor, J_s of shape (r, tangent_dim_s) with respect to the right
+            perturbation X_s ⊕ δ_s. Default: forward-mode autodiff of ``residual``.
         name: label used in messages and progress output.
     """
 
@@ -44,6 +47,7 @@ class Factor(eqx.Module):
     data: Any
     sqrt_info: Array | None
     kernel: Callable[[Array], Array] | None = eqx.field(static=True)
+    jacobian: Callable[..., Any] | None = eqx.field(static=True)
     name: str = eqx.field(static=True)
     count: int = eqx.field(static=True)
 
@@ -55,6 +59,7 @@ class Factor(eqx.Module):
         information: Any = None,
         kernel: Callable[[Array], Array] | None = None,
         name: str | None = None,
+        jacobian: Callable[..., Any] | None = None,
     ):
         if not callable(residual):
             raise TypeError(f"Factor(residual): expected a callable, got {type(residual).__name__}")
@@ -95,6 +100,9 @@ class Factor(eqx.Module):
         self.data = data
         self.sqrt_info = None if information is None else _sqrt_information(information, count)
         self.kernel = kernel
+        if jacobian is not None and not callable(jacobian):
+            raise TypeError(f"Factor(jacobian): expected a callable, got {type(jacobian).__name__}")
+        self.jacobian = jacobian
         self.name = name or getattr(residual, "__name__", "factor")
         self.count = int(count)
 
@@ -134,6 +142,16 @@ def _sqrt_information(information: Any, count: int) -> Array:
 def between_residual(xi: LieGroup, xj: LieGroup, z: LieGroup) -> Array:
     """Relative-pose residual ``Log(Z⁻¹ · Xi⁻¹ · Xj)`` (g2o / GTSAM BetweenFactor)."""
     return z.inv().compose(xi.inv().compose(xj)).log().data
+
+
+def between_jacobian(xi: LieGroup, xj: LieGroup, z: LieGroup) -> tuple[Array, Array, Array]:
+    """Residual and analytic Jacobians of :func:`between_residual`.
+
+    With E = Z⁻¹Xi⁻¹Xj and r = Log(E): ∂r/∂δj = Jr⁻¹(r) and ∂r/∂δi = −Jr⁻¹(r)·Adj(Xj⁻¹Xi)."""
+    rel = xi.inv().compose(xj)
+    r = z.inv().compose(rel).log()
+    jr_inv = r.jr_inv()
+    return r.data, -jr_inv @ rel.inv().adj_matrix(), jr_inv
 
 
 def prior_residual(x: LieGroup, z: LieGroup) -> Array:

@@ -32,8 +32,11 @@ def _cholmod_solve(
     n = b.shape[0]
     try:
         solver = CholeskySolverD(
-            n, np.array(indptr, dtype=np.int32), np.array(indices, dtype=np.int32),
-            np.array(data, dtype=np.float64), MatrixType.CSR,
+            n,
+            np.array(indptr, dtype=np.int32),
+            np.array(indices, dtype=np.int32),
+            np.array(data, dtype=np.float64),
+            MatrixType.CSR,
         )
         x = np.zeros(n)
         solver.solve(np.array(b, dtype=np.float64), x)
@@ -66,7 +69,9 @@ def _scipy_solve(
 def solve_sparse_direct(data: Array, indices: Array, indptr: Array, b: Array) -> Array:
     """Solve A x = b for symmetric positive definite A in CSR (data, indices, indptr)."""
     out = jax.ShapeDtypeStruct(b.shape, b.dtype)
-    return jax.pure_callback(_cholmod_solve, out, data, indices, indptr, b, vmap_method="sequential")
+    return jax.pure_callback(
+        _cholmod_solve, out, data, indices, indptr, b, vmap_method="sequential"
+    )
 
 
 def solve_pcg(

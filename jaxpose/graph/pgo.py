@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..lie import SE2, SE3
-from .factor import Factor, between_residual
+from .factor import Factor, between_jacobian, between_residual
 from .problem import FactorGraph
 from .solve import GraphSolution, solve
 
@@ -55,6 +55,7 @@ def pose_graph_problem(
         information=np.asarray(graph.information),
         kernel=kernel,
         name=f"between_{graph.kind}",
+        jacobian=between_jacobian,
     )
     fixed: dict[str, Any] = {}
     if fix == "first":
@@ -65,8 +66,9 @@ def pose_graph_problem(
     return FactorGraph([factor], {"pose": poses}, fixed=fixed)
 
 
-def optimize_pose_graph(graph: Any, *, kernel: Any = None, fix: str = "first",
-                        dtype: Any = None, **solve_kwargs: Any) -> tuple[np.ndarray, GraphSolution]:
+def optimize_pose_graph(
+    graph: Any, *, kernel: Any = None, fix: str = "first", dtype: Any = None, **solve_kwargs: Any
+) -> tuple[np.ndarray, GraphSolution]:
     """Optimise a pose graph; returns (poses as numpy (n, storage), solution)."""
     problem = pose_graph_problem(graph, kernel=kernel, fix=fix, dtype=dtype)
     sol = solve(problem, **solve_kwargs)

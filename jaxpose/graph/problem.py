@@ -58,6 +58,8 @@ class Structure(eqx.Module):
     csr_indptr: Array  # (N + 1,)
     diag_pos: Array  # (N,) CSR positions of the diagonal
     block_pos: tuple[tuple[Array, ...], ...]  # per factor, per (s, t) slot pair: (m, ds, dt)
+    contribution_order: Array  # permutation sorting all block entries by CSR position
+    contribution_pos: Array  # their sorted CSR positions
 
 
 class FactorGraph(eqx.Module):
@@ -177,9 +179,10 @@ def _build_structure(
     def position(r: np.ndarray, c: np.ndarray) -> np.ndarray:
         return np.searchsorted(keys, r.astype(np.int64) * size + c)
 
-    block_pos = tuple(
-        tuple(jnp.asarray(position(r, c), jnp.int32) for r, c in pairs) for pairs in entry_blocks
-    )
+    pos_np = [[position(r, c) for r, c in pairs] for pairs in entry_blocks]
+    block_pos = tuple(tuple(jnp.asarray(p, jnp.int32) for p in pairs) for pairs in pos_np)
+    flat_pos = np.concatenate([p.reshape(-1) for pairs in pos_np for p in pairs])
+    order = np.argsort(flat_pos, kind="stable")
     return Structure(
         names=names,
         counts=counts,
@@ -192,6 +195,8 @@ def _build_structure(
         csr_indptr=jnp.asarray(indptr, jnp.int32),
         diag_pos=jnp.asarray(position(diag, diag), jnp.int32),
         block_pos=block_pos,
+        contribution_order=jnp.asarray(order, jnp.int32),
+        contribution_pos=jnp.asarray(flat_pos[order], jnp.int32),
     )
 
 
@@ -246,6 +251,9 @@ def linearize(graph: FactorGraph, variables: Variables) -> Linearization:
 
         def one(*args: Any, f: Factor = f) -> tuple[Array, tuple[Array, ...]]:
             point, data = args[:-1], args[-1]
+            if f.jacobian is not None:
+                r, *jac = f.jacobian(*point, data)
+                return r, tuple(jac)
             zeros = tuple(jnp.zeros((_tangent_dim_single(p),), _dtype(p)) for p in point)
 
             def res(deltas: tuple[Array, ...]) -> tuple[Array, Array]:
@@ -340,16 +348,21 @@ def hessian_vector(graph: FactorGraph, lin: Linearization, v: Array) -> Array:
 
 
 def csr_values(graph: FactorGraph, lin: Linearization) -> Array:
-    """Values of H in the precomputed CSR pattern (nnz,)."""
+    """Values of H in the precomputed CSR pattern (nnz,).
+
+    All block products are concatenated and summed into their CSR positions with one
+    sorted ``segment_sum`` (the permutation is precomputed with the pattern)."""
     st = graph.structure
-    data = jnp.zeros((st.nnz,), lin.cost.dtype)
-    for jac, positions in zip(lin.jacobians, st.block_pos, strict=True):
-        k = 0
-        for a in jac:
-            for b in jac:
-                data = data.at[positions[k]].add(jnp.einsum("mri,mrj->mij", a, b))
-                k += 1
-    return data
+    parts = [
+        jnp.einsum("mri,mrj->mij", a, b).reshape(-1)
+        for jac in lin.jacobians
+        for a in jac
+        for b in jac
+    ]
+    contributions = jnp.concatenate(parts)[st.contribution_order]
+    return jax.ops.segment_sum(
+        contributions, st.contribution_pos, num_segments=st.nnz, indices_are_sorted=True
+    )
 
 
 def retract_all(graph: FactorGraph, variables: Variables, step: Array) -> Variables:
