@@ -70,7 +70,7 @@ def least_squares(
     cost_rtol: float = 1e-10,
     gtol: float = 1e-10,
     xtol: float = 1e-10,
-    max_rejects: int = 16,
+    max_rejects: int = 64,
     stop: StopOnPlateau | None = None,
     adjoint: str | ImplicitAdjoint | UnrolledAdjoint = "implicit",
     jacobian: str | Callable[..., jax.Array] = "auto",
@@ -97,7 +97,8 @@ def least_squares(
         gtol: converged when the tangent gradient satisfies ‖g‖_∞ ≤ gtol.
         xtol: converged when a finite trial step has ‖δ‖₂ ≤ xtol.
         max_rejects: consecutive rejected trials before giving up (DIVERGED, or
-            NON_FINITE when the trials were NaN/Inf).
+            NON_FINITE when the trials were NaN/Inf); a rejection that cannot change the
+            damping (Constant, clamped damping, Gauss-Newton) gives up at once.
         stop: optional :class:`StopOnPlateau` rule.
         adjoint: ``"implicit"`` (implicit function theorem, one linear solve in the
             backward pass; see :mod:`jaxpose.optim.implicit`) or ``"unrolled"``

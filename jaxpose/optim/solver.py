@@ -70,8 +70,6 @@ class AbstractSolver(eqx.Module):
     """Shared machinery; subclasses define how a step is proposed and accepted (and
     declare a ``linear_solver`` field)."""
 
-    linear_solver: eqx.AbstractVar[LinearSolver]
-
     # -- subclass hooks ----------------------------------------------------------------
     def _strategy_init(self, dtype: Any) -> Any:
         return jnp.zeros((), dtype)
@@ -231,6 +229,10 @@ class AbstractSolver(eqx.Module):
         )
         rejects = jnp.where(accepted, 0, state.rejects + 1).astype(jnp.int32)
         rejects = self._on_failure_rejects(rejects, finite, stopping)
+        # a rejection that cannot change the damping (Constant, or clamped at its bound)
+        # would repeat the same trial: give up now
+        stuck = ~accepted & (self._damping(sstate) == self._damping(state.strategy_state))
+        rejects = jnp.where(stuck, jnp.maximum(rejects, stopping.max_rejects), rejects)
         num_steps = state.num_steps + jnp.where(fresh, 0, 1).astype(jnp.int32)
         plateau = plateau_count(stopping, state.cost, cost, state.plateau).astype(jnp.int32)
         plateau = jnp.where(fresh, 0, plateau)

@@ -22,9 +22,10 @@ class Status(enum.IntEnum):
     RUNNING = -1  #: not finished (only seen when driving ``step`` by hand)
     CONVERGED = 0  #: a tolerance or the plateau rule was met
     MAX_STEPS = 1  #: the iteration budget ran out first
-    DIVERGED = 2  #: ``max_rejects`` consecutive finite trials failed to lower the cost
-    NON_FINITE = 3  #: residual/Jacobian became NaN/Inf (``max_rejects`` times in a row,
-    #: or at an accepted point); the best finite estimate is kept
+    DIVERGED = 2  #: no trial lowers the cost: rejected at the strategy's damping bound
+    #: (or with Constant damping), or ``max_rejects`` times in a row
+    NON_FINITE = 3  #: the last such failed trial was NaN/Inf (or the Jacobian at the
+    #: start); the best finite estimate is kept
 
 
 class StopOnPlateau(eqx.Module):
@@ -65,7 +66,9 @@ class Stopping(eqx.Module):
     * ``xtol``: a finite trial step with ``‖δ‖₂ ≤ xtol`` (no meaningful step left) →
       CONVERGED;
     * ``max_rejects``: that many consecutive rejected trials → DIVERGED (or NON_FINITE
-      if the last one was not finite);
+      if the last one was not finite). A rejected trial that leaves the damping unchanged
+      (Constant strategy, damping clamped at its bound, Gauss-Newton) ends the solve at
+      once, since the same trial would repeat;
     * ``plateau``: optional :class:`StopOnPlateau`.
     """
 
@@ -74,7 +77,7 @@ class Stopping(eqx.Module):
     cost_rtol: float = 1e-10
     gtol: float = 1e-10
     xtol: float = 1e-10
-    max_rejects: int = eqx.field(default=16, static=True)
+    max_rejects: int = eqx.field(default=64, static=True)
     plateau: StopOnPlateau | None = None
 
     def __check_init__(self) -> None:

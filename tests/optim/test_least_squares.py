@@ -1,0 +1,297 @@
+"""least_squares / object API: convergence, solvers, strategies, weights, stopping."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxpose.optim as jo
+from jaxpose.lie import SE3, manifold
+
+from .problems import EXP_ARGS, EXP_OPT, exp_jacobian, exp_residual
+
+X0 = jnp.array([1.0, 0.0])
+
+
+def run_steps(solver, fn, x0, args, limit=200, **kw):
+    """Drive the object API eagerly from Python until done (op-by-op dispatch reuses
+    compiled primitives across configurations, far cheaper here than one jit each)."""
+    stopping = kw.pop("stopping", None)
+    history = kw.pop("history", False)
+    state = solver.init(fn, x0, args, stopping=stopping, history=history, **kw)
+    for _ in range(limit):
+        if bool(state.done):
+            break
+        state = solver.step(fn, state, args, stopping=stopping, **kw)
+    assert bool(state.done)
+    return state
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted(**kw):
+    return jax.jit(lambda x, a: jo.least_squares(exp_residual, x, a, **kw))
+
+
+def jls(x, a, **kw):
+    return _jitted(**kw)(x, a)
+
+
+@pytest.mark.parametrize("linear_solver", [jo.Cholesky(), jo.QR(), jo.LU(), jo.SVD(), jo.CG()],
+                         ids=lambda s: type(s).__name__)
+def test_each_linear_solver_reaches_optimum(linear_solver):
+    state = run_steps(jo.LM(linear_solver=linear_solver), exp_residual, X0, EXP_ARGS)
+    assert int(state.status) == jo.Status.CONVERGED
+    np.testing.assert_allclose(state.best_params, EXP_OPT, rtol=1e-8)
+
+
+@pytest.mark.parametrize("solver", [
+    jo.LM(jo.Constant(1e-3)), jo.LM(jo.Adaptive()), jo.LM(jo.TrustRegion()),
+    jo.LM(jo.Dogleg()), jo.GN(),
+], ids=["Constant", "Adaptive", "TrustRegion", "Dogleg", "GaussNewton"])
+def test_each_strategy_reaches_optimum(solver):
+    # Constant damping cannot recover from a rejected trial (it would retry the same step)
+    # and Gauss-Newton has no globalisation: they start where undamped steps succeed
+    hard = isinstance(solver, jo.LM) and not isinstance(solver.strategy, jo.Constant)
+    x0 = jnp.array([0.5, 3.0]) if hard else X0
+    state = run_steps(solver, exp_residual, x0, EXP_ARGS)
+    assert int(state.status) == jo.Status.CONVERGED
+    np.testing.assert_allclose(state.best_params, EXP_OPT, rtol=1e-7)
+    # LM never accepts a cost increase
+    if isinstance(solver, jo.LM):
+        assert float(state.best_cost) == float(state.cost)
+
+
+def test_constant_damping_stalls_on_rejection():
+    state = run_steps(jo.LM(jo.Constant(1e-3)), exp_residual, jnp.array([0.5, 3.0]), EXP_ARGS)
+    assert int(state.status) == jo.Status.DIVERGED and int(state.num_steps) == 1
+    assert float(state.best_cost) <= float(state.initial_cost)
+
+
+def test_compiled_loop_matches_object_api_history_and_verbose(capsys):
+    sol = jls(X0, EXP_ARGS, history=True, verbose=True)
+    jax.effects_barrier()
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "least_squares iter" in ln]
+    assert len(lines) == int(sol.num_steps) + 1  # iteration 0 = initial linearisation
+    for key in ("cost", "ratio", "damping", "|step|", "accepted"):
+        assert key in lines[-1]
+    state = run_steps(jo.LM(), exp_residual, X0, EXP_ARGS)
+    assert int(sol.status) == jo.Status.CONVERGED
+    assert int(sol.num_steps) == int(state.num_steps)
+    np.testing.assert_allclose(sol.params, state.best_params, rtol=1e-12)
+    np.testing.assert_allclose(sol.params, EXP_OPT, rtol=1e-8)
+    # cost convention: 0.5 Σ r²
+    r = np.asarray(EXP_OPT[0] * np.exp(-EXP_OPT[1] * EXP_ARGS[0]) - EXP_ARGS[1])
+    assert float(sol.cost) == pytest.approx(0.5 * r @ r, rel=1e-10)
+    h = np.asarray(sol.history)
+    n = int(sol.num_steps)
+    assert h.shape == (101,) and h[0] == pytest.approx(float(sol.initial_cost))
+    assert np.all(np.diff(h[: n + 1]) <= 0)  # LM: monotone
+    assert np.all(np.isnan(h[n + 1:]))
+    assert h[n] == pytest.approx(float(sol.cost))
+
+
+def test_float32_path():
+    x0 = X0.astype(jnp.float32)
+    args = tuple(a.astype(jnp.float32) for a in EXP_ARGS)
+    sol = jls(x0, args)
+    assert sol.params.dtype == jnp.float32 and sol.cost.dtype == jnp.float32
+    assert int(sol.status) in (jo.Status.CONVERGED, jo.Status.DIVERGED)
+    np.testing.assert_allclose(sol.params, EXP_OPT, rtol=2e-4)
+
+
+def test_rejection_keeps_state_and_damping_does_not_compound():
+    # a tiny initial damping makes the first Gauss-Newton step overshoot
+    solver = jo.LM(jo.Adaptive(damping=1e-6, up=10.0))
+    x0 = jnp.array([0.5, 3.0])
+    state = solver.init(exp_residual, x0, EXP_ARGS)
+    state = solver.step(exp_residual, state, EXP_ARGS)  # linearisation only
+    seen_reject = False
+    for _ in range(30):
+        before = state
+        state = solver.step(exp_residual, state, EXP_ARGS)
+        if not bool(state.accepted):
+            seen_reject = True
+            np.testing.assert_array_equal(state.params, before.params)
+            assert float(state.cost) == float(before.cost)
+            np.testing.assert_array_equal(state.system.hess, before.system.hess)
+            assert int(state.num_accepted) == int(before.num_accepted)
+            assert float(state.strategy_state) == pytest.approx(
+                10.0 * float(before.strategy_state))
+            # the next trial solves with the *undamped* H and the fresh λ
+            h = np.asarray(state.system.hess)
+            g = np.asarray(state.system.grad)
+            dmat = np.diag(np.clip(np.diag(h), 1e-6, 1e32))
+            want = np.linalg.solve(h + float(state.strategy_state) * dmat, -g)
+            nxt = solver.step(exp_residual, state, EXP_ARGS)
+            assert float(nxt.step_norm) == pytest.approx(np.linalg.norm(want), rel=1e-9)
+            break
+    assert seen_reject
+
+
+def test_weights_are_consistent_with_prewhitening():
+    # Solving with information matrices W must reproduce, iterate by iterate, the solve of
+    # the pre-whitened residual Lᵀr (W = L Lᵀ) without weights: cost, step and gain ratio
+    # all see the same whitened quantities (kernel included).
+    rng = np.random.default_rng(3)
+    pts = jnp.asarray(rng.normal(size=(8, 2)))
+    obs = jnp.asarray(rng.normal(size=(8, 2)))
+    a = rng.normal(size=(8, 2, 2))
+    w = jnp.asarray(a @ np.swapaxes(a, -1, -2) + 0.5 * np.eye(2))
+    chol = jnp.linalg.cholesky(w)
+
+    def res(p, args):
+        pts, obs = args
+        c, s = jnp.cos(p[2]), jnp.sin(p[2])
+        rot = jnp.array([[c, -s], [s, c]])
+        return pts @ rot.T + p[:2] - obs
+
+    def res_white(p, args):
+        return jnp.einsum("bij,bi->bj", chol, res(p, args))
+
+    kernel = jo.Cauchy(0.7)
+    x0 = jnp.array([0.3, -0.2, 0.5])
+    solver = jo.LM(jo.TrustRegion(radius=0.3))
+    s1 = run_steps(solver, res, x0, (pts, obs), weights=w, kernel=kernel)
+    s2 = run_steps(solver, res_white, x0, (pts, obs), kernel=kernel)
+    assert int(s1.num_steps) == int(s2.num_steps) and int(s1.num_accepted) == int(
+        s2.num_accepted)
+    np.testing.assert_allclose(s1.best_params, s2.best_params, rtol=1e-10, atol=1e-12)
+    assert float(s1.cost) == pytest.approx(float(s2.cost), rel=1e-10)
+    # and the cost is 0.5 Σ ρ(rᵀ W r) evaluated independently
+    r = np.asarray(res(s1.best_params, (pts, obs)))
+    s = np.einsum("bi,bij,bj->b", r, np.asarray(w), r)
+    assert float(s1.cost) == pytest.approx(0.5 * np.sum(0.49 * np.log1p(s / 0.49)), rel=1e-10)
+
+
+def test_weighted_linear_least_squares_matches_numpy():
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(6, 3, 4))
+    b = rng.normal(size=(6, 3))
+    m = rng.normal(size=(6, 3, 3))
+    w = m @ np.swapaxes(m, -1, -2) + np.eye(3)
+
+    def res(x, args):
+        a, b = args
+        return jnp.einsum("bdn,n->bd", a, x) - b
+
+    args = (jnp.asarray(a), jnp.asarray(b))
+    sol = run_steps(jo.LM(), res, jnp.zeros(4), args, weights=jnp.asarray(w))
+    lhs = np.einsum("bdn,bde,bem->nm", a, w, a)
+    rhs = np.einsum("bdn,bde,be->n", a, w, b)
+    x = np.linalg.solve(lhs, rhs)
+    np.testing.assert_allclose(sol.best_params, x, rtol=1e-9)
+    r = np.einsum("bdn,n->bd", a, x) - b
+    assert float(sol.cost) == pytest.approx(0.5 * np.einsum("bi,bij,bj->", r, w, r), rel=1e-9)
+    # scalar and shared (d, d) weights broadcast over the blocks
+    sol2 = run_steps(jo.LM(), res, jnp.zeros(4), args, weights=jnp.asarray(w[0]))
+    lhs2 = np.einsum("bdn,de,bem->nm", a, w[0], a)
+    rhs2 = np.einsum("bdn,de,be->n", a, w[0], b)
+    np.testing.assert_allclose(sol2.best_params, np.linalg.solve(lhs2, rhs2), rtol=1e-9)
+    sol3 = run_steps(jo.LM(), res, jnp.zeros(4), args, weights=4.0)
+    sol0 = run_steps(jo.LM(), res, jnp.zeros(4), args)
+    np.testing.assert_allclose(sol3.best_params, sol0.best_params, rtol=1e-9)
+    assert float(sol3.cost) == pytest.approx(4.0 * float(sol0.cost), rel=1e-9)
+
+
+def test_stopping_rules():
+    lm = jo.LM()
+    sol = run_steps(lm, exp_residual, X0, EXP_ARGS, stopping=jo.Stopping(max_steps=2))
+    assert int(sol.status) == jo.Status.MAX_STEPS and int(sol.num_steps) == 2
+    # already optimal: gtol holds before any step
+    sol = run_steps(lm, exp_residual, jnp.asarray(EXP_OPT), EXP_ARGS,
+                    stopping=jo.Stopping(gtol=1e-8))
+    assert int(sol.status) == jo.Status.CONVERGED and int(sol.num_steps) == 0
+    # xtol: a tiny trial step ends the solve
+    sol = run_steps(lm, exp_residual, X0, EXP_ARGS,
+                    stopping=jo.Stopping(gtol=0.0, cost_rtol=0.0, xtol=1e-3))
+    assert int(sol.status) == jo.Status.CONVERGED and float(sol.step_norm) <= 1e-3
+    # a loose relative cost tolerance stops after the first small accepted decrease
+    stop = jo.Stopping(cost_rtol=0.5, gtol=0.0, xtol=0.0)
+    loose = run_steps(lm, exp_residual, X0, EXP_ARGS, stopping=stop, history=True)
+    h = np.asarray(loose.history)
+    k = int(loose.num_steps)
+    assert int(loose.status) == jo.Status.CONVERGED
+    assert h[k - 1] - h[k] <= 0.5 * h[k - 1]
+    assert np.all(h[:k - 1] - h[1:k] > 0.5 * h[:k - 1])
+
+
+def test_stop_on_plateau_semantics():
+    solver = jo.LM()
+    # every iteration decreases by less than 1e9: stop after exactly `patience` iterations
+    stop = jo.Stopping(plateau=jo.StopOnPlateau(steps=50, patience=3, decreasing=1e9))
+    state = run_steps(solver, exp_residual, X0, EXP_ARGS, stopping=stop)
+    assert int(state.num_steps) == 3 and int(state.status) == jo.Status.CONVERGED
+    # `steps` caps the budget
+    stop = jo.Stopping(gtol=0.0, xtol=0.0, cost_rtol=0.0,
+                       plateau=jo.StopOnPlateau(steps=2, patience=5, decreasing=0.0))
+    state = run_steps(solver, exp_residual, X0, EXP_ARGS, stopping=stop)
+    assert int(state.num_steps) == 2 and int(state.status) == jo.Status.MAX_STEPS
+    # relative decrease: the patience counter resets after a large relative decrease
+    stop = jo.Stopping(gtol=0.0, xtol=0.0, cost_rtol=0.0, max_steps=40, plateau=jo.StopOnPlateau(
+        steps=40, patience=2, decreasing=1e-3, relative=True))
+    state = run_steps(solver, exp_residual, X0, EXP_ARGS, stopping=stop)
+    assert int(state.status) == jo.Status.CONVERGED
+    assert int(state.plateau) == 2 and int(state.num_steps) > 2
+
+
+def test_jacobian_modes_and_user_jacobian_agree():
+    sols = [run_steps(jo.LM(), exp_residual, X0, EXP_ARGS, jacobian=mode)
+            for mode in ("fwd", "rev", exp_jacobian)]
+    for sol in sols:
+        np.testing.assert_allclose(sol.best_params, EXP_OPT, rtol=1e-8)
+        assert int(sol.num_steps) == int(sols[0].num_steps)
+
+
+def test_tangent_space_jacobian_of_mixed_pytree():
+    # group leaves contribute tangent_dim columns (no quaternion columns), arrays their size;
+    # columns match central differences of the residual along X·Exp(δ)
+    pose = SE3.random(jax.random.PRNGKey(0), ())
+    params = {"pose": pose, "offset": jnp.array([0.1, -0.2, 0.3])}
+    pts = jax.random.normal(jax.random.PRNGKey(1), (4, 3))
+
+    def res(p, pts):
+        return p["pose"].act(pts) + p["offset"]
+
+    lin = jax.jit(jo.Problem(res).linearize)(params, pts)
+    assert lin.jac.shape == (12, 9)
+    _, unravel = jax.flatten_util.ravel_pytree(manifold.zero_tangent(params))
+    eps = 1e-6
+
+    @jax.jit
+    def central(e):
+        plus = res(manifold.retract(params, unravel(e)), pts)
+        minus = res(manifold.retract(params, unravel(-e)), pts)
+        return jnp.ravel(plus - minus) / (2 * eps)
+
+    fd = jax.vmap(central, out_axes=1)(eps * jnp.eye(9))
+    np.testing.assert_allclose(lin.jac, fd, atol=1e-8)
+
+
+def test_robust_line_fit_with_outliers():
+    rng = np.random.default_rng(7)
+    x = np.linspace(-2, 2, 40)
+    y = 0.7 * x - 0.3 + 0.01 * rng.normal(size=40)
+    y[::8] += 5.0  # outliers
+    args = (jnp.asarray(x), jnp.asarray(y))
+
+    def res(p, args):
+        x, y = args
+        return (p[0] * x + p[1] - y)[:, None]
+
+    plain = run_steps(jo.LM(), res, jnp.zeros(2), args)
+    for corrector in (jo.FastTriggs(), jo.Triggs()):
+        sol = run_steps(jo.LM(), res, jnp.zeros(2), args, kernel=jo.Cauchy(0.1),
+                        corrector=corrector)
+        assert int(sol.status) == jo.Status.CONVERGED
+        np.testing.assert_allclose(sol.best_params, [0.7, -0.3], atol=0.02)
+
+        def robust(p):  # independent robust cost
+            r = p[0] * args[0] + p[1] - args[1]
+            return 0.5 * jnp.sum(0.01 * jnp.log1p(r * r / 0.01))
+
+        assert float(jnp.max(jnp.abs(jax.grad(robust)(sol.best_params)))) < 1e-6
+    assert float(jnp.abs(plain.best_params[1] + 0.3)) > 0.3  # the plain fit is pulled away
