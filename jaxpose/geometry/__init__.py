@@ -1,0 +1,40 @@
+"""Geometry and vision: cameras, registration, nearest neighbours, ICP, PnP, splines,
+trajectory metrics, rotation losses and point-cloud down-sampling.
+
+All functions are pure and take/return arrays and :mod:`jaxpose.lie` groups (SE3 with
+PyPose's ``[tx, ty, tz, qx, qy, qz, qw]`` storage); they jit, vmap and differentiate.
+Shape and type errors raise at trace time naming the argument; conditions that depend
+on values (degenerate configurations, non-finite data) come back as :class:`Status`
+codes in the results.
+
+Modules: :mod:`.camera`, :mod:`.registration`, :mod:`.knn`, :mod:`.kdtree`, :mod:`.icp`,
+:mod:`.pnp`, :mod:`.spline`, :mod:`.metrics`, :mod:`.losses`, :mod:`.downsample`. The
+names ``icp`` and ``knn`` here are the functions (they shadow their modules; import
+from those as ``from jaxpose.geometry.icp import ICPResult``).
+"""
+
+from . import camera, kdtree, pnp, registration
+from ._util import Status
+from .camera import (
+    bal_project,
+    cart2homo,
+    homo2cart,
+    intrinsics_matrix,
+    pixel2point,
+    point2pixel,
+    radial_distort,
+    reprojerr,
+)
+from .icp import ICPResult, estimate_normals, icp  # the function shadows the module
+from .kdtree import KDTree, build_kdtree, query_kdtree
+from .knn import KNNResult, knn  # the function shadows the module
+from .pnp import PnPResult, epnp
+from .registration import svdstf, svdtf, umeyama
+
+__all__ = [
+    "ICPResult", "KDTree", "KNNResult", "PnPResult", "Status", "bal_project",
+    "build_kdtree", "camera", "cart2homo", "epnp", "estimate_normals", "homo2cart", "icp",
+    "intrinsics_matrix", "kdtree", "knn", "pixel2point", "pnp", "point2pixel",
+    "query_kdtree", "radial_distort", "registration", "reprojerr", "svdstf", "svdtf",
+    "umeyama",
+]

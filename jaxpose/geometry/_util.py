@@ -1,0 +1,117 @@
+"""Shared helpers for :mod:`jaxpose.geometry`: argument checks, status codes, safe math.
+
+Checks run at trace time on shapes and types and raise exceptions that name the argument;
+conditions that depend on values (degenerate configurations, non-finite data) are
+reported through :class:`Status` codes in the results instead.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..lie.base import LieGroup, as_float_array
+
+Array = jax.Array
+
+
+class Status(enum.IntEnum):
+    """Outcome of an iterative or degenerate-prone geometry routine (int32 in results).
+
+    Values shared with :class:`jaxpose.optim.Status` mean the same thing there."""
+
+    SUCCESS = 0  #: converged (iterative routines) or a well-posed closed-form solution
+    MAX_STEPS = 1  #: iteration budget ran out before the tolerance was met
+    NON_FINITE = 3  #: NaN/Inf appeared in the data or the estimate
+    DEGENERATE = 4  #: the configuration does not determine the answer (e.g. collinear
+    #: points, fewer than 3 correspondences within the distance gate)
+
+    CONVERGED = 0  # alias of SUCCESS for iterative routines
+
+
+def points_array(x: Any, argname: str, dim: int | None = 3, min_points: int = 1) -> Array:
+    """``x`` as a float array of shape (..., N, dim) with N ≥ ``min_points``."""
+    arr = as_float_array(x, argname)
+    want = "D" if dim is None else str(dim)
+    if arr.ndim < 2 or (dim is not None and arr.shape[-1] != dim):
+        raise ValueError(f"{argname}: expected an array of shape (..., N, {want}), "
+                         f"got shape {tuple(arr.shape)}")
+    n = arr.shape[-2]
+    if n < min_points:
+        what = "an empty point set" if n == 0 else f"{n} point{'s' if n != 1 else ''}"
+        raise ValueError(f"{argname}: expected at least {min_points} point"
+                         f"{'s' if min_points != 1 else ''}, got {what} "
+                         f"(shape {tuple(arr.shape)})")
+    return arr
+
+
+def matrix_array(x: Any, argname: str, n: int, m: int | None = None) -> Array:
+    """``x`` as a float array of shape (..., n, m)."""
+    m = n if m is None else m
+    arr = as_float_array(x, argname)
+    if arr.ndim < 2 or arr.shape[-2:] != (n, m):
+        raise ValueError(f"{argname}: expected an array of shape (..., {n}, {m}), "
+                         f"got shape {tuple(arr.shape)}")
+    return arr
+
+
+def check_group(x: Any, cls: type[LieGroup], argname: str) -> LieGroup:
+    if not isinstance(x, cls):
+        hint = f"; wrap a raw array as {cls.__name__}(array)" if isinstance(
+            x, (jax.Array, np.ndarray)) else ""
+        raise TypeError(f"{argname}: expected a {cls.__name__} element, got "
+                        f"{type(x).__name__}{hint}")
+    return x
+
+
+def batch_shape(*shapes: tuple[int, ...], names: tuple[str, ...]) -> tuple[int, ...]:
+    """Broadcast batch shapes, naming the arguments when they do not broadcast."""
+    try:
+        return tuple(np.broadcast_shapes(*shapes))
+    except ValueError as err:
+        desc = ", ".join(f"{n} {tuple(s)}" for n, s in zip(names, shapes))
+        raise ValueError(f"batch shapes do not broadcast: {desc}") from err
+
+
+def same_count(a: Array, b: Array, name_a: str, name_b: str, axis: int = -2) -> None:
+    if a.shape[axis] != b.shape[axis]:
+        raise ValueError(f"{name_a} and {name_b}: expected the same number of points, got "
+                         f"{a.shape[axis]} and {b.shape[axis]} (shapes {tuple(a.shape)} and "
+                         f"{tuple(b.shape)})")
+
+
+def common_dtype(*xs: Array) -> Any:
+    return jnp.result_type(*[x.dtype for x in xs])
+
+
+def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+    """Euclidean norm whose derivative is 0 (not NaN) at x = 0, any order."""
+    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    pos = sq > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def safe_sqrt(x: Array) -> Array:
+    """sqrt(max(x, 0)) with derivative 0 (not Inf/NaN) at x ≤ 0."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
+
+
+def safe_div(num: Array, den: Array) -> Array:
+    """num / den, with den = 0 replaced by 1 (result 0·num) so derivatives stay finite."""
+    ok = den != 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+
+def flatten_batch(x: Array, batch: tuple[int, ...], core_ndim: int) -> Array:
+    """Broadcast ``x`` to ``(*batch, *core)`` and merge the batch axes into one."""
+    core = x.shape[x.ndim - core_ndim:] if core_ndim else ()
+    return jnp.broadcast_to(x, (*batch, *core)).reshape((-1, *core))
+
+
+def status_array(code: int | Status) -> Array:
+    return jnp.asarray(int(code), jnp.int32)

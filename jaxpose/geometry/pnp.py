@@ -1,0 +1,333 @@
+"""Perspective-n-Point: EPnP (Lepetit, Moreno-Noguer & Fua, IJCV 2009), batched.
+
+``epnp(points, pixels, intrinsics)`` returns the SE3 that maps world points into the
+camera frame (the ``extrinsics`` of :func:`~jaxpose.geometry.point2pixel`), a
+:class:`Status` and the mean reprojection error in pixels.
+
+Algorithm (per problem, vmapped over the batch):
+
+1. Control points from the principal axes of the world points (``eigh`` of their
+   3×3 covariance); barycentric coordinates α (N, 4).
+2. The 2N × 12 system M x = 0 in normalised image coordinates (K⁻¹ applied first, so
+   any upper-triangular K works); its four smallest right singular vectors from the
+   symmetric eigen-decomposition of MᵀM (12 × 12, ``eigh``).
+3. Betas for null-space dimensions 1, 2, 3 and Lepetit's linearised 4-dimensional
+   approximation, each polished by 5 Gauss–Newton steps on the six inter-control-point
+   distance constraints; camera points α·C_c, sign fixed so that Z > 0, and the pose by
+   Kabsch (:func:`~jaxpose.geometry.svdtf`). The candidate with the smallest reprojection
+   error wins.
+4. Planar targets are handled by a second run with three control points (the two
+   in-plane axes, a 2N × 9 system, 3 betas); both runs are always evaluated (static
+   shapes) and the better reprojection error is kept.
+5. Optional refinement (``refine=True``): Levenberg–Marquardt on the pixel reprojection
+   error over SE3 with :func:`jaxpose.optim.least_squares` (right retraction).
+
+Status: SUCCESS; DEGENERATE when the world points are (numerically) collinear — the pose
+is then not determined (rotation about the line is free) and the returned estimate is
+only one of many; NON_FINITE when the inputs or the estimate contain NaN/Inf. Fewer than
+4 points raises a ValueError (a shape known at trace time).
+
+Derivatives. EPnP's algebra is not differentiated (eigenvector derivatives are undefined
+for repeated eigenvalues, which planar targets always produce). Instead the returned pose
+carries the implicit-function derivative of the reprojection least-squares optimum at
+that pose: T ⊕ (δ − sg(δ)) with δ one Gauss–Newton step, so the value is unchanged and
+d pose / d(points, pixels, intrinsics) is exact at a refined (optimal) pose and a
+first-order approximation for an unrefined one.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..lie import SE3
+from ..lie.base import skew
+from ._util import (
+    Array,
+    Status,
+    batch_shape,
+    flatten_batch,
+    matrix_array,
+    points_array,
+    safe_div,
+    safe_norm,
+    safe_sqrt,
+)
+from .camera import point2pixel
+from .registration import svdtf
+
+
+class PnPResult(NamedTuple):
+    """``transform``: SE3 (...) world → camera; ``status`` int32 (...); ``error`` (...):
+    mean reprojection error in pixels at ``transform``."""
+
+    transform: SE3
+    status: Array
+    error: Array
+
+
+_PAIRS4 = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+_PAIRS3 = ((0, 1), (0, 2), (1, 2))
+
+
+def _products(beta: Array) -> Array:
+    """Products β_a β_b (a ≤ b), column-major over the upper triangle:
+    (0,0), (0,1), (1,1), (0,2), (1,2), (2,2), (0,3), ..."""
+    n = beta.shape[-1]
+    return jnp.stack([beta[..., a] * beta[..., b] for b in range(n) for a in range(b + 1)], -1)
+
+
+def _l_matrix(null: Array, pairs: tuple[tuple[int, int], ...]) -> Array:
+    """L (P, n(n+1)/2) with L·products(β) = |Σ β_k (v_k[a] − v_k[b])|² per pair."""
+    n = null.shape[0]
+    dv = jnp.stack([null[:, a] - null[:, b] for a, b in pairs], 0)  # (P, n, 3)
+    cols = []
+    for b in range(n):
+        for a in range(b + 1):
+            dot = jnp.sum(dv[:, a] * dv[:, b], -1)
+            cols.append(dot if a == b else 2.0 * dot)
+    return jnp.stack(cols, -1)
+
+
+def _product_jacobian(beta: Array) -> Array:
+    """d products(β) / dβ, (n(n+1)/2, n)."""
+    n = beta.shape[-1]
+    a_idx = jnp.array([a for b in range(n) for a in range(b + 1)])
+    b_idx = jnp.array([b for b in range(n) for a in range(b + 1)])
+    cols = jnp.arange(n)
+    return ((a_idx[:, None] == cols) * beta[b_idx][:, None]
+            + (b_idx[:, None] == cols) * beta[a_idx][:, None])
+
+
+def _gauss_newton_betas(l_mat: Array, rho: Array, beta: Array, steps: int = 5) -> Array:
+    """Polish β on L·products(β) = ρ (small damped Gauss–Newton, monotone)."""
+
+    def step(_: int, b: Array) -> Array:
+        r = l_mat @ _products(b) - rho
+        j = l_mat @ _product_jacobian(b)
+        h = j.T @ j
+        damp = 1e-12 * (jnp.trace(h) + jnp.finfo(b.dtype).tiny)
+        nb = b - jnp.linalg.solve(h + damp * jnp.eye(b.shape[0], dtype=b.dtype), j.T @ r)
+        r_new = l_mat @ _products(nb) - rho
+        better = jnp.all(jnp.isfinite(nb)) & (jnp.sum(r_new ** 2) <= jnp.sum(r ** 2))
+        return jnp.where(better, nb, b)
+
+    return jax.lax.fori_loop(0, steps, step, beta)
+
+
+def _lstsq(a: Array, b: Array) -> Array:
+    """Least squares a x ≈ b through the (damped) normal equations (small, smooth)."""
+    h = a.T @ a
+    damp = 1e-12 * (jnp.trace(h) + jnp.finfo(a.dtype).tiny)
+    return jnp.linalg.solve(h + damp * jnp.eye(h.shape[0], dtype=a.dtype), a.T @ b)
+
+
+def _initial_betas(l_mat: Array, rho: Array, nc: int) -> list[Array]:
+    """Candidate β (n_null,) for null-space dimensions 1, 2, 3 and the 4-D linearisation."""
+    n = 4 if nc == 4 else 3
+    z = jnp.zeros((n,), l_mat.dtype)
+    # column indices of the products (a, b) in _products order
+    col = {}
+    i = 0
+    for b in range(n):
+        for a in range(b + 1):
+            col[(a, b)] = i
+            i += 1
+    def vec(*vals: Array) -> Array:
+        return jnp.concatenate([jnp.stack(vals), z[len(vals):]])
+
+    cands = []
+    # N = 1: β0² from the (0,0) column
+    l11 = l_mat[:, col[(0, 0)]]
+    b1 = safe_sqrt(safe_div(jnp.sum(l11 * rho), jnp.sum(l11 * l11)))
+    cands.append(vec(b1))
+    # N = 2: [b00, b01, b11]
+    s = _lstsq(l_mat[:, [col[(0, 0)], col[(0, 1)], col[(1, 1)]]], rho)
+    b0 = safe_sqrt(jnp.abs(s[0]))
+    b1 = safe_sqrt(jnp.abs(s[2])) * jnp.where(s[1] * s[0] < 0, -1.0, 1.0)
+    cands.append(vec(b0, b1))
+    # N = 3: [b00, b01, b11, b02, b12]
+    if nc == 4:
+        s = _lstsq(l_mat[:, [col[(0, 0)], col[(0, 1)], col[(1, 1)], col[(0, 2)],
+                            col[(1, 2)]]], rho)
+        b0 = safe_sqrt(jnp.abs(s[0]))
+        b1 = safe_sqrt(jnp.abs(s[2])) * jnp.where(s[1] * s[0] < 0, -1.0, 1.0)
+        b2 = safe_div(s[3], b0) * jnp.where(s[0] < 0, -1.0, 1.0)
+        cands.append(vec(b0, b1, b2))
+        # Lepetit's approximation for N = 4: [b00, b01, b02, b03]
+        s = _lstsq(l_mat[:, [col[(0, 0)], col[(0, 1)], col[(0, 2)], col[(0, 3)]]], rho)
+        b0 = safe_sqrt(jnp.abs(s[0]))
+        sgn = jnp.where(s[0] < 0, -1.0, 1.0)
+        cands.append(jnp.stack([b0, safe_div(s[1], b0) * sgn, safe_div(s[2], b0) * sgn,
+                                safe_div(s[3], b0) * sgn]))
+    return cands
+
+
+def _candidates(alpha: Array, ctrl_w: Array, xn: Array, pw: Array) -> tuple[Array, Array]:
+    """Poses (C, 7) and mean normalised reprojection errors (C,) for one control set."""
+    nc = ctrl_w.shape[0]
+    n_null = 4 if nc == 4 else 3
+    x, y = xn[:, 0:1], xn[:, 1:2]
+    zero = jnp.zeros_like(alpha)
+    # rows: [α_j, 0, −α_j x] and [0, α_j, −α_j y] for each control point j
+    mx = jnp.stack([alpha, zero, -alpha * x], -1).reshape(-1, 3 * nc)
+    my = jnp.stack([zero, alpha, -alpha * y], -1).reshape(-1, 3 * nc)
+    m = jnp.concatenate([mx, my], 0)
+    _, vecs = jnp.linalg.eigh(m.T @ m)
+    null = vecs[:, :n_null].T.reshape(n_null, nc, 3)  # smallest eigenvalues first
+    pairs = _PAIRS4 if nc == 4 else _PAIRS3
+    rho = jnp.stack([jnp.sum(jnp.square(ctrl_w[a] - ctrl_w[b])) for a, b in pairs])
+    l_mat = _l_matrix(null, pairs)
+    betas = jnp.stack(_initial_betas(l_mat, rho, nc))
+
+    def pose(beta: Array) -> tuple[Array, Array]:
+        beta = _gauss_newton_betas(l_mat, rho, beta)
+        ctrl_c = jnp.einsum("k,kjd->jd", beta, null)
+        pc = alpha @ ctrl_c
+        pc = pc * jnp.where(jnp.mean(pc[:, 2]) < 0, -1.0, 1.0)
+        t = svdtf(pw, pc).data
+        proj = SE3(t).act(pw)
+        z = proj[:, 2:3]
+        zs = jnp.where(jnp.abs(z) > 0, z, 1.0)
+        err = jnp.mean(safe_norm(proj[:, :2] / zs - xn))
+        ok = jnp.all(jnp.isfinite(t)) & jnp.all(z > 0) & jnp.isfinite(err)
+        return t, jnp.where(ok, err, jnp.inf)
+
+    return jax.vmap(pose)(betas)
+
+
+def _epnp_single(pw: Array, uv: Array, k: Array) -> tuple[Array, Array]:
+    """EPnP for one problem: pose data (7,) world→camera and status."""
+    dtype = pw.dtype
+    eps = jnp.finfo(dtype).eps
+    kinv = jnp.linalg.inv(k)
+    rays = jnp.concatenate([uv, jnp.ones_like(uv[:, :1])], -1) @ kinv.T
+    xn = rays[:, :2] / rays[:, 2:3]
+    c0 = jnp.mean(pw, 0)
+    xc = pw - c0
+    cov = xc.T @ xc / pw.shape[0]
+    lam, axes = jnp.linalg.eigh(cov)  # ascending
+    lam_max = lam[2]
+    floor = (jnp.sqrt(eps) * lam_max) + jnp.finfo(dtype).tiny
+    sig = jnp.sqrt(jnp.maximum(lam, floor))
+    # four control points: centroid + one per principal axis (largest first)
+    order = jnp.array([2, 1, 0])
+    proj = xc @ axes  # (N, 3) coordinates along the axes
+    a_rest = proj[:, order] / sig[order]
+    alpha4 = jnp.concatenate([1.0 - jnp.sum(a_rest, -1, keepdims=True), a_rest], -1)
+    ctrl4 = jnp.concatenate([c0[None], c0 + sig[order][:, None] * axes.T[order]], 0)
+    alpha3 = jnp.concatenate([1.0 - jnp.sum(a_rest[:, :2], -1, keepdims=True),
+                              a_rest[:, :2]], -1)
+    ctrl3 = ctrl4[:3]
+    p4, e4 = _candidates(alpha4, ctrl4, xn, pw)
+    p3, e3 = _candidates(alpha3, ctrl3, xn, pw)
+    poses = jnp.concatenate([p4, p3], 0)
+    errs = jnp.concatenate([e4, e3], 0)
+    best = poses[jnp.argmin(errs)]
+    collinear = lam[1] <= 1e3 * eps * lam_max
+    finite = jnp.all(jnp.isfinite(best)) & jnp.isfinite(jnp.min(errs))
+    finite = finite & jnp.all(jnp.isfinite(pw)) & jnp.all(jnp.isfinite(uv))
+    status = jnp.where(~finite, Status.NON_FINITE,
+                       jnp.where(collinear, Status.DEGENERATE, Status.SUCCESS))
+    best = jnp.where(jnp.all(jnp.isfinite(best)), best, SE3.identity(dtype=dtype).data)
+    return best, status.astype(jnp.int32)
+
+
+def _residual(t: SE3, args: tuple[Array, Array, Array]) -> Array:
+    """Pixel reprojection residual (N, 2)."""
+    pw, uv, k = args
+    return point2pixel(pw, k, t) - uv
+
+
+def _jacobian(t: SE3, args: tuple[Array, Array, Array]) -> Array:
+    """d residual(T·Exp(δ)) / dδ at δ = 0, rows ordered like residual.reshape(-1): (2N, 6).
+
+    T·Exp(δ)·p ≈ T p + R (ρ + φ × p), so d p_c / d[ρ, φ] = [R, −R [p]×]; then the
+    projection u = h[:2] / h[2] with h = K p_c."""
+    pw, _, k = args
+    r = t.rotation().matrix()
+    pc = t.act(pw)  # (N, 3)
+    h = pc @ k.T
+    inv_z = 1.0 / h[:, 2]
+    dproj = jnp.stack([
+        jnp.stack([inv_z, jnp.zeros_like(inv_z), -h[:, 0] * inv_z ** 2], -1),
+        jnp.stack([jnp.zeros_like(inv_z), inv_z, -h[:, 1] * inv_z ** 2], -1),
+    ], -2)  # (N, 2, 3)
+    dpc = jnp.concatenate([jnp.broadcast_to(r, (pw.shape[0], 3, 3)), -r @ skew(pw)], -1)
+    return jnp.einsum("nij,jk,nkl->nil", dproj, k, dpc).reshape(-1, 6)
+
+
+def _refine(t: Array, pw: Array, uv: Array, k: Array, steps: int) -> Array:
+    """Levenberg–Marquardt on the pixel reprojection error (jaxpose.optim)."""
+    from ..optim import LevenbergMarquardt, least_squares
+
+    sol = least_squares(_residual, SE3(t), (pw, uv, k), solver=LevenbergMarquardt(),
+                        max_steps=steps, jacobian=_jacobian)
+    return sol.params.data
+
+
+def _implicit_tangent(t: Array, pw: Array, uv: Array, k: Array) -> Array:
+    """T ⊕ (δ − sg(δ)): the value of T, the derivative of the least-squares optimum."""
+    ts = SE3(jax.lax.stop_gradient(t))
+    r = _residual(ts, (pw, uv, k)).reshape(-1)
+    j = _jacobian(ts, (pw, uv, k))
+    h = j.T @ j
+    damp = jnp.finfo(t.dtype).eps * (jnp.trace(h) + 1.0)
+    delta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), j.T @ r)
+    return ts.retract(delta - jax.lax.stop_gradient(delta)).data
+
+
+@functools.partial(jax.jit, static_argnames=("refine", "refine_steps"))
+def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps: int):
+    def single(pw: Array, uv: Array, k: Array) -> tuple[Array, Array, Array]:
+        pws, uvs, ks = (jax.lax.stop_gradient(x) for x in (pw, uv, k))
+        t, status = _epnp_single(pws, uvs, ks)
+        if refine:
+            t_ref = _refine(t, pws, uvs, ks, refine_steps)
+            ok = jnp.all(jnp.isfinite(t_ref)) & (status == Status.SUCCESS)
+            t = jnp.where(ok, t_ref, t)
+        t = _implicit_tangent(t, pw, uv, k)
+        err = jnp.mean(safe_norm(_residual(SE3(t), (pw, uv, k))), -1)
+        return t, status, err
+
+    return jax.vmap(single)(pw, uv, k)
+
+
+def epnp(
+    points: Any,
+    pixels: Any,
+    intrinsics: Any,
+    *,
+    refine: bool = True,
+    refine_steps: int = 10,
+) -> PnPResult:
+    """Camera pose from N ≥ 4 world ``points`` (..., N, 3) and their ``pixels``
+    (..., N, 2) with ``intrinsics`` K (..., 3, 3); batch axes broadcast.
+
+    Returns :class:`PnPResult` with ``transform`` (SE3 world → camera, so that
+    ``point2pixel(points, K, transform) ≈ pixels``), ``status`` and ``error``."""
+    fn = "epnp"
+    pw = points_array(points, f"{fn}(points)", 3)
+    uv = points_array(pixels, f"{fn}(pixels)", 2)
+    k = matrix_array(intrinsics, f"{fn}(intrinsics)", 3)
+    if pw.shape[-2] != uv.shape[-2]:
+        raise ValueError(f"{fn}(points, pixels): expected the same number of points, got "
+                         f"{pw.shape[-2]} and {uv.shape[-2]}")
+    if pw.shape[-2] < 4:
+        raise ValueError(f"{fn}(points): EPnP needs at least 4 points, got {pw.shape[-2]}")
+    if not isinstance(refine_steps, int) or refine_steps < 1:
+        raise ValueError(f"{fn}(refine_steps): expected a positive int, got {refine_steps!r}")
+    batch = batch_shape(pw.shape[:-2], uv.shape[:-2], k.shape[:-2],
+                        names=("points", "pixels", "intrinsics"))
+    dtype = jnp.result_type(pw.dtype, uv.dtype, k.dtype)
+    t, status, err = _epnp_batched(
+        flatten_batch(pw.astype(dtype), batch, 2), flatten_batch(uv.astype(dtype), batch, 2),
+        flatten_batch(k.astype(dtype), batch, 2), refine=bool(refine),
+        refine_steps=refine_steps)
+    return PnPResult(SE3(t.reshape(*batch, 7)), status.reshape(batch), err.reshape(batch))
+
+
+__all__ = ["PnPResult", "epnp"]
