@@ -13,7 +13,7 @@ names ``icp`` and ``knn`` here are the functions (they shadow their modules; imp
 from those as ``from jaxpose.geometry.icp import ICPResult``).
 """
 
-from . import camera, kdtree, pnp, registration
+from . import camera, downsample, kdtree, losses, metrics, pnp, registration, spline
 from ._util import Status
 from .camera import (
     bal_project,
@@ -25,16 +25,23 @@ from .camera import (
     radial_distort,
     reprojerr,
 )
+from .downsample import Downsampled, random_filter, voxel_filter
 from .icp import ICPResult, estimate_normals, icp  # the function shadows the module
 from .kdtree import KDTree, build_kdtree, query_kdtree
 from .knn import KNNResult, knn  # the function shadows the module
+from .losses import geodesic_angle, geodesic_loss
+from .metrics import ErrorStats, TrajectoryError, ape, associate, error_stats, rpe
 from .pnp import PnPResult, epnp
 from .registration import svdstf, svdtf, umeyama
+from .spline import bspline, bspline_se3, bspline_se3_fit, chspline, hermite
 
 __all__ = [
-    "ICPResult", "KDTree", "KNNResult", "PnPResult", "Status", "bal_project",
-    "build_kdtree", "camera", "cart2homo", "epnp", "estimate_normals", "homo2cart", "icp",
-    "intrinsics_matrix", "kdtree", "knn", "pixel2point", "pnp", "point2pixel",
-    "query_kdtree", "radial_distort", "registration", "reprojerr", "svdstf", "svdtf",
-    "umeyama",
+    "Downsampled", "ErrorStats", "ICPResult", "KDTree", "KNNResult", "PnPResult", "Status",
+    "TrajectoryError", "ape", "associate", "bal_project", "bspline", "bspline_se3",
+    "bspline_se3_fit", "build_kdtree", "camera", "cart2homo", "chspline", "downsample",
+    "epnp", "error_stats", "estimate_normals", "geodesic_angle", "geodesic_loss",
+    "hermite", "homo2cart", "icp", "intrinsics_matrix", "kdtree", "knn", "losses",
+    "metrics", "pixel2point", "pnp", "point2pixel", "query_kdtree", "radial_distort",
+    "random_filter", "registration", "reprojerr", "rpe", "spline", "svdstf", "svdtf",
+    "umeyama", "voxel_filter",
 ]
