@@ -8,9 +8,10 @@ and the implicit function theorem give
     dδ*/dθ = −H⁻¹ ∂²φ/∂δ∂θ,   H = ∂²φ/∂δ² (n, n) at δ = 0,
 
 so for a cotangent v on X* (pulled back to the tangent space through δ ↦ X* ⊕ δ) the
-backward pass solves H u = v once and returns θ̄ = −∇_θ (∇_δ φ · u). H is the exact
-Hessian of the (robust, weighted) cost, which equals the Gauss-Newton matrix JᵀWJ for
-zero-residual problems. The final cost's cotangent is propagated by the envelope
+backward pass solves H u = v once and returns θ̄ = −∇_θ (∇_δ φ · u). By default H is the
+exact Hessian of the (robust, weighted) cost, so the gradient is exact for any residual;
+``hessian="gauss_newton"`` uses J̃ᵀJ̃ from the whitened, kernel-corrected Jacobian instead
+(first derivatives only: cheaper to compile, exact for zero-residual problems). The final cost's cotangent is propagated by the envelope
 theorem (∂cost/∂θ at fixed X*). Gradients with respect to the initial params are zero;
 ``history`` has no gradient. Reverse mode only (use ``adjoint="unrolled"`` for jvp).
 """
@@ -34,10 +35,20 @@ PyTree = Any
 
 
 class ImplicitAdjoint(eqx.Module):
-    """Implicit-function-theorem adjoint; ``linear_solver`` solves H u = v (default
-    :class:`SVD`: the pseudo-inverse, so gauge freedoms give the minimum-norm answer)."""
+    """Implicit-function-theorem adjoint.
+
+    ``linear_solver`` solves H u = v (default :class:`SVD`: the pseudo-inverse, so gauge
+    freedoms give the minimum-norm answer); ``hessian`` is ``"exact"`` or
+    ``"gauss_newton"`` (see the module docstring)."""
 
     linear_solver: LinearSolver = SVD()
+    hessian: str = eqx.field(default="exact", static=True)
+
+    def __check_init__(self) -> None:
+        if self.hessian not in ("exact", "gauss_newton"):
+            raise ValueError(
+                f"ImplicitAdjoint(hessian={self.hessian!r}): expected 'exact' or 'gauss_newton'"
+            )
 
 
 class UnrolledAdjoint(eqx.Module):
@@ -104,8 +115,13 @@ def _implicit_bwd(
         a, prob = th
         return prob.cost(lift(eps), a)
 
-    hess = jax.hessian(phi)(flat0, theta)
-    hess = 0.5 * (hess + hess.T)
+    if adjoint.hessian == "exact":
+        hess = jax.hessian(phi)(flat0, theta)
+        hess = 0.5 * (hess + hess.T)
+    else:
+        args, problem = theta
+        jac = problem.linearize(x_star, args).jac
+        hess = jac.T @ jac
     u = adjoint.linear_solver.solve(hess, -v, hess, -v, jnp.zeros_like(v))
     u = jax.lax.stop_gradient(u)
     dtype = flat0.dtype
@@ -113,9 +129,9 @@ def _implicit_bwd(
     c_init = jnp.zeros((), dtype) if ct_init is None else ct_init
 
     def psi(th: tuple[PyTree, Problem]) -> jax.Array:
-        g = jax.grad(phi)(flat0, th)
+        val, gu = jax.jvp(lambda e: phi(e, th), (flat0,), (u,))  # φ and ∇_δφ·u
         a, prob = th
-        return c_cost * phi(flat0, th) + c_init * prob.cost(params0, a) - g @ u
+        return c_cost * val + c_init * prob.cost(params0, a) - gu
 
     return eqx.filter_grad(psi)(theta)
 

@@ -1,0 +1,119 @@
+"""Bad input: NaN at the start / mid-run, malformed weights and options, singular systems."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxpose.optim as jo
+
+from .test_least_squares import run_steps
+
+
+def _lin(x, args):
+    a, b = args
+    return (a @ x - b)[:, None]
+
+
+def _singular_args():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(10, 3))
+    a = np.concatenate([a, a[:, :1]], 1)  # duplicated column: AᵀA singular
+    b = rng.normal(size=10)
+    return a, b
+
+
+def test_nan_residual_at_start_raises_naming_residual_fn():
+    def bad(x, args):
+        return jnp.log(x - 1.0)  # NaN at x = 0
+
+    with pytest.raises(Exception, match="residual_fn"):
+        jo.least_squares(bad, jnp.zeros(2))
+    with pytest.raises(Exception, match="residual_fn"):
+        jax.jit(lambda x: jo.least_squares(bad, x).params)(jnp.zeros(2))
+
+
+def test_nan_mid_run_reports_non_finite_and_keeps_best():
+    # Gauss-Newton on x² − 4 from x = 10 visits 5.2, 3.08, then 2.19 where the residual is
+    # NaN (domain x > 2.5): status NON_FINITE, the best finite estimate (3.08) is kept
+    def res(x, args):
+        return jnp.where(x > 2.5, x * x - 4.0, jnp.nan)
+
+    state = run_steps(jo.GN(), res, jnp.array([10.0]), None)
+    assert int(state.status) == jo.Status.NON_FINITE
+    assert int(state.num_accepted) == 2
+    x1 = 10.0 - 96.0 / 20.0
+    x2 = x1 - (x1 * x1 - 4.0) / (2 * x1)
+    np.testing.assert_allclose(state.best_params, [x2], rtol=1e-12)
+    assert float(state.best_cost) == pytest.approx(0.5 * (x2 * x2 - 4.0) ** 2)
+    # LM: every trial away from the start is NaN -> rejected with growing damping until the
+    # damping bound, then NON_FINITE with the initial params kept
+    def res2(x, args):
+        return jnp.where(x == 1.0, x - 3.0, jnp.nan)
+
+    sol = jo.least_squares(res2, jnp.array([1.0]))
+    assert int(sol.status) == jo.Status.NON_FINITE
+    np.testing.assert_array_equal(sol.params, [1.0])
+    assert int(sol.num_accepted) == 0 and float(sol.cost) == pytest.approx(2.0)
+
+
+def test_singular_normal_equations_do_not_crash():
+    a, b = _singular_args()
+    args = (jnp.asarray(a), jnp.asarray(b))
+    lstsq_res = a @ np.linalg.pinv(a) @ b - b
+    # damped path (LM + Cholesky): a least-squares minimiser
+    lm = run_steps(jo.LM(), _lin, jnp.zeros(4), args)
+    assert int(lm.status) == jo.Status.CONVERGED
+    np.testing.assert_allclose(a @ np.asarray(lm.best_params) - b, lstsq_res, atol=1e-8)
+    # pseudo-inverse path (GN + SVD): exactly the minimum-norm solution
+    gn = run_steps(jo.GN(jo.SVD()), _lin, jnp.zeros(4), args)
+    assert int(gn.status) == jo.Status.CONVERGED
+    np.testing.assert_allclose(gn.best_params, np.linalg.pinv(a) @ b, rtol=1e-9, atol=1e-12)
+    # undamped Cholesky: no exception, a status, the initial estimate kept
+    bad = run_steps(jo.GN(jo.Cholesky()), _lin, jnp.zeros(4), args)
+    assert int(bad.status) == jo.Status.NON_FINITE
+    np.testing.assert_array_equal(bad.best_params, np.zeros(4))
+
+
+def test_mismatched_weights_raise_naming_weights():
+    x0 = jnp.zeros(2)
+
+    def res(x, args):
+        return jnp.stack([x, 2 * x])  # (2, 2): two blocks of dimension 2
+
+    for w in (jnp.eye(3), jnp.ones((3, 2, 2)), jnp.ones((2,)), jnp.ones((2, 3, 3))):
+        with pytest.raises(ValueError, match="weights"):
+            jo.least_squares(res, x0, weights=w)
+    with pytest.raises(ValueError, match="weights"):
+        jo.least_squares(res, x0, weights={"a": jnp.eye(2)})
+    # a non-positive-definite information matrix is caught at run time
+    with pytest.raises(Exception, match="weights"):
+        jo.least_squares(res, x0, weights=-jnp.eye(2))
+
+
+def test_bad_options_raise_clear_errors():
+    x0 = jnp.zeros(2)
+
+    def res(x, args):
+        return x - 1.0
+
+    with pytest.raises(ValueError, match="adjoint"):
+        jo.least_squares(res, x0, adjoint="backprop")
+    with pytest.raises(ValueError, match="jacobian"):
+        jo.least_squares(res, x0, jacobian="central")
+    with pytest.raises(ValueError, match="jacobian"):
+        jo.least_squares(res, x0, jacobian=lambda x, a: jnp.eye(3))
+    with pytest.raises(TypeError, match="solver"):
+        jo.least_squares(res, x0, solver=jo.TrustRegion())
+    with pytest.raises(ValueError, match="max_steps"):
+        jo.least_squares(res, x0, max_steps=-1)
+    with pytest.raises(ValueError, match="kernel"):
+        jo.least_squares(res, x0, kernel={"a": jo.Huber()})
+    with pytest.raises(TypeError, match="residual_fn"):
+        jo.least_squares(lambda x, a: jnp.arange(2), x0)
+    with pytest.raises(TypeError, match="residual_fn"):
+        jo.least_squares("not callable", x0)
+    with pytest.raises(TypeError, match="strategy"):
+        jo.LM(strategy=jo.Cholesky())

@@ -1,0 +1,135 @@
+"""Gradients through the solution: implicit and unrolled adjoints vs central differences."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+import jaxpose.optim as jo
+from jaxpose.lie import SE3
+
+from .problems import EXP_ARGS, EXP_OPT, exp_residual
+
+TIGHT = dict(gtol=1e-13, xtol=1e-14, cost_rtol=0.0, max_steps=60)
+
+
+def _central(fn, x, eps):
+    """Richardson-extrapolated central differences of fn (R^k -> R^m) at x (error
+    O(eps⁴) plus solve noise / eps); all 4k evaluations in one vmap."""
+    k = x.shape[0]
+    pert = jnp.eye(k, dtype=x.dtype)
+    steps = jnp.concatenate([eps * pert, -eps * pert, 0.5 * eps * pert, -0.5 * eps * pert])
+    vals = jax.vmap(fn)(x + steps).reshape(4, k, -1)
+    d1 = (vals[0] - vals[1]) / (2 * eps)
+    d2 = (vals[2] - vals[3]) / eps
+    return ((4 * d2 - d1) / 3).T
+
+
+# --------------------------------------------------------------------------------------
+# a pose + scale fit: params {SE3, scalar}, args = observed points (nonzero residual)
+# --------------------------------------------------------------------------------------
+_key = jax.random.PRNGKey(0)
+PTS = jax.random.normal(_key, (6, 3))
+TRUE = SE3.random(jax.random.PRNGKey(1), (), sigma=0.5)
+OBS = 1.3 * TRUE.act(PTS) + 0.05 * jax.random.normal(jax.random.PRNGKey(2), (6, 3))
+INIT = {"pose": SE3.random(jax.random.PRNGKey(3), (), sigma=0.2) @ TRUE, "k": jnp.asarray(1.0)}
+
+
+def pose_residual(p, obs):
+    return p["k"] * p["pose"].act(PTS) - obs
+
+
+def _solution_of(adjoint):
+    def f(obs_flat):
+        sol = jo.least_squares(pose_residual, INIT, obs_flat.reshape(6, 3), adjoint=adjoint,
+                               **TIGHT)
+        return ravel_pytree(sol.params)[0]
+    return f
+
+
+def _pose_fd():
+    # the forward solve is accurate to ~1e-11 (cost resolution), so a large step keeps the
+    # difference noise (~1e-8) and the O(eps⁴) truncation well below the tolerance
+    return jax.jit(lambda x: _central(_solution_of("implicit"), x, 1e-3))(OBS.reshape(-1))
+
+
+def test_pose_fit_implicit_jacobian_matches_finite_differences():
+    jac = jax.jit(jax.jacrev(_solution_of("implicit")))(OBS.reshape(-1))
+    assert jac.shape == (8, 18)
+    np.testing.assert_allclose(jac, _pose_fd(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_pose_fit_unrolled_jacobian_matches_finite_differences():
+    jac = jax.jit(jax.jacrev(_solution_of("unrolled")))(OBS.reshape(-1))
+    np.testing.assert_allclose(jac, _pose_fd(), rtol=1e-5, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------
+# cheaper array problems: weights, kernels, closures, the cost, vmap
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("adjoint", ["implicit", "unrolled"])
+def test_gradients_wrt_args_weights_and_cost_match_finite_differences(adjoint):
+    # d(params*, cost*)/d(y, w) for a weighted, Cauchy-robustified fit (nonzero residual)
+    t, y = EXP_ARGS
+
+    def out(v, adjoint=adjoint):  # v = [y (20), w (20)] -> [params (2), cost]
+        sol = jo.least_squares(exp_residual, jnp.asarray(EXP_OPT), (t, v[:20]),
+                               weights=v[20:, None, None], kernel=jo.Cauchy(0.2),
+                               adjoint=adjoint, **TIGHT)
+        return jnp.concatenate([sol.params, sol.cost[None]])
+
+    v = jnp.concatenate([y, jnp.linspace(0.5, 2.0, 20)])
+    jac = jax.jit(jax.jacrev(out))(v)
+    fd = jax.jit(lambda v: _central(lambda u: out(u, "implicit"), v, 1e-3))(v)
+    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-6)
+
+
+def test_gauss_newton_hessian_adjoint_is_exact_for_zero_residual():
+    t, _ = EXP_ARGS
+    adj = jo.ImplicitAdjoint(hessian="gauss_newton")
+
+    def out(ab):
+        y = ab[0] * jnp.exp(-ab[1] * t)  # data on the model: zero residual at the optimum
+        return jo.least_squares(exp_residual, jnp.array([1.0, 1.0]), (t, y), adjoint=adj,
+                                **TIGHT).params
+
+    jac = jax.jit(jax.jacrev(out))(jnp.array([2.0, 1.3]))
+    np.testing.assert_allclose(jac, np.eye(2), atol=1e-9)
+
+
+def test_closed_over_values_are_differentiated():
+    t, y = EXP_ARGS
+
+    def fit(scale):
+        def res(p, args):  # closes over `scale` (a tracer under grad)
+            return (p[0] * jnp.exp(-p[1] * t) - scale * y)[:, None]
+        sol = jo.least_squares(res, jnp.asarray(EXP_OPT), None, **TIGHT)
+        return sol.params[1] + sol.params[0] ** 2
+
+    g = jax.jit(jax.grad(fit))(1.1)
+    fd = jax.jit(lambda x: _central(lambda u: fit(u[0])[None], x, 1e-3))(jnp.array([1.1]))
+    assert float(g) == pytest.approx(float(fd[0, 0]), rel=1e-7)
+
+
+def test_vmap_of_grad_and_float32():
+    t, y = EXP_ARGS
+    ys = jnp.stack([y, 1.1 * y, 0.9 * y])
+
+    def loss(y):
+        sol = jo.least_squares(exp_residual, jnp.asarray(EXP_OPT), (t, y), **TIGHT)
+        return jnp.sum(sol.params**2)
+
+    batched = jax.jit(jax.vmap(jax.grad(loss)))(ys)
+    single = jax.jit(jax.grad(loss))
+    for i in range(3):
+        np.testing.assert_allclose(batched[i], single(ys[i]), rtol=1e-10)
+    # float32: the implicit gradient is finite and close to the float64 one
+    g32 = jax.grad(lambda y: jnp.sum(jo.least_squares(
+        exp_residual, jnp.asarray(EXP_OPT, jnp.float32), (t.astype(jnp.float32), y),
+        max_steps=30).params ** 2))(y.astype(jnp.float32))
+    assert g32.dtype == jnp.float32
+    np.testing.assert_allclose(g32, single(y), rtol=2e-2, atol=2e-3)
