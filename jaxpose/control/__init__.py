@@ -1,1 +1,49 @@
-"""Control: LQR, iLQR with box limits, differentiable MPC."""
+"""Control: time-varying LQR (Riccati in ``lax.scan``), iLQR with box control limits
+(projected Newton), and differentiable MPC (implicit or unrolled gradients).
+
+Status codes of solutions: 0 converged, 1 max iterations, 2 non-finite, 3 stalled.
+"""
+
+from .boxqp import BoxQPResult, box_qp
+from .cost import Cost, FunctionCost, QuadraticCost
+from .ilqr import ILQRSolution, dynamics_jacobians, ilqr
+from .lqr import (
+    CONVERGED,
+    LQR,
+    MAX_ITER,
+    NONFINITE,
+    STALLED,
+    STATUS_NAMES,
+    LQRSolution,
+    lq_problem,
+    lqr,
+    lqr_solve,
+    riccati,
+)
+from .mpc import MPC, MPCSolution, closed_loop, implicit_vjp
+
+__all__ = [
+    "CONVERGED",
+    "LQR",
+    "MAX_ITER",
+    "MPC",
+    "NONFINITE",
+    "STALLED",
+    "STATUS_NAMES",
+    "BoxQPResult",
+    "Cost",
+    "FunctionCost",
+    "ILQRSolution",
+    "LQRSolution",
+    "MPCSolution",
+    "QuadraticCost",
+    "box_qp",
+    "closed_loop",
+    "dynamics_jacobians",
+    "ilqr",
+    "implicit_vjp",
+    "lq_problem",
+    "lqr",
+    "lqr_solve",
+    "riccati",
+]

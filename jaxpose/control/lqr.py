@@ -53,6 +53,7 @@ class BackwardOut(NamedTuple):
     dj2: Array
     ok: Array
     free: Array
+    L: Array
 
 
 def backward_step(
@@ -98,20 +99,22 @@ def backward_step(
         Hf = Hu if free is None else free_block(Hu, free)
         L = jnp.linalg.cholesky(Hf)
         ok = jnp.all(jnp.isfinite(L))
-        rhs = jnp.concatenate([Qux, qu[:, None]], 1)
+        # K and k are solved separately so that, under vmap, a batched linear term (k)
+        # does not make the Riccati matrices (K, V) batched.
+        Qux_f = Qux if free is None else jnp.where(free[:, None], Qux, 0.0)
+        qu_f = qu if free is None else jnp.where(free, qu, 0.0)
+        K = -cho_solve((L, True), Qux_f)
+        k = -cho_solve((L, True), qu_f)
         if free is not None:
-            rhs = jnp.where(free[:, None], rhs, 0.0)
-        sol = -cho_solve((L, True), rhs)
-        if free is not None:
-            sol = jnp.where(free[:, None], sol, 0.0)
-        K, k = sol[:, :n], sol[:, n]
+            K = jnp.where(free[:, None], K, 0.0)
+            k = jnp.where(free, k, 0.0)
     QuuK = Quu @ K
     V_new = Qxx + K.T @ Qux + Qux.T @ K + K.T @ QuuK
     V_new = 0.5 * (V_new + V_new.T)
     v_new = qx + K.T @ qu + Qux.T @ k + QuuK.T @ k
     dj1 = k @ qu
     dj2 = 0.5 * k @ (Quu @ k)
-    return BackwardOut(K, k, V_new, v_new, dj1, dj2, ok, fr)
+    return BackwardOut(K, k, V_new, v_new, dj1, dj2, ok, fr, L)
 
 
 def riccati(
@@ -135,13 +138,13 @@ def riccati(
         else:
             Ft, ft, Ct, ct, fr = inp
         out = backward_step(V, v, Ft, ft, Ct, ct, reg=reg, free=fr)
-        return (out.V, out.v), (out.K, out.k, out.V, out.v, out.ok)
+        return (out.V, out.v), (out.K, out.k, out.V, out.v, out.ok, out.L)
 
     xs = (F, f, C, c) if free is None else (F, f, C, c, free)
-    _, (K, k, V, v, ok) = jax.lax.scan(step, (CT, cT), xs, reverse=True)
+    _, (K, k, V, v, ok, L) = jax.lax.scan(step, (CT, cT), xs, reverse=True)
     V = jnp.concatenate([V, CT[None]], 0)
     v = jnp.concatenate([v, cT[None]], 0)
-    return K, k, V, v, jnp.all(ok)
+    return K, k, V, v, jnp.all(ok), L
 
 
 def policy_rollout(F: Array, f: Array, K: Array, k: Array, x0: Array) -> tuple[Array, Array]:
@@ -201,7 +204,7 @@ def lqr_solve(
             f"CT, cT: expected shapes ({n}, {n}) and ({n},), got "
             f"{tuple(CT.shape)} and {tuple(cT.shape)}"
         )
-    K, k, _, _, ok = riccati(F, f, C, c, CT, cT, free)
+    K, k, _, _, ok, _ = riccati(F, f, C, c, CT, cT, free)
     xs, us = policy_rollout(F, f, K, k, x0)
     cost = quadratic_total(C, c, CT, cT, xs, us)
     finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us))
@@ -292,3 +295,25 @@ class LQR(eqx.Module):
                 "which enforce them by projected Newton"
             )
         return lqr(self.system, self.cost, x0, self.horizon)
+
+
+def lqr_resolve(
+    F: Array, c: Array, cT: Array, x0: Array, K: Array, L: Array
+) -> tuple[Array, Array]:
+    """Re-solve an LQR problem with zero offsets whose quadratic part (F, C, C_T) is
+    unchanged, for new linear terms ``c`` (T, n+m), ``c_T`` (n,) and ``x0``, reusing the
+    gains ``K`` and the Cholesky factors ``L`` of Q_uu from :func:`riccati` (no
+    ``free`` mask, no regularisation). Only the vector recursion
+    ``q = c_t + F_tᵀ v``, ``k_t = −Q_uu⁻¹ q_u``, ``v ← q_x + K_tᵀ q_u`` and a rollout
+    remain: O(T·n·(n+m)) instead of O(T·(n+m)³). Returns ``(xs, us)``."""
+    n = F.shape[1]
+
+    def step(v: Array, inp: tuple[Array, ...]):
+        Ft, ct, Kt, Lt = inp
+        q = ct + Ft.T @ v
+        qx, qu = q[:n], q[n:]
+        kt = -cho_solve((Lt, True), qu)
+        return qx + Kt.T @ qu, kt
+
+    _, k = jax.lax.scan(step, cT, (F, c, K, L), reverse=True)
+    return policy_rollout(F, jnp.zeros(F.shape[:2], F.dtype), K, k, x0)

@@ -32,7 +32,15 @@ from ..dynamics._checks import as_array, check_horizon
 from ..dynamics.system import LTI, LTV, System
 from .cost import Cost, QuadraticCost
 from .ilqr import ILQRSolution, _bounds, dynamics_jacobians, ilqr
-from .lqr import CONVERGED, NONFINITE, lq_problem, lqr_solve
+from .lqr import (
+    CONVERGED,
+    NONFINITE,
+    lq_problem,
+    lqr_resolve,
+    lqr_solve,
+    policy_rollout,
+    riccati,
+)
 
 Array = jax.Array
 
@@ -72,12 +80,16 @@ def _use_lqr(system: System, cost: Cost, bounds: Any, solver: str) -> bool:
 
 def _solve(
     system: System, cost: Cost, x0: Array, u_init: Array, bounds: Any, cfg: _Config
-) -> tuple[Array, Array, Array, Array]:
-    """Forward solve for one element: (x, u, status, iterations)."""
+) -> tuple[tuple[Array, Array, Array, Array], Any]:
+    """Forward solve for one element: ``(x, u, status, iterations)`` and, on the LQR
+    path, the Riccati factors ``(K, L)`` that the implicit backward pass reuses."""
     if _use_lqr(system, cost, bounds, cfg.solver):
         F, f, C, c, CT, cT = lq_problem(system, cost, cfg.horizon)
-        sol = lqr_solve(F, f, C, c, x0, CT, cT)
-        return sol.x, sol.u, sol.status, jnp.array(1)
+        K, k, _, _, ok, L = riccati(F, f, C, c, CT, cT)
+        xs, us = policy_rollout(F, f, K, k, x0)
+        finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us))
+        status = jnp.where(finite, CONVERGED, NONFINITE).astype(jnp.int32)
+        return (xs, us, status, jnp.array(1)), (K, L)
     lo, hi = (None, None) if bounds is None else bounds
     s: ILQRSolution = ilqr(
         system,
@@ -91,7 +103,7 @@ def _solve(
         unroll=cfg.unroll,
         box_iters=cfg.box_iters,
     )
-    return s.x, s.u, s.status, s.iterations
+    return (s.x, s.u, s.status, s.iterations), None
 
 
 # ----------------------------------------------------------------------------------
@@ -102,7 +114,7 @@ def _solve_implicit(
     params: tuple[System, Cost, Array], u_init: Array, bounds: Any, cfg: _Config
 ) -> tuple[Array, Array, Array, Array]:
     system, cost, x0 = params
-    return _solve(system, cost, x0, u_init, bounds, cfg)
+    return _solve(system, cost, x0, u_init, bounds, cfg)[0]
 
 
 @_solve_implicit.def_fwd
@@ -110,13 +122,13 @@ def _solve_implicit_fwd(
     perturbed: Any, params: tuple[System, Cost, Array], u_init: Array, bounds: Any, cfg: _Config
 ):
     system, cost, x0 = params
-    out = _solve(system, cost, x0, u_init, bounds, cfg)
-    return out, (out[0], out[1])
+    out, factors = _solve(system, cost, x0, u_init, bounds, cfg)
+    return out, (out[0], out[1], factors)
 
 
 @_solve_implicit.def_bwd
 def _solve_implicit_bwd(
-    residuals: tuple[Array, Array],
+    residuals: tuple[Array, Array, Any],
     grad_obj: Any,
     perturbed: Any,
     params: tuple[System, Cost, Array],
@@ -124,11 +136,11 @@ def _solve_implicit_bwd(
     bounds: Any,
     cfg: _Config,
 ):
-    xs, us = residuals
+    xs, us, factors = residuals
     gx, gu = grad_obj[0], grad_obj[1]
     gx = jnp.zeros_like(xs) if gx is None else gx
     gu = jnp.zeros_like(us) if gu is None else gu
-    grads = implicit_vjp(params, xs, us, gx, gu, bounds)
+    grads = implicit_vjp(params, xs, us, gx, gu, bounds, factors=factors)
     return jax.tree.map(
         lambda g, p: g if p else None, grads, perturbed, is_leaf=lambda v: v is None
     )
@@ -142,10 +154,13 @@ def implicit_vjp(
     gu: Array,
     bounds: Any = None,
     t0: Any = 0,
+    factors: Any = None,
 ) -> tuple[System, Cost, Array]:
     """Cotangents of ``(system, cost, x0)`` from cotangents ``gx`` (T+1, n), ``gu``
     (T, m) of a locally optimal trajectory ``(xs, us)``, by the implicit function
-    theorem on the KKT conditions (one LQR-structured solve)."""
+    theorem on the KKT conditions (one LQR-structured solve). ``factors = (K, L)``
+    from the forward Riccati pass of a linear–quadratic problem without limits are
+    reused (the KKT matrix is the same), leaving only a vector recursion."""
     system, cost, x0 = params
     T, m = us.shape
     n = xs.shape[-1]
@@ -177,8 +192,12 @@ def implicit_vjp(
     # KKT solve: min ½ wᵀ H w − ḡᵀ w  s.t. linearised dynamics, w_x0 = 0.
     gtau = jnp.concatenate([gx[:-1], gu], -1)
     zero_f = jnp.zeros((T, n), xs.dtype)
-    sol = lqr_solve(F, zero_f, H, -gtau, jnp.zeros((n,), xs.dtype), HT, -gx[-1], free)
-    wx, wu = sol.x, sol.u
+    w0 = jnp.zeros((n,), xs.dtype)
+    if factors is not None and system.is_linear and free is None:
+        wx, wu = lqr_resolve(F, -gtau, -gx[-1], w0, *factors)
+    else:
+        sol = lqr_solve(F, zero_f, H, -gtau, w0, HT, -gx[-1], free)
+        wx, wu = sol.x, sol.u
     wtau = jnp.concatenate([wx[:-1], wu], -1)
     # Multipliers of the linearised constraints.
     wyT = HT @ wx[-1] - gx[-1]
@@ -301,7 +320,7 @@ class MPC(eqx.Module):
         if self.gradient == "implicit":
             xs, us, status, it = _solve_implicit((self.system, self.cost, x0), u_init, bounds, cfg)
         else:
-            xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, cfg)
+            xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, cfg)[0]
         cost = self.cost.total(xs, us)
         status = jnp.where(jnp.isfinite(cost) | (status != CONVERGED), status, NONFINITE)
         return MPCSolution(xs, us, cost, status.astype(jnp.int32), it)

@@ -11,6 +11,12 @@ from .pf import ParticleFilter, ParticleState, effective_sample_size, systematic
 from .ukf import UKF, merwe_weights
 
 __all__ = [
-    "EKF", "UKF", "FilterResult", "ParticleFilter", "ParticleState",
-    "effective_sample_size", "merwe_weights", "systematic_resample",
+    "EKF",
+    "UKF",
+    "FilterResult",
+    "ParticleFilter",
+    "ParticleState",
+    "effective_sample_size",
+    "merwe_weights",
+    "systematic_resample",
 ]

@@ -36,16 +36,16 @@ def check_cov(P: Any, dim: int, name: str = "P") -> Array:
     """A (dim, dim) covariance for a state with ``dim`` tangent coordinates."""
     P = as_array(P, name, 2)
     if P.shape != (dim, dim):
-        raise ValueError(f"{name}: expected shape ({dim}, {dim}) (state tangent size), "
-                         f"got {tuple(P.shape)}")
+        raise ValueError(
+            f"{name}: expected shape ({dim}, {dim}) (state tangent size), got {tuple(P.shape)}"
+        )
     check_psd(P, name)
     return P
 
 
 def check_noise_dim(M: Array, dim: int, name: str, what: str) -> None:
     if M.shape != (dim, dim):
-        raise ValueError(f"{name}: expected shape ({dim}, {dim}) ({what}), got "
-                         f"{tuple(M.shape)}")
+        raise ValueError(f"{name}: expected shape ({dim}, {dim}) ({what}), got {tuple(M.shape)}")
 
 
 def symmetrize(P: Array) -> Array:
@@ -61,11 +61,12 @@ def finite_tree(*trees: Any) -> Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in leaves]))
 
 
-def gaussian_loglik(r: Array, L: Array) -> Array:
-    """log N(r; 0, S) with S = L Lᵀ (L lower Cholesky); r (..., p)."""
+def gaussian_loglik(r: Array, L_inv: Array) -> Array:
+    """log N(r; 0, S) with S = L Lᵀ, given the inverse lower Cholesky factor ``L_inv``
+    (a matrix product per step instead of a LAPACK triangular solve); r (..., p)."""
     p = r.shape[-1]
-    z = jax.scipy.linalg.solve_triangular(L, r.T, lower=True).T
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.diag(L)))
+    z = r @ L_inv.T
+    logdet = -2.0 * jnp.sum(jnp.log(jnp.diag(L_inv)))
     return -0.5 * jnp.sum(z * z, -1) - 0.5 * logdet - 0.5 * p * jnp.log(2.0 * jnp.pi)
 
 

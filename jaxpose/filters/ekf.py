@@ -45,8 +45,9 @@ class EKF(eqx.Module):
 
     def __init__(self, model: System, Q: Any, R: Any, joseph: bool = True):
         if not isinstance(model, System):
-            raise TypeError(f"model: expected a jaxpose.dynamics.System, got "
-                            f"{type(model).__name__}")
+            raise TypeError(
+                f"model: expected a jaxpose.dynamics.System, got {type(model).__name__}"
+            )
         self.model = model
         self.Q = noise_matrix(Q, "Q")
         self.R = noise_matrix(R, "R", strict=True)
@@ -89,18 +90,17 @@ class EKF(eqx.Module):
         """Filter a sequence with ``lax.scan``: ``ys`` (N, p), ``us`` (N, m); returns the
         N posterior estimates (after each update)."""
         P0 = check_cov(P0, tangent_space(x0).dim, "P0")
-        return scan_filter(lambda x, P, y, u, t: self.step(x, P, y, u, t), x0, P0, ys, us,
-                           t0)
+        return scan_filter(lambda x, P, y, u, t: self.step(x, P, y, u, t), x0, P0, ys, us, t0)
 
 
-def scan_filter(step: Any, x0: Any, P0: Array, ys: Any, us: Array, t0: Any = 0
-                ) -> FilterResult:
+def scan_filter(step: Any, x0: Any, P0: Array, ys: Any, us: Array, t0: Any = 0) -> FilterResult:
     """Run ``step(x, P, y, u, t) → (x, P)`` over a sequence (shared by EKF and UKF)."""
     us = jnp.asarray(us)
     n_y = jax.tree.leaves(ys)[0].shape[0]
     if us.ndim != 2 or us.shape[0] != n_y:
-        raise ValueError(f"us: expected shape ({n_y}, m) (one input per measurement), got "
-                         f"{tuple(us.shape)}")
+        raise ValueError(
+            f"us: expected shape ({n_y}, m) (one input per measurement), got {tuple(us.shape)}"
+        )
     ts = jnp.asarray(t0) + jnp.arange(n_y)
 
     def body(carry: tuple[Any, Array], inp: tuple[Any, Array, Array]):

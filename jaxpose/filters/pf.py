@@ -56,16 +56,24 @@ class ParticleFilter(eqx.Module):
     num_particles: int = eqx.field(static=True, default=1000)
     resample_threshold: float = eqx.field(static=True, default=0.5)
 
-    def __init__(self, model: System, Q: Any, R: Any, num_particles: int = 1000,
-                 resample_threshold: float = 0.5):
+    def __init__(
+        self,
+        model: System,
+        Q: Any,
+        R: Any,
+        num_particles: int = 1000,
+        resample_threshold: float = 0.5,
+    ):
         if not isinstance(model, System):
-            raise TypeError(f"model: expected a jaxpose.dynamics.System, got "
-                            f"{type(model).__name__}")
+            raise TypeError(
+                f"model: expected a jaxpose.dynamics.System, got {type(model).__name__}"
+            )
         if not isinstance(num_particles, int) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
         if not 0.0 <= resample_threshold <= 1.0:
-            raise ValueError(f"resample_threshold: expected a fraction in [0, 1], got "
-                             f"{resample_threshold}")
+            raise ValueError(
+                f"resample_threshold: expected a fraction in [0, 1], got {resample_threshold}"
+            )
         self.model = model
         self.Q = noise_matrix(Q, "Q")
         self.R = noise_matrix(R, "R", strict=True)
@@ -99,25 +107,46 @@ class ParticleFilter(eqx.Module):
         cov = (w[:, None] * dev).T @ dev
         return mean, 0.5 * (cov + cov.T)
 
-    def step(self, key: Array, state: ParticleState, y: Any, u: Array, t: Any = 0
-             ) -> tuple[ParticleState, tuple[Any, Array, Array]]:
+    def step(
+        self, key: Array, state: ParticleState, y: Any, u: Array, t: Any = 0
+    ) -> tuple[ParticleState, tuple[Any, Array, Array]]:
         """Propagate, reweight, estimate, resample if needed. Returns the new state and
         ``(mean, cov, ess)`` (estimates before resampling)."""
+        return self._step(key, state, y, u, t, *self._factors())
+
+    def _factors(self) -> tuple[Array, Array]:
+        """Cholesky factor of Q (zeroed where Q is singular: no noise there) and the
+        inverse Cholesky factor of R, computed once per run rather than per step."""
+        Lq = jnp.linalg.cholesky(self.Q + 0.0)
+        Lq = jnp.where(jnp.isfinite(Lq), Lq, 0.0)
+        Lr = jnp.linalg.cholesky(self.R)
+        eye = jnp.eye(self.R.shape[0], dtype=Lr.dtype)
+        return Lq, jax.scipy.linalg.solve_triangular(Lr, eye, lower=True)
+
+    def _step(
+        self,
+        key: Array,
+        state: ParticleState,
+        y: Any,
+        u: Array,
+        t: Any,
+        Lq: Array,
+        Lr_inv: Array,
+    ) -> tuple[ParticleState, tuple[Any, Array, Array]]:
         k_noise, k_res = jax.random.split(key)
         N = self.num_particles
         first = jax.tree.map(lambda a: a[0], state.particles)
         ts = tangent_space(first)
         check_noise_dim(self.Q, ts.dim, "Q", "state tangent size")
-        Lq = jnp.linalg.cholesky(self.Q + 0.0)
         noise = jax.random.normal(k_noise, (N, ts.dim), self.Q.dtype) @ Lq.T
-        noise = jnp.where(jnp.isfinite(noise), noise, 0.0)  # Q = 0 → deterministic
         parts = jax.vmap(lambda p, e: ts.plus(self.model.state_transition(p, u, t), e))(
-            state.particles, noise)
+            state.particles, noise
+        )
         obs = jax.vmap(lambda p: self.model.observation(p, u, t))(parts)
         yts = tangent_space(jax.tree.map(lambda a: a[0], obs))
         check_noise_dim(self.R, yts.dim, "R", "measurement size")
         r = jax.vmap(lambda o: yts.minus(y, o))(obs)
-        ll = gaussian_loglik(r, jnp.linalg.cholesky(self.R))
+        ll = gaussian_loglik(r, Lr_inv)
         logw = state.log_weights + ll
         logw = jnp.where(jnp.isfinite(logw), logw, -jnp.inf)
         logw = logw - jax.scipy.special.logsumexp(logw)
@@ -126,30 +155,35 @@ class ParticleFilter(eqx.Module):
         ess = effective_sample_size(logw)
         idx = systematic_resample(k_res, logw)
         do = ess < self.resample_threshold * N
-        resampled = ParticleState(jax.tree.map(lambda a: a[idx], parts),
-                                  jnp.full((N,), -jnp.log(N), logw.dtype))
+        resampled = ParticleState(
+            jax.tree.map(lambda a: a[idx], parts), jnp.full((N,), -jnp.log(N), logw.dtype)
+        )
         new = jax.tree.map(lambda a, b: jnp.where(do, a, b), resampled, new)
         return new, (mean, cov, ess)
 
-    def run(self, key: Array, x0: Any, P0: Any, ys: Any, us: Array, t0: Any = 0
-            ) -> tuple[FilterResult, Array]:
+    def run(
+        self, key: Array, x0: Any, P0: Any, ys: Any, us: Array, t0: Any = 0
+    ) -> tuple[FilterResult, Array]:
         """Filter a sequence with ``lax.scan``; returns the per-step estimates
         (:class:`FilterResult`) and the ESS (N,) before resampling."""
         us = jnp.asarray(us)
         n_y = jax.tree.leaves(ys)[0].shape[0]
         if us.ndim != 2 or us.shape[0] != n_y:
-            raise ValueError(f"us: expected shape ({n_y}, m) (one input per measurement), "
-                             f"got {tuple(us.shape)}")
+            raise ValueError(
+                f"us: expected shape ({n_y}, m) (one input per measurement), got {tuple(us.shape)}"
+            )
         k0, key = jax.random.split(key)
         state = self.init(k0, x0, P0)
         keys = jax.random.split(key, n_y)
         ts = jnp.asarray(t0) + jnp.arange(n_y)
+        factors = self._factors()
 
         def body(s: ParticleState, inp: tuple[Array, Any, Array, Array]):
             k, y, u, t = inp
-            s, (mean, cov, ess) = self.step(k, s, y, u, t)
+            s, (mean, cov, ess) = self._step(k, s, y, u, t, *factors)
             ok = jnp.all(jnp.isfinite(cov)) & jnp.all(
-                jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree.leaves(mean)]))
+                jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree.leaves(mean)])
+            )
             return s, (mean, cov, ess, ok)
 
         _, (means, covs, ess, ok) = jax.lax.scan(body, state, (keys, ys, us, ts))

@@ -32,14 +32,16 @@ from .ekf import scan_filter
 Array = jax.Array
 
 
-def merwe_weights(k: int, alpha: float, beta: float, kappa: float, dtype: Any
-                  ) -> tuple[Array, Array, Array]:
+def merwe_weights(
+    k: int, alpha: float, beta: float, kappa: float, dtype: Any
+) -> tuple[Array, Array, Array]:
     """``(Wm, Wc, scale)`` for ``2k+1`` sigma points; ``scale = k + λ``."""
     lam = alpha**2 * (k + kappa) - k
     c = k + lam
     if c <= 0:
-        raise ValueError(f"alpha, kappa: need α²(k + κ) > 0 for k = {k}, got α = {alpha}, "
-                         f"κ = {kappa}")
+        raise ValueError(
+            f"alpha, kappa: need α²(k + κ) > 0 for k = {k}, got α = {alpha}, κ = {kappa}"
+        )
     wi = jnp.full((2 * k,), 0.5 / c, dtype)
     wm = jnp.concatenate([jnp.array([lam / c], dtype), wi])
     wc = jnp.concatenate([jnp.array([lam / c + 1.0 - alpha**2 + beta], dtype), wi])
@@ -59,11 +61,19 @@ class UKF(eqx.Module):
     beta: float = eqx.field(static=True, default=2.0)
     kappa: float = eqx.field(static=True, default=0.0)
 
-    def __init__(self, model: System, Q: Any, R: Any, alpha: float = 1.0, beta: float = 2.0,
-                 kappa: float = 0.0):
+    def __init__(
+        self,
+        model: System,
+        Q: Any,
+        R: Any,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+    ):
         if not isinstance(model, System):
-            raise TypeError(f"model: expected a jaxpose.dynamics.System, got "
-                            f"{type(model).__name__}")
+            raise TypeError(
+                f"model: expected a jaxpose.dynamics.System, got {type(model).__name__}"
+            )
         if not alpha > 0:
             raise ValueError(f"alpha: expected > 0, got {alpha}")
         self.model = model
@@ -111,8 +121,7 @@ class UKF(eqx.Module):
     def run(self, x0: Any, P0: Any, ys: Any, us: Array, t0: Any = 0) -> FilterResult:
         """Filter a sequence with ``lax.scan`` (see :meth:`EKF.run`)."""
         P0 = check_cov(P0, tangent_space(x0).dim, "P0")
-        return scan_filter(lambda x, P, y, u, t: self.step(x, P, y, u, t), x0, P0, ys, us,
-                           t0)
+        return scan_filter(lambda x, P, y, u, t: self.step(x, P, y, u, t), x0, P0, ys, us, t0)
 
 
 def _mean(pts: Any, wm: Array) -> tuple[Any, Array]:

@@ -1,0 +1,1 @@
+"""Importable example scripts behind the notebooks (smoke-tested at tiny sizes)."""
