@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 
 from ..lie import SE3, SO3
@@ -102,8 +103,13 @@ def point2pixel(
         shapes.append(dist.shape[:-1])
         names.append("distortion")
     batch_shape(*shapes, names=tuple(names))
-    if extrinsics is not None:
-        p = SE3(extrinsics.data[..., None, :]).act(p)
+    return _project(p, k, None if extrinsics is None else extrinsics.data, dist)
+
+
+@jax.jit
+def _project(p: Array, k: Array, ext: Array | None, dist: Array | None) -> Array:
+    if ext is not None:
+        p = SE3(ext[..., None, :]).act(p)
     if dist is None:
         return homo2cart(jnp.einsum("...ij,...nj->...ni", k, p))
     xn = homo2cart(p)
@@ -131,12 +137,17 @@ def pixel2point(
         shapes.append(extrinsics.shape)
         names.append("extrinsics")
     batch_shape(*shapes, names=tuple(names))
+    return _backproject(px, z, k, None if extrinsics is None else extrinsics.data)
+
+
+@jax.jit
+def _backproject(px: Array, z: Array, k: Array, ext: Array | None) -> Array:
     rays = jnp.einsum("...ij,...nj->...ni", jnp.linalg.inv(k), cart2homo(px))
     # K's last row is [0, 0, 1], so rays[..., 2] == 1 and depth is the Z coordinate
     pc = rays * z[..., None]
-    if extrinsics is None:
+    if ext is None:
         return pc
-    return SE3(extrinsics.data[..., None, :]).inv().act(pc)
+    return SE3(ext[..., None, :]).inv().act(pc)
 
 
 def reprojerr(
@@ -181,6 +192,11 @@ def bal_project(points: Any, cameras: Any) -> Array:
     c = as_float_array(cameras, f"{fn}(cameras)")
     check_last_dim(c, 9, f"{fn}(cameras)", "[rx, ry, rz, tx, ty, tz, f, k1, k2]")
     batch_shape(x.shape[:-1], c.shape[:-1], names=("points", "cameras"))
+    return _bal(x, c)
+
+
+@jax.jit
+def _bal(x: Array, c: Array) -> Array:
     pc = SO3.exp(c[..., :3]).act(x) + c[..., 3:6]
     p = -homo2cart(pc)
     r2 = jnp.sum(p * p, -1, keepdims=True)

@@ -70,7 +70,6 @@ class PnPResult(NamedTuple):
 
 
 _PAIRS4 = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-_PAIRS3 = ((0, 1), (0, 2), (1, 2))
 
 
 def _products(beta: Array) -> Array:
@@ -102,12 +101,14 @@ def _product_jacobian(beta: Array) -> Array:
             + (b_idx[:, None] == cols) * beta[a_idx][:, None])
 
 
-def _gauss_newton_betas(l_mat: Array, rho: Array, beta: Array, steps: int = 5) -> Array:
-    """Polish β on L·products(β) = ρ (small damped Gauss–Newton, monotone)."""
+def _gauss_newton_betas(l_mat: Array, rho: Array, beta: Array, mask: Array, steps: int = 5
+                        ) -> Array:
+    """Polish β on L·products(β) = ρ (small damped Gauss–Newton, monotone); β entries
+    where ``mask`` is 0 stay fixed."""
 
     def step(_: int, b: Array) -> Array:
         r = l_mat @ _products(b) - rho
-        j = l_mat @ _product_jacobian(b)
+        j = (l_mat @ _product_jacobian(b)) * mask
         h = j.T @ j
         damp = 1e-12 * (jnp.trace(h) + jnp.finfo(b.dtype).tiny)
         nb = b - jnp.linalg.solve(h + damp * jnp.eye(b.shape[0], dtype=b.dtype), j.T @ r)
@@ -125,66 +126,66 @@ def _lstsq(a: Array, b: Array) -> Array:
     return jnp.linalg.solve(h + damp * jnp.eye(h.shape[0], dtype=a.dtype), a.T @ b)
 
 
-def _initial_betas(l_mat: Array, rho: Array, nc: int) -> list[Array]:
-    """Candidate β (n_null,) for null-space dimensions 1, 2, 3 and the 4-D linearisation."""
-    n = 4 if nc == 4 else 3
-    z = jnp.zeros((n,), l_mat.dtype)
-    # column indices of the products (a, b) in _products order
-    col = {}
-    i = 0
-    for b in range(n):
-        for a in range(b + 1):
-            col[(a, b)] = i
-            i += 1
+_COL = {(a, b): i for i, (a, b) in enumerate((a, b) for b in range(4) for a in range(b + 1))}
+
+
+def _initial_betas(l_mat: Array, rho: Array) -> Array:
+    """Candidate β (4, 4): null-space dimensions 1, 2, 3 and the 4-D linearisation."""
+    c = _COL
+    z = jnp.zeros((4,), l_mat.dtype)
+
     def vec(*vals: Array) -> Array:
         return jnp.concatenate([jnp.stack(vals), z[len(vals):]])
 
-    cands = []
+    def sign(x: Array) -> Array:
+        return jnp.where(x < 0, -1.0, 1.0).astype(l_mat.dtype)
+
     # N = 1: β0² from the (0,0) column
-    l11 = l_mat[:, col[(0, 0)]]
-    b1 = safe_sqrt(safe_div(jnp.sum(l11 * rho), jnp.sum(l11 * l11)))
-    cands.append(vec(b1))
+    l00 = l_mat[:, c[0, 0]]
+    n1 = vec(safe_sqrt(safe_div(jnp.sum(l00 * rho), jnp.sum(l00 * l00))))
     # N = 2: [b00, b01, b11]
-    s = _lstsq(l_mat[:, [col[(0, 0)], col[(0, 1)], col[(1, 1)]]], rho)
+    s = _lstsq(l_mat[:, jnp.array([c[0, 0], c[0, 1], c[1, 1]])], rho)
     b0 = safe_sqrt(jnp.abs(s[0]))
-    b1 = safe_sqrt(jnp.abs(s[2])) * jnp.where(s[1] * s[0] < 0, -1.0, 1.0)
-    cands.append(vec(b0, b1))
+    n2 = vec(b0, safe_sqrt(jnp.abs(s[2])) * sign(s[1] * s[0]))
     # N = 3: [b00, b01, b11, b02, b12]
-    if nc == 4:
-        s = _lstsq(l_mat[:, [col[(0, 0)], col[(0, 1)], col[(1, 1)], col[(0, 2)],
-                            col[(1, 2)]]], rho)
-        b0 = safe_sqrt(jnp.abs(s[0]))
-        b1 = safe_sqrt(jnp.abs(s[2])) * jnp.where(s[1] * s[0] < 0, -1.0, 1.0)
-        b2 = safe_div(s[3], b0) * jnp.where(s[0] < 0, -1.0, 1.0)
-        cands.append(vec(b0, b1, b2))
-        # Lepetit's approximation for N = 4: [b00, b01, b02, b03]
-        s = _lstsq(l_mat[:, [col[(0, 0)], col[(0, 1)], col[(0, 2)], col[(0, 3)]]], rho)
-        b0 = safe_sqrt(jnp.abs(s[0]))
-        sgn = jnp.where(s[0] < 0, -1.0, 1.0)
-        cands.append(jnp.stack([b0, safe_div(s[1], b0) * sgn, safe_div(s[2], b0) * sgn,
-                                safe_div(s[3], b0) * sgn]))
-    return cands
+    s = _lstsq(l_mat[:, jnp.array([c[0, 0], c[0, 1], c[1, 1], c[0, 2], c[1, 2]])], rho)
+    b0 = safe_sqrt(jnp.abs(s[0]))
+    n3 = vec(b0, safe_sqrt(jnp.abs(s[2])) * sign(s[1] * s[0]), safe_div(s[3], b0) * sign(s[0]))
+    # Lepetit's linearisation for N = 4: [b00, b01, b02, b03]
+    s = _lstsq(l_mat[:, jnp.array([c[0, 0], c[0, 1], c[0, 2], c[0, 3]])], rho)
+    b0 = safe_sqrt(jnp.abs(s[0]))
+    n4 = jnp.concatenate([b0[None], safe_div(s[1:], b0) * sign(s[0])])
+    return jnp.stack([n1, n2, n3, n4])
 
 
-def _candidates(alpha: Array, ctrl_w: Array, xn: Array, pw: Array) -> tuple[Array, Array]:
-    """Poses (C, 7) and mean normalised reprojection errors (C,) for one control set."""
-    nc = ctrl_w.shape[0]
-    n_null = 4 if nc == 4 else 3
+def _candidates(alpha: Array, ctrl_w: Array, planar: Array, xn: Array, pw: Array
+                ) -> tuple[Array, Array]:
+    """Poses (4, 7) and mean normalised reprojection errors (4,) for one control set.
+
+    ``planar`` (bool scalar): the 4th control point is unused (α₃ ≡ 0): its columns of
+    MᵀM get a large diagonal so the null space lives in the first three control points,
+    only the three distance constraints among them count and β₃ ≡ 0."""
+    dtype = alpha.dtype
     x, y = xn[:, 0:1], xn[:, 1:2]
     zero = jnp.zeros_like(alpha)
     # rows: [α_j, 0, −α_j x] and [0, α_j, −α_j y] for each control point j
-    mx = jnp.stack([alpha, zero, -alpha * x], -1).reshape(-1, 3 * nc)
-    my = jnp.stack([zero, alpha, -alpha * y], -1).reshape(-1, 3 * nc)
+    mx = jnp.stack([alpha, zero, -alpha * x], -1).reshape(-1, 12)
+    my = jnp.stack([zero, alpha, -alpha * y], -1).reshape(-1, 12)
     m = jnp.concatenate([mx, my], 0)
-    _, vecs = jnp.linalg.eigh(m.T @ m)
-    null = vecs[:, :n_null].T.reshape(n_null, nc, 3)  # smallest eigenvalues first
-    pairs = _PAIRS4 if nc == 4 else _PAIRS3
-    rho = jnp.stack([jnp.sum(jnp.square(ctrl_w[a] - ctrl_w[b])) for a, b in pairs])
-    l_mat = _l_matrix(null, pairs)
-    betas = jnp.stack(_initial_betas(l_mat, rho, nc))
+    mtm = m.T @ m
+    lift = jnp.where(planar, 1e3 * jnp.trace(mtm) + 1.0, 0.0)
+    mtm = mtm + jnp.diag(jnp.concatenate([jnp.zeros((9,), dtype), jnp.ones((3,), dtype)])) * lift
+    _, vecs = jnp.linalg.eigh(mtm)
+    null = vecs[:, :4].T.reshape(4, 4, 3)  # smallest eigenvalues first
+    pair_ok = jnp.asarray([b < 3 for _, b in _PAIRS4]) | ~planar
+    rho = jnp.stack([jnp.sum(jnp.square(ctrl_w[a] - ctrl_w[b])) for a, b in _PAIRS4])
+    rho = jnp.where(pair_ok, rho, 0.0)
+    l_mat = jnp.where(pair_ok[:, None], _l_matrix(null, _PAIRS4), 0.0)
+    beta_mask = jnp.where(planar, jnp.array([1.0, 1.0, 1.0, 0.0], dtype), 1.0)
+    betas = _initial_betas(l_mat, rho) * beta_mask
 
     def pose(beta: Array) -> tuple[Array, Array]:
-        beta = _gauss_newton_betas(l_mat, rho, beta)
+        beta = _gauss_newton_betas(l_mat, rho, beta, beta_mask)
         ctrl_c = jnp.einsum("k,kjd->jd", beta, null)
         pc = alpha @ ctrl_c
         pc = pc * jnp.where(jnp.mean(pc[:, 2]) < 0, -1.0, 1.0)
@@ -213,19 +214,16 @@ def _epnp_single(pw: Array, uv: Array, k: Array) -> tuple[Array, Array]:
     lam_max = lam[2]
     floor = (jnp.sqrt(eps) * lam_max) + jnp.finfo(dtype).tiny
     sig = jnp.sqrt(jnp.maximum(lam, floor))
-    # four control points: centroid + one per principal axis (largest first)
+    # control points: centroid + one per principal axis (largest first)
     order = jnp.array([2, 1, 0])
-    proj = xc @ axes  # (N, 3) coordinates along the axes
-    a_rest = proj[:, order] / sig[order]
-    alpha4 = jnp.concatenate([1.0 - jnp.sum(a_rest, -1, keepdims=True), a_rest], -1)
-    ctrl4 = jnp.concatenate([c0[None], c0 + sig[order][:, None] * axes.T[order]], 0)
-    alpha3 = jnp.concatenate([1.0 - jnp.sum(a_rest[:, :2], -1, keepdims=True),
-                              a_rest[:, :2]], -1)
-    ctrl3 = ctrl4[:3]
-    p4, e4 = _candidates(alpha4, ctrl4, xn, pw)
-    p3, e3 = _candidates(alpha3, ctrl3, xn, pw)
-    poses = jnp.concatenate([p4, p3], 0)
-    errs = jnp.concatenate([e4, e3], 0)
+    a_rest = (xc @ axes)[:, order] / sig[order]
+    alpha = jnp.concatenate([1.0 - jnp.sum(a_rest, -1, keepdims=True), a_rest], -1)
+    ctrl = jnp.concatenate([c0[None], c0 + sig[order][:, None] * axes.T[order]], 0)
+    # general (4 control points) and planar (the two in-plane axes) configurations
+    alpha_planar = alpha.at[:, 0].add(alpha[:, 3]).at[:, 3].set(0.0)
+    poses, errs = jax.vmap(_candidates, in_axes=(0, None, 0, None, None))(
+        jnp.stack([alpha, alpha_planar]), ctrl, jnp.array([False, True]), xn, pw)
+    poses, errs = poses.reshape(-1, 7), errs.reshape(-1)
     best = poses[jnp.argmin(errs)]
     collinear = lam[1] <= 1e3 * eps * lam_max
     finite = jnp.all(jnp.isfinite(best)) & jnp.isfinite(jnp.min(errs))

@@ -20,6 +20,7 @@ about the line free (a minimiser is still returned, so ``T · source`` still mat
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -107,11 +108,16 @@ def svdtf(source: Any, target: Any, weights: Any = None) -> SE3:
     ``source``, ``target``: corresponded points (..., N, 3); ``weights``: optional
     non-negative (..., N). Kabsch with the reflection fix (always a proper rotation)."""
     s, t, w = _prepare(source, target, weights, "svdtf")
+    return SE3(_kabsch(s, t, w))
+
+
+@jax.jit
+def _kabsch(s: Array, t: Array, w: Array | None) -> Array:
     cs, ct, h, _ = _moments(s, t, w)
     r = optimal_rotation(h)
     trans = ct - jnp.einsum("...ij,...j->...i", r, cs)
     q = SO3.from_matrix(r, check=False).data
-    return SE3(jnp.concatenate([trans, q], -1))
+    return jnp.concatenate([trans, q], -1)
 
 
 def umeyama(source: Any, target: Any, with_scale: bool = True, weights: Any = None) -> Sim3:
@@ -119,6 +125,11 @@ def umeyama(source: Any, target: Any, with_scale: bool = True, weights: Any = No
     (Umeyama 1991). ``with_scale=False`` fixes s = 1 (then equal to :func:`svdtf`).
     The scale is 0 if the source points all coincide."""
     s, t, w = _prepare(source, target, weights, "umeyama")
+    return Sim3(_umeyama(s, t, w, bool(with_scale)))
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _umeyama(s: Array, t: Array, w: Array | None, with_scale: bool) -> Array:
     cs, ct, h, var = _moments(s, t, w)
     r = optimal_rotation(h)
     if with_scale:
@@ -128,7 +139,7 @@ def umeyama(source: Any, target: Any, with_scale: bool = True, weights: Any = No
         c = jnp.ones(h.shape[:-2], h.dtype)
     trans = ct - c[..., None] * jnp.einsum("...ij,...j->...i", r, cs)
     q = SO3.from_matrix(r, check=False).data
-    return Sim3(jnp.concatenate([trans, q, c[..., None]], -1))
+    return jnp.concatenate([trans, q, c[..., None]], -1)
 
 
 def svdstf(source: Any, target: Any, with_scale: bool = True) -> Sim3:
