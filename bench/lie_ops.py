@@ -40,6 +40,8 @@ from bench._common import (
     fmt_seconds,
     import_peer,
     markdown_table,
+    pin_threads,
+    set_clock,
     time_callable,
     time_jax,
 )
@@ -162,6 +164,13 @@ def _proto_horner(coeffs: tuple[float, ...], t: Any) -> Any:
     return out
 
 
+# π/2 split so that k·part is exact in the working precision (fdlibm / Cephes constants)
+_PROTO_PIO2 = {
+    "float64": (1.5707963267341256, 6.077100506303966e-11, 2.0222662487959506e-21),
+    "float32": (1.5703125, 4.837512969970703125e-4, 7.54978995489188216e-8),
+}
+
+
 def _proto_exp_coeffs(t: Any) -> tuple[Any, Any]:
     """(sin(h)/(2h), cos h) from t = h², without sin/cos calls."""
     import jax.numpy as jnp
@@ -173,7 +182,9 @@ def _proto_exp_coeffs(t: Any) -> tuple[Any, Any]:
     s_small, w_small = 0.5 * _proto_horner(S, ts), _proto_horner(C, ts)
     h = jnp.sqrt(jnp.where(small, t0, t))  # reduced branch: h ≥ π/4
     k = jnp.round(h * (2 / np.pi))
-    r = (h - k * 1.5707963267341256) - k * 6.077100506506192e-11  # Cody-Waite π/2
+    r = h
+    for part in _PROTO_PIO2[np.dtype(t.dtype).name]:  # Cody-Waite: r = h − k·π/2
+        r = r - k * part
     r2 = r * r
     sr, cr = r * _proto_horner(S, r2), _proto_horner(C, r2)
     q = k - 4.0 * jnp.floor(0.25 * k)  # quadrant 0..3
@@ -443,12 +454,14 @@ def tolerance(dtype: str) -> float:
 
 
 def report(cells: Sequence[Cell], peers: Sequence[Peer], names: Sequence[str],
-           cfg: Config) -> str:
+           cfg: Config, clock: str = "wall") -> str:
     """Markdown: environment, speed table, compile times, agreement table."""
     lines = [
         f"# Lie-group benchmark (so3, {cfg.dtype})",
         "",
-        f"- machine: {environment()}",
+        f"- machine: {environment()}; load average {os.getloadavg()[0]:.1f} at the end",
+        f"- clock: {clock} ({'process CPU seconds' if clock == 'cpu' else 'wall seconds'}), "
+        f"{len(os.sched_getaffinity(0))} cores usable",
         "- peers: " + "; ".join(p.label() for p in peers),
     ]
     if any(p.name == "pypose" and p.available for p in peers):
@@ -458,7 +471,7 @@ def report(cells: Sequence[Cell], peers: Sequence[Peer], names: Sequence[str],
     lines += [
         "- f1 = Log(Exp(x)), f2 = Log(Exp(x)·Exp(y)), f3 = Exp(x)·p; `jac` = one 3×3 "
         "Jacobian per batch element w.r.t. x",
-        "- op/s = B / (best steady-state seconds per call); ratios > 1 mean jaxpose is "
+        "- op/s = B / (best steady-state time per call); ratios > 1 mean jaxpose is "
         "faster; bar: B ≤ 1e3 jaxpose ≥ 10x PyPose, B ≥ 1e5 ≥ 1x (values) / 2x "
         "(Jacobians), and ≥ 1x jaxlie everywhere",
         "",
@@ -513,6 +526,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--kinds", type=str, default=",".join(KINDS), help="subset of value,jac")
     ap.add_argument("--prototype", action="store_true",
                     help="also time the PROTOTYPE rewrite below (not jaxpose)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="pin to this many cores (XLA and torch threads alike)")
+    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                    help="cpu: process CPU time, robust on a loaded machine (use --threads 1)")
     ap.add_argument("-v", "--verbose", action="store_true", help="progress to stderr")
     return ap.parse_args(argv)
 
@@ -520,6 +537,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> str:
     """Run the benchmark, print the markdown report and return it."""
     args = parse_args(argv)
+    if args.threads:
+        pin_threads(args.threads)
+    set_clock(args.clock)
     if args.batches:
         batches = tuple(int(float(b)) for b in args.batches.split(",") if b)
     else:
@@ -535,7 +555,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     cfg = Config(args.dtype, batches, timing_kw, args.prototype, funcs, kinds)
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if args.verbose else None
     cells, peers, names = run(cfg, [s for s in args.skip.split(",") if s], log)
-    text = report(cells, peers, names, cfg)
+    text = report(cells, peers, names, cfg, args.clock)
     print(text)
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
