@@ -246,6 +246,7 @@ class AbstractSolver(eqx.Module):
                 accepted=accepted,
                 finite=finite,
                 step_norm=step_norm,
+                predicted=pred,
                 grad_inf=grad_inf,
                 rejects=rejects,
                 plateau_count=plateau,

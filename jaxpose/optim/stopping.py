@@ -65,6 +65,9 @@ class Stopping(eqx.Module):
       CONVERGED;
     * ``xtol``: a finite trial step with ``‖δ‖₂ ≤ xtol`` (no meaningful step left) →
       CONVERGED;
+    * always: a rejected finite trial whose *predicted* decrease is below the cost's
+      floating-point resolution (16·eps·cost) → CONVERGED (no measurable decrease is
+      left; this is where float32 solves end);
     * ``max_rejects``: that many consecutive rejected trials → DIVERGED (or NON_FINITE
       if the last one was not finite). A rejected trial that leaves the damping unchanged
       (Constant strategy, damping clamped at its bound, Gauss-Newton) ends the solve at
@@ -109,6 +112,7 @@ class Trial(NamedTuple):
     accepted: Array  # bool
     finite: Array  # bool: trial step, residual and Jacobian all finite
     step_norm: Array  # ‖δ‖₂
+    predicted: Array  # decrease predicted by the quadratic model for this trial
     grad_inf: Array  # ‖g‖_∞ at the (possibly new) current estimate
     rejects: Array  # consecutive rejected trials so far (int32)
     plateau_count: Array  # consecutive non-decreasing iterations so far (int32)
@@ -131,6 +135,8 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     conv = t.accepted & (decrease <= stopping.cost_atol + stopping.cost_rtol * t.last)
     conv = conv | (t.grad_inf <= stopping.gtol)
     conv = conv | (t.finite & (t.step_norm <= stopping.xtol))
+    resolution = 16 * jnp.finfo(t.last.dtype).eps * jnp.abs(t.last)
+    conv = conv | (t.finite & ~t.accepted & (t.predicted <= resolution))
     if stopping.plateau is not None:
         conv = conv | (t.plateau_count >= stopping.plateau.patience)
     stalled = t.rejects >= stopping.max_rejects
