@@ -11,9 +11,10 @@ so for a cotangent v on X* (pulled back to the tangent space through δ ↦ X* �
 backward pass solves H u = v once and returns θ̄ = −∇_θ (∇_δ φ · u). By default H is the
 exact Hessian of the (robust, weighted) cost, so the gradient is exact for any residual;
 ``hessian="gauss_newton"`` uses J̃ᵀJ̃ from the whitened, kernel-corrected Jacobian instead
-(first derivatives only: cheaper to compile, exact for zero-residual problems). The final cost's cotangent is propagated by the envelope
-theorem (∂cost/∂θ at fixed X*). Gradients with respect to the initial params are zero;
-``history`` has no gradient. Reverse mode only (use ``adjoint="unrolled"`` for jvp).
+(first derivatives only: cheaper to compile, exact for zero-residual problems). The
+final cost's cotangent is propagated by the envelope theorem (∂cost/∂θ at fixed X*).
+Gradients with respect to the initial params are zero; ``history`` has no gradient.
+Reverse mode only (use ``adjoint="unrolled"`` for jvp).
 """
 
 from __future__ import annotations

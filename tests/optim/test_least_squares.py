@@ -31,7 +31,7 @@ def run_steps(solver, fn, x0, args, limit=200, **kw):
     return state
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _jitted(**kw):
     return jax.jit(lambda x, a: jo.least_squares(exp_residual, x, a, **kw))
 
