@@ -14,7 +14,8 @@ k-d tree is built once) and then
 Correspondences farther than ``max_distance`` are ignored. The loop stops when the
 update ‖Log(T_k⁻¹ T_{k+1})‖ ≤ ``tolerance`` (status SUCCESS), after ``max_iterations``
 (MAX_STEPS), with fewer than 3 inlier correspondences (DEGENERATE, last good estimate
-kept) or on NaN/Inf (NON_FINITE, last finite estimate kept).
+kept) or on NaN/Inf in the inputs or the estimate (NON_FINITE, last finite estimate kept;
+no iteration runs when an input is non-finite).
 
 Derivatives. ``lax.while_loop`` is not reverse-differentiable, so the returned transform
 is recomputed after the loop from its converged correspondences (which are piecewise
@@ -31,6 +32,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..lie import SE3
 from ._util import (
@@ -80,16 +82,15 @@ def _plane_rmse(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
 
 
 def _icp_single(
-    src: Array, tgt: Array, nrm: Array | None, init: Array, *, plane: bool,
-    max_iterations: int, tolerance: float, max_distance: float | None, use_tree: bool,
-    tile: int,
+    src: Array, tgt: Array, nrm: Array | None, init: Array, max_iterations: Array,
+    tolerance: Array, max_distance: Array, *, plane: bool, use_tree: bool, tile: int,
 ) -> ICPResult:
     n = src.shape[0]
     dtype = src.dtype
     src_c, tgt_c = jax.lax.stop_gradient(src), jax.lax.stop_gradient(tgt)
     nrm_c = None if nrm is None else jax.lax.stop_gradient(nrm)
     tree = build_kdtree(tgt_c) if use_tree else None
-    gate = jnp.inf if max_distance is None else jnp.asarray(max_distance, dtype) ** 2
+    gate = jnp.square(max_distance.astype(dtype))  # +inf: no gate
 
     def nearest(moved: Array) -> Array:
         if tree is not None:
@@ -137,8 +138,13 @@ def _icp_single(
         )
 
     zero_idx = jnp.zeros((n,), jnp.int32)
+    finite_in = (jnp.all(jnp.isfinite(src_c)) & jnp.all(jnp.isfinite(tgt_c))
+                 & jnp.all(jnp.isfinite(init)))
+    if nrm_c is not None:
+        finite_in = finite_in & jnp.all(jnp.isfinite(nrm_c))
     s0 = State(init, init, zero_idx, jnp.asarray(0, jnp.int32), jnp.asarray(False),
-               jnp.asarray(Status.SUCCESS, jnp.int32), jnp.asarray(False))
+               jnp.where(finite_in, Status.SUCCESS, Status.NON_FINITE).astype(jnp.int32),
+               ~finite_in)
     s = jax.lax.while_loop(cond, body, s0)
     status = jnp.where(s.done, s.status, Status.MAX_STEPS).astype(jnp.int32)
     accepted = s.accepted
@@ -202,9 +208,11 @@ def icp(
         check_group(init, SE3, f"{fn}(init)")
         shapes.append(init.shape)
         names.append("init")
-    if not isinstance(max_iterations, int) or max_iterations < 0:
+    if isinstance(max_iterations, bool) or (isinstance(max_iterations, int)
+                                            and max_iterations < 0):
         raise ValueError(f"{fn}(max_iterations): expected an int ≥ 0, got {max_iterations!r}")
-    if max_distance is not None and not max_distance > 0:
+    if (max_distance is not None and not isinstance(max_distance, jax.core.Tracer)
+            and not np.all(np.asarray(max_distance) > 0)):
         raise ValueError(f"{fn}(max_distance): expected a positive number or None, got "
                          f"{max_distance!r}")
     batch = batch_shape(*shapes, names=tuple(names))
@@ -218,18 +226,19 @@ def icp(
     tgtf = flatten_batch(tgt.astype(dtype), batch, 2)
     nrmf = None if nrm is None else flatten_batch(nrm.astype(dtype), batch, 2)
     initf = flatten_batch(init_data, batch, 1)
-    out = _icp_batched(srcf, tgtf, nrmf, initf, plane=plane, max_iterations=max_iterations,
-                       tolerance=float(tolerance),
-                       max_distance=None if max_distance is None else float(max_distance),
-                       use_tree=use_tree, tile=tile)
+    out = _icp_batched(srcf, tgtf, nrmf, initf, jnp.asarray(max_iterations, jnp.int32),
+                       jnp.asarray(tolerance, dtype),
+                       jnp.asarray(jnp.inf if max_distance is None else max_distance, dtype),
+                       plane=plane, use_tree=use_tree, tile=tile)
     return jax.tree.map(lambda x: x.reshape(*batch, *x.shape[1:]), out)
 
 
-@functools.partial(jax.jit, static_argnames=("plane", "max_iterations", "tolerance",
-                                             "max_distance", "use_tree", "tile"))
-def _icp_batched(srcf: Array, tgtf: Array, nrmf: Array | None, initf: Array, **kw: Any
+@functools.partial(jax.jit, static_argnames=("plane", "use_tree", "tile"))
+def _icp_batched(srcf: Array, tgtf: Array, nrmf: Array | None, initf: Array,
+                 max_iterations: Array, tolerance: Array, max_distance: Array, **kw: Any
                  ) -> ICPResult:
-    single = lambda s, t, nn, i: _icp_single(s, t, nn, i, **kw)
+    single = lambda s, t, nn, i: _icp_single(s, t, nn, i, max_iterations, tolerance,
+                                             max_distance, **kw)
     return jax.vmap(single, in_axes=(0, 0, None if nrmf is None else 0, 0))(
         srcf, tgtf, nrmf, initf)
 

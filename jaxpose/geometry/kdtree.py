@@ -44,13 +44,18 @@ def num_levels(m: int) -> int:
 
 
 def build_kdtree(points: Any) -> KDTree:
-    """Build the implicit k-d tree of ``points`` (M, D), M ≥ 1 (no batch axes)."""
+    """Build the implicit k-d tree of ``points`` (M, D), M ≥ 1 (no batch axes). Points
+    with NaN/Inf coordinates are stored far away so they are never returned for a finite
+    query while a finite point exists."""
     p = points_array(points, "build_kdtree(points)", None, min_points=1)
     if p.ndim != 2:
         raise ValueError(f"build_kdtree(points): expected shape (M, D) without batch axes "
                          f"(vmap for batches), got {tuple(p.shape)}")
     m, d = p.shape
     pos = jnp.arange(m, dtype=jnp.int32)
+    # non-finite points move far away (never nearer than a finite point)
+    far = jnp.sqrt(jnp.finfo(p.dtype).max) / 4
+    p = jnp.where(jnp.all(jnp.isfinite(p), -1, keepdims=True), p, far)
 
     def level(_: int, state: tuple[Array, ...]) -> tuple[Array, ...]:
         pts, idx, dims, lo, hi, active = state

@@ -65,10 +65,13 @@ def _select(q: Array, p: Array, k: int, tile: int, precise: bool) -> Array:
     n, d = q.shape
     m = p.shape[0]
     dtype = q.dtype
-    center = jnp.mean(p, 0)
-    pc = p - center
+    ok = jnp.all(jnp.isfinite(p), -1)  # non-finite points are never selected
+    center = jnp.sum(jnp.where(ok[:, None], p, 0.0), 0) / jnp.maximum(jnp.sum(ok), 1)
+    pc = jnp.where(ok[:, None], p - center, 0.0)
     qc = q - center
-    sq = jnp.sum(pc * pc, -1)
+    sq = jnp.where(ok, jnp.sum(pc * pc, -1), jnp.inf)
+    if precise:  # the difference form cannot carry the +inf penalty: push them far away
+        pc = jnp.where(ok[:, None], pc, jnp.sqrt(jnp.finfo(dtype).max) / 4)
     n_tiles = math.ceil(n / tile)
     pad = n_tiles * tile - n
     qt_all = jnp.concatenate([qc, jnp.zeros((pad, d), dtype)], 0).reshape(n_tiles, tile, d)

@@ -54,6 +54,17 @@ def test_kdtree_duplicates_clusters_and_single_point(rng):
     np.testing.assert_array_equal(one.indices, 0)
 
 
+@pytest.mark.parametrize("method", ["brute", "kdtree"])
+def test_non_finite_points_are_never_selected(rng, method):
+    p = rng.normal(size=(30, 3))
+    p[[3, 17]] = [np.nan, 0, 0], [np.inf, 1, 1]
+    q = p[[0, 3, 5]] + 1e-3
+    q[1] = [0.1, 0.2, 0.3]
+    res = knn(q, p, 2, method=method)
+    assert not np.isin(np.asarray(res.indices), [3, 17]).any()
+    assert np.all(np.isfinite(res.distances))
+
+
 def test_query_tiling_is_invariant(rng):
     q, p = rng.normal(size=(37, 3)), rng.normal(size=(29, 3))
     f = jax.jit(lambda a, b: knn(a, b, 1, method="brute", tile=5).indices)

@@ -1,0 +1,145 @@
+"""ICP recovers known transforms; statuses; implicit derivatives vs finite differences."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxpose.geometry import Status, estimate_normals, icp
+from jaxpose.lie import SE3
+
+from .conftest import random_rotation, se3_from_rt
+
+
+def _cloud(rng: np.random.Generator, n: int) -> np.ndarray:
+    """A non-symmetric synthetic scan: three unequal planes and a blob."""
+    u = rng.uniform(-1, 1, size=(n, 2))
+    k = n // 4
+    parts = [
+        np.c_[u[:k, 0] * 2.0, u[:k, 1], np.zeros(k)],
+        np.c_[np.zeros(k), u[k:2 * k, 0] * 1.5, u[k:2 * k, 1] * 0.8 + 0.8],
+        np.c_[u[2 * k:3 * k, 0], np.full(k, -1.0), u[2 * k:3 * k, 1] * 0.5 + 0.5],
+        rng.normal(size=(n - 3 * k, 3)) * 0.2 + np.array([1.0, 0.5, 0.6]),
+    ]
+    return np.concatenate(parts)
+
+
+def _small_motion(rng, angle=0.15, shift=0.1):
+    axis = rng.normal(size=3)
+    phi = axis / np.linalg.norm(axis) * angle
+    return SE3.exp(jnp.asarray(np.r_[rng.normal(size=3) * shift, phi]))
+
+
+icp_p2p = jax.jit(lambda s, t, i: icp(s, t, SE3(i), max_iterations=60, tolerance=1e-10))
+
+
+def test_point_to_point_recovers_transform_batched(rng):
+    src = np.stack([_cloud(rng, 400), _cloud(rng, 400)])
+    truth = SE3(jnp.stack([_small_motion(rng).data, _small_motion(rng).data]))
+    tgt = np.asarray(truth[:, None].act(src))
+    tgt = tgt[:, rng.permutation(400)]  # correspondences unknown
+    res = icp_p2p(src, tgt, SE3.identity((2,)).data)
+    np.testing.assert_array_equal(res.status, Status.SUCCESS)
+    np.testing.assert_allclose(res.transform.matrix(), truth.matrix(), atol=1e-9)
+    np.testing.assert_allclose(res.rmse, 0.0, atol=1e-9)
+    np.testing.assert_allclose(res.fitness, 1.0)
+    assert np.all(res.iterations > 1)
+
+
+def test_point_to_plane_and_kdtree(rng):
+    src = _cloud(rng, 600)
+    truth = _small_motion(rng, 0.1, 0.05)
+    tgt = np.asarray(truth.act(src))
+    nrm = estimate_normals(tgt, k=8, method="kdtree")
+    res = icp(src, tgt, method="point_to_plane", target_normals=nrm, knn_method="kdtree",
+              max_iterations=40, tolerance=1e-12)
+    assert int(res.status) == Status.SUCCESS
+    np.testing.assert_allclose(res.transform.matrix(), truth.matrix(), atol=1e-8)
+
+
+def test_estimate_normals_plane_and_sphere(rng):
+    n = np.array([1.0, 2.0, 2.0]) / 3.0
+    basis = np.linalg.svd(n[None])[2][1:]  # two in-plane directions
+    plane = rng.uniform(-1, 1, size=(300, 2)) @ basis + 0.5
+    got = np.asarray(estimate_normals(plane, k=10))
+    np.testing.assert_allclose(np.abs(got @ n), 1.0, atol=1e-12)
+    sphere = rng.normal(size=(400, 3))
+    sphere /= np.linalg.norm(sphere, axis=-1, keepdims=True)
+    out = np.asarray(estimate_normals(sphere, k=6, viewpoint=np.zeros(3)))
+    cos = np.sum(out * sphere, -1)  # radial (up to curvature), facing the centre
+    assert np.all(cos < -0.85) and np.mean(cos) < -0.98
+
+
+def test_outlier_gate_and_statuses(rng):
+    src = _cloud(rng, 200)
+    truth = _small_motion(rng, 0.05, 0.02)
+    tgt = np.asarray(truth.act(src))
+    # 20 source points with no counterpart, far away: the gate must ignore them
+    src_out = np.concatenate([src, rng.normal(size=(20, 3)) + 30.0])
+    f = jax.jit(lambda s, t, it, md: icp(s, t, max_iterations=it, max_distance=md,
+                                         tolerance=1e-10))
+    gated = f(src_out, tgt, 60, 0.5)
+    assert int(gated.status) == Status.SUCCESS
+    assert float(gated.fitness) == pytest.approx(200 / 220)
+    np.testing.assert_allclose(gated.transform.matrix(), truth.matrix(), atol=1e-9)
+    ungated = f(src_out, tgt, 60, np.inf)
+    assert float(ungated.fitness) == 1.0
+    assert np.max(np.abs(ungated.transform.matrix() - truth.matrix())) > 1e-3
+    src_out = src_out[:200]
+    assert int(f(src_out, tgt, 1, np.inf).status) == Status.MAX_STEPS
+    degenerate = f(src_out, tgt + 100.0, 60, 0.5)  # nothing within the gate
+    assert int(degenerate.status) == Status.DEGENERATE
+    np.testing.assert_allclose(degenerate.transform.matrix(), np.eye(4))
+    bad = f(src_out, np.where(np.arange(200)[:, None] == 3, np.nan, tgt), 60, np.inf)
+    assert int(bad.status) == Status.NON_FINITE
+    assert np.all(np.isfinite(np.asarray(bad.transform.data)))
+
+
+def test_implicit_derivative_matches_finite_differences(rng):
+    """d T / d source through the loop: vmap(grad) under jit against central differences
+    of full ICP runs (small perturbations keep the converged correspondences)."""
+    src = jnp.asarray(_cloud(rng, 120))
+    truth = _small_motion(rng, 0.08, 0.05)
+    tgt = truth.act(src) + jnp.asarray(rng.normal(size=(120, 3)) * 0.01)  # noisy: LS fit
+    w = jnp.asarray(rng.normal(size=(2, 7)))
+
+    def out(s, v):
+        return jnp.dot(icp(s, tgt, max_iterations=50, tolerance=1e-12).transform.data, v)
+
+    grads = jax.jit(jax.vmap(jax.grad(out), in_axes=(None, 0)))(src, w)
+    assert np.all(np.isfinite(grads))
+    f = jax.jit(out)
+    direction = jnp.asarray(rng.normal(size=src.shape))
+    eps = 1e-6
+    for i in range(2):
+        fd = (f(src + eps * direction, w[i]) - f(src - eps * direction, w[i])) / (2 * eps)
+        np.testing.assert_allclose(jnp.sum(grads[i] * direction), fd, rtol=1e-5, atol=1e-8)
+
+
+def test_bad_input(rng):
+    z = np.zeros((10, 3))
+    with pytest.raises(ValueError, match=r"icp\(source\).*empty"):
+        icp(np.zeros((0, 3)), z)
+    with pytest.raises(ValueError, match=r"icp\(target_normals\).*point_to_plane"):
+        icp(z, z, method="point_to_plane")
+    with pytest.raises(ValueError, match=r"icp\(method\)"):
+        icp(z, z, method="plane")
+    with pytest.raises(TypeError, match=r"icp\(init\).*SE3"):
+        icp(z, z, init=np.zeros(7))
+    with pytest.raises(ValueError, match=r"icp\(max_distance\)"):
+        icp(z, z, max_distance=-1.0)
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast"):
+        icp(np.zeros((2, 10, 3)), np.zeros((3, 10, 3)))
+
+
+@pytest.mark.slow
+def test_larger_cloud_kdtree_float32(rng):
+    src = _cloud(rng, 20_000).astype(np.float32)
+    truth = se3_from_rt(random_rotation(rng) @ np.eye(3), np.zeros(3))
+    truth = _small_motion(rng, 0.1, 0.1)
+    tgt = np.asarray(truth.act(src), np.float32)[rng.permutation(20_000)]
+    res = icp(src, tgt, knn_method="kdtree", max_iterations=80)
+    assert int(res.status) == Status.SUCCESS
+    np.testing.assert_allclose(res.transform.matrix(), truth.matrix(), atol=1e-4)
