@@ -115,12 +115,18 @@ def ilqr(
     ``u_lower ≤ u_t ≤ u_upper`` (each optional; (m,) or (T, m)).
 
     ``x0`` (n,), ``u_init`` (T, m) (sets the horizon T; clipped to the box). For
-    batches use ``jax.vmap``. ``tol``: relative cost decrease at which to stop
-    (default :func:`default_tol`)."""
+    batches use ``jax.vmap``. ``max_iter`` may be a traced integer unless ``unroll``.
+    ``tol``: relative cost decrease at which to stop (default :func:`default_tol`)."""
     x0 = as_array(x0, "x0", 1)
     u_init = as_array(u_init, "u_init", 2)
-    if not isinstance(max_iter, int) or max_iter < 1:
-        raise ValueError(f"max_iter: expected a positive int, got {max_iter!r}")
+    if isinstance(max_iter, int):
+        if max_iter < 1:
+            raise ValueError(f"max_iter: expected a positive int, got {max_iter!r}")
+    elif unroll or not (hasattr(max_iter, "dtype") and jnp.issubdtype(max_iter.dtype, jnp.integer)):
+        raise ValueError(
+            f"max_iter: expected a positive int (an integer array is accepted without "
+            f"unroll), got {max_iter!r}"
+        )
     T, m = u_init.shape
     n = x0.shape[0]
     dtype = jnp.result_type(x0.dtype, u_init.dtype)
@@ -221,10 +227,19 @@ def ilqr(
         good = good & jnp.all(jnp.isfinite(xs_a.reshape(al.shape[0], -1)), -1)
         accept = jnp.any(good)
         idx = jnp.argmax(good)
+        # Near the optimum the predicted decrease is at round-off level and the measured
+        # one is noise: take the full (Newton) step anyway — it squares the remaining
+        # error of the controls, which matters for implicit gradients.
+        full_ok = jnp.isfinite(J_a[0]) & jnp.all(jnp.isfinite(xs_a[0]))
+        final_step = small & full_ok
+        idx = jnp.where(final_step, 0, idx)
+        accept = accept | final_step
         xs_n = jnp.where(accept, xs_a[idx], s["xs"])
         us_n = jnp.where(accept, us_a[idx], s["us"])
         J_n = jnp.where(accept, J_a[idx], J)
-        converged = small | (accept & (dec[idx] <= thresh))
+        # A tiny decrease only counts as convergence after a full step (a short step can
+        # make little progress far from the optimum).
+        converged = small | (accept & (idx == 0) & (dec[idx] <= thresh))
         mu_up = jnp.maximum(s["mu"] * reg_factor, reg_min)
         mu_down = jnp.where(s["mu"] / reg_factor < reg_min, 0.0, s["mu"] / reg_factor)
         mu_n = jnp.where(accept | small, mu_down, mu_up)

@@ -1,0 +1,210 @@
+"""MPC: gradients (implicit and unrolled) against central finite differences, receding
+horizon, cart-pole iLQR with force limits, and bad input."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+from jaxpose.control import (
+    CONVERGED,
+    MAX_ITER,
+    MPC,
+    NONFINITE,
+    QuadraticCost,
+    closed_loop,
+    ilqr,
+)
+from jaxpose.dynamics import LTI, CartPole, Pendulum
+
+
+def fd_grad(f, flat, eps=1e-6):
+    """Central differences of a scalar function of a flat vector: one jitted forward,
+    called 2·size times (cheaper than compiling a vmapped one)."""
+    fj = jax.jit(f)
+    E = np.eye(flat.size) * eps
+    return np.array([(fj(flat + e) - fj(flat - e)) / (2 * eps) for e in E])
+
+
+# ----------------------------------------------------------------------------------
+# Linear–quadratic: every differentiable input, batched x0
+# ----------------------------------------------------------------------------------
+def lq_setup(dtype=np.float64):
+    rng = np.random.default_rng(11)
+    n, m, T = 3, 2, 5
+    params = (
+        np.eye(n) + 0.2 * rng.normal(size=(n, n)),  # A
+        rng.normal(size=(n, m)),  # B
+        np.eye(n + m) + 0.1 * np.ones((n + m, n + m)),  # Q
+        rng.normal(size=n + m),  # p
+        rng.normal(size=(2, n)),  # x0 (batch of 2)
+    )
+    flat, unravel = ravel_pytree(tuple(jnp.asarray(a, dtype) for a in params))
+    wx = jnp.asarray(rng.normal(size=(2, T + 1, n)), dtype)
+    wu = jnp.asarray(rng.normal(size=(2, T, m)), dtype)
+
+    def make(gradient):
+        def loss(flat):
+            A, B, Q, p, x0 = unravel(flat)
+            sol = MPC(
+                LTI(A, B), QuadraticCost(Q, p, QT=jnp.eye(n, dtype=dtype)), T, gradient=gradient
+            )(x0)
+            return jnp.sum(wx * sol.x) + jnp.sum(wu * sol.u) + 0.1 * jnp.sum(sol.cost)
+
+        return loss
+
+    return flat, make
+
+
+def test_lq_mpc_gradients_implicit_and_unrolled_match_fd_and_float32():
+    flat, make = lq_setup()
+    g_imp = jax.jit(jax.grad(make("implicit")))(flat)
+    g_unr = jax.jit(jax.grad(make("unroll")))(flat)
+    fd = fd_grad(make("implicit"), flat)
+    np.testing.assert_allclose(g_imp, fd, atol=1e-7, rtol=1e-6)
+    np.testing.assert_allclose(g_unr, fd, atol=1e-7, rtol=1e-6)
+    np.testing.assert_allclose(g_imp, g_unr, atol=1e-10, rtol=1e-9)
+    flat32, make32 = lq_setup(np.float32)
+    g32 = jax.jit(jax.grad(make32("implicit")))(flat32)
+    assert g32.dtype == np.float32
+    np.testing.assert_allclose(g32, g_imp, rtol=2e-3, atol=2e-3 * float(jnp.abs(g_imp).max()))
+
+
+# ----------------------------------------------------------------------------------
+# Nonlinear dynamics with active control limits (iLQR path)
+# ----------------------------------------------------------------------------------
+def pendulum_setup():
+    T = 6
+    goal = jnp.array([1.0, 0.0, 0.0])  # [θ, ω, u] reference
+    params = (
+        jnp.array([1.0, 0.3]),  # pendulum length, damping
+        jnp.array([2.0, 0.2, 0.5]),  # cost weights diag(Q)
+        jnp.array([0.2, -0.5]),  # x0
+    )
+    flat, unravel = ravel_pytree(params)
+    rng = np.random.default_rng(12)
+    wx, wu = jnp.asarray(rng.normal(size=(T + 1, 2))), jnp.asarray(rng.normal(size=(T, 1)))
+
+    def make(gradient, u_max=0.5):
+        def loss(flat):
+            (length, damping), q, x0 = unravel(flat)
+            model = Pendulum(dt=0.1, length=length, damping=damping)
+            cost = QuadraticCost.tracking(jnp.diag(q), goal, QT=5 * jnp.eye(2), x_ref=goal[:2])
+            mpc = MPC(
+                model,
+                cost,
+                T,
+                u_lower=-u_max,
+                u_upper=u_max,
+                gradient=gradient,
+                max_iter=40,
+                tol=1e-15,
+            )
+            sol = mpc(x0, jnp.zeros((T, 1)))
+            return jnp.sum(wx * sol.x) + jnp.sum(wu * sol.u), sol
+
+        return loss
+
+    return flat, make
+
+
+def test_nonlinear_mpc_with_limits_implicit_gradient_matches_fd():
+    flat, make = pendulum_setup()
+    loss = make("implicit")
+    (val, sol), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(flat)
+    assert int(sol.status) == CONVERGED
+    clamped = np.abs(sol.u) >= 0.5 - 1e-12
+    assert np.any(clamped) and not np.all(clamped), "a mix of active and free limits"
+    assert np.all(np.abs(sol.u) <= 0.5)
+    fd = fd_grad(lambda f: loss(f)[0], flat)
+    np.testing.assert_allclose(g, fd, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_nonlinear_mpc_with_limits_unrolled_gradient_matches_fd():
+    flat, make = pendulum_setup()
+    (val, sol), g = jax.jit(jax.value_and_grad(make("unroll"), has_aux=True))(flat)
+    fd = fd_grad(lambda f: make("implicit")(f)[0], flat)
+    np.testing.assert_allclose(g, fd, atol=1e-6, rtol=1e-5)
+
+
+# ----------------------------------------------------------------------------------
+# Receding horizon
+# ----------------------------------------------------------------------------------
+def test_closed_loop_regulates_lti():
+    rng = np.random.default_rng(13)
+    A = np.array([[1.0, 0.1], [0.0, 1.0]])
+    B = np.array([[0.0], [0.1]])
+    plant = LTI(A, B)
+    mpc = MPC(plant, QuadraticCost(np.diag([1.0, 0.1, 0.01]), QT=10 * np.eye(2)), 10)
+    xs, us, status = eqx.filter_jit(closed_loop)(mpc, plant, rng.normal(size=2), 40)
+    assert xs.shape == (41, 2) and us.shape == (40, 1) and np.all(status == CONVERGED)
+    assert np.linalg.norm(xs[-1]) < 0.05 * np.linalg.norm(xs[0])
+
+
+# ----------------------------------------------------------------------------------
+# Cart-pole with force limits
+# ----------------------------------------------------------------------------------
+CP_T, CP_UMAX = 80, 5.0
+
+
+def _cartpole_cost():
+    from notebooks._examples.cartpole_ilqr import swing_up_cost
+
+    return swing_up_cost()
+
+
+@jax.jit
+def _cartpole(x0, u_max, max_iter):
+    u0 = jnp.full((CP_T, 1), 0.1)
+    model, cost = CartPole(dt=0.05), _cartpole_cost()
+    return ilqr(model, cost, x0, u0, u_lower=-u_max, u_upper=u_max, max_iter=max_iter, tol=1e-7)
+
+
+def test_cartpole_balance_converges_within_limits():
+    sol = _cartpole(jnp.array([0.0, 0.0, 0.6, 0.0]), 2.0, 400)
+    assert int(sol.status) == CONVERGED
+    assert np.all(np.abs(sol.u) <= 2.0) and np.any(np.abs(sol.u) >= 2.0 - 1e-12)
+    assert np.cos(float(sol.x[-1, 2])) > 0.999 and abs(float(sol.x[-1, 0])) < 0.05
+
+
+@pytest.mark.slow
+def test_cartpole_swing_up_converges_within_limits():
+    sol = _cartpole(jnp.array([0.0, 0.0, np.pi, 0.0]), CP_UMAX, 400)
+    assert int(sol.status) == CONVERGED
+    assert np.all(np.abs(sol.u) <= CP_UMAX)
+    assert np.sum(np.abs(sol.u) >= CP_UMAX - 1e-12) >= 5  # the limit binds
+    assert np.cos(float(sol.x[-1, 2])) > 0.999  # upright
+    assert abs(float(sol.x[-1, 0])) < 0.05 and abs(float(sol.x[-1, 3])) < 0.05
+
+
+def test_ilqr_max_iter_status_and_limits_on_early_stop():
+    sol = _cartpole(jnp.array([0.0, 0.0, np.pi, 0.0]), 1.0, 3)
+    assert int(sol.status) == MAX_ITER and int(sol.iterations) == 3
+    assert np.all(np.abs(sol.u) <= 1.0)
+
+
+# ----------------------------------------------------------------------------------
+# Bad input
+# ----------------------------------------------------------------------------------
+def test_mpc_bad_input():
+    A, B = np.eye(2), np.ones((2, 1))
+    cost = QuadraticCost(np.eye(3))
+    with pytest.raises(ValueError, match=r"x0: expected last dimension 2"):
+        MPC(LTI(A, B), cost, 4)(np.ones(3))
+    with pytest.raises(ValueError, match=r"u_init: expected shape \(\.\.\., 4, 1\)"):
+        MPC(LTI(A, B), cost, 4, solver="ilqr")(np.ones(2), np.zeros((3, 1)))
+    with pytest.raises(ValueError, match="horizon: expected a positive int"):
+        MPC(LTI(A, B), cost, 0)
+    with pytest.raises(ValueError, match="gradient: expected one of"):
+        MPC(LTI(A, B), cost, 4, gradient="fd")
+    with pytest.raises(ValueError, match="solver: 'lqr' needs"):
+        MPC(Pendulum(), cost, 4, solver="lqr")(np.ones(2), np.zeros((4, 1)))
+    with pytest.raises(ValueError, match=r"Q: expected size n \+ m = 2 \+ 1"):
+        MPC(LTI(A, B), QuadraticCost(np.eye(4)), 4)
+    with pytest.raises(ValueError, match="u_lower, u_upper: expected u_lower ≤ u_upper"):
+        MPC(LTI(A, B), cost, 4, u_lower=1.0, u_upper=0.0)(np.ones(2))
+    sol = eqx.filter_jit(MPC(LTI(A, B), cost, 4))(np.array([np.nan, 1.0]))
+    assert int(sol.status) == NONFINITE
