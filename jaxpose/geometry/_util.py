@@ -89,16 +89,16 @@ def common_dtype(*xs: Array) -> Any:
 
 
 def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
-    """Euclidean norm whose derivative is 0 (not NaN) at x = 0, any order."""
+    """Euclidean norm whose derivative is 0 (not NaN) at x = 0, any order (NaN stays NaN)."""
     sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
     pos = sq > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), sq)
 
 
 def safe_sqrt(x: Array) -> Array:
-    """sqrt(max(x, 0)) with derivative 0 (not Inf/NaN) at x ≤ 0."""
+    """sqrt(max(x, 0)) with derivative 0 (not Inf/NaN) at x ≤ 0 (NaN stays NaN)."""
     pos = x > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), jnp.where(x == x, 0.0, x))
 
 
 def safe_div(num: Array, den: Array) -> Array:

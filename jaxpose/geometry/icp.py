@@ -19,10 +19,11 @@ no iteration runs when an input is non-finite).
 
 Derivatives. ``lax.while_loop`` is not reverse-differentiable, so the returned transform
 is recomputed after the loop from its converged correspondences (which are piecewise
-constant): one more Kabsch solve (point-to-point) or Gauss–Newton step from the
-stop-gradient estimate (point-to-plane). Its value is the loop's; its derivative with
-respect to ``source``, ``target`` (and ``target_normals``) is the implicit-function
-derivative of the fixed point. The derivative with respect to ``init`` is zero.
+constant): one more Kabsch solve (point-to-point), or Exp(δ − sg δ)·T with δ the Newton
+step of the point-to-plane cost (exact Hessian). Its value is the loop's; its derivative
+with respect to ``source``, ``target`` (and ``target_normals``) is the implicit-function
+derivative of the fixed point (exact once converged). The derivative with respect to
+``init`` is zero.
 """
 
 from __future__ import annotations
@@ -74,6 +75,26 @@ def _plane_step(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
     damp = jnp.finfo(t.dtype).eps * (jnp.trace(h) + 1.0)
     delta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), g)
     return SE3.exp(delta).compose(SE3(t)).data
+
+
+def _plane_implicit(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
+    """Exp(δ − sg δ)·T with δ = −H⁻¹g the Newton step of the point-to-plane cost (exact
+    Hessian held constant): the value of T, the implicit-function derivative."""
+    data_sg = jax.lax.stop_gradient((src, q, nrm, w))
+
+    def cost(delta: Array) -> Array:
+        s_, q_, n_, w_ = data_sg
+        moved = SE3.exp(delta).compose(SE3(t)).act(s_)
+        return 0.5 * jnp.sum(w_ * jnp.square(jnp.sum(n_ * (moved - q_), -1)))
+
+    h = jax.hessian(cost)(jnp.zeros((6,), t.dtype))
+    moved = SE3(t).act(src)
+    r = jnp.sum(nrm * (moved - q), -1)
+    jac = jnp.concatenate([nrm, jnp.cross(moved, nrm)], -1)
+    g = jnp.einsum("n,ni,n->i", w, jac, r)
+    damp = jnp.finfo(t.dtype).eps * (jnp.trace(jnp.abs(h)) + 1.0)
+    delta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), g)
+    return SE3.exp(delta - jax.lax.stop_gradient(delta)).compose(SE3(t)).data
 
 
 def _plane_rmse(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
@@ -154,7 +175,7 @@ def _icp_single(
     moved = SE3(jax.lax.stop_gradient(s.t_prev)).act(src_c)
     w = (jnp.sum(jnp.square(moved - tgt_c[idx]), -1) <= gate).astype(dtype)
     if plane:
-        t_fin = _plane_step(jax.lax.stop_gradient(s.t_prev), src, tgt[idx], nrm[idx], w)
+        t_fin = _plane_implicit(jax.lax.stop_gradient(s.t), src, tgt[idx], nrm[idx], w)
         rmse = _plane_rmse(s.t, src_c, tgt_c[idx], nrm_c[idx], w)
     else:
         t_fin = svdtf(src, tgt[idx], w).data

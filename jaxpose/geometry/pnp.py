@@ -30,9 +30,9 @@ only one of many; NON_FINITE when the inputs or the estimate contain NaN/Inf. Fe
 Derivatives. EPnP's algebra is not differentiated (eigenvector derivatives are undefined
 for repeated eigenvalues, which planar targets always produce). Instead the returned pose
 carries the implicit-function derivative of the reprojection least-squares optimum at
-that pose: T ⊕ (δ − sg(δ)) with δ one Gauss–Newton step, so the value is unchanged and
-d pose / d(points, pixels, intrinsics) is exact at a refined (optimal) pose and a
-first-order approximation for an unrefined one.
+that pose: T ⊕ (δ − sg(δ)) with δ = −H⁻¹g the Newton step (exact Hessian H), so the value
+is unchanged and d pose / d(points, pixels, intrinsics) is exact at a refined (optimal)
+pose and a first-order approximation for an unrefined one.
 """
 
 from __future__ import annotations
@@ -268,13 +268,23 @@ def _refine(t: Array, pw: Array, uv: Array, k: Array, steps: int) -> Array:
 
 
 def _implicit_tangent(t: Array, pw: Array, uv: Array, k: Array) -> Array:
-    """T ⊕ (δ − sg(δ)): the value of T, the derivative of the least-squares optimum."""
+    """T ⊕ (δ − sg(δ)) with δ = −H⁻¹ g the Newton step of the reprojection cost in the
+    chart δ ↦ T·Exp(δ): the value is T; the derivative is the implicit-function one,
+    dT = −H⁻¹ d g, exact when T is a least-squares optimum (H is the exact Hessian, held
+    constant; g = Jᵀ r carries the derivatives)."""
     ts = SE3(jax.lax.stop_gradient(t))
-    r = _residual(ts, (pw, uv, k)).reshape(-1)
-    j = _jacobian(ts, (pw, uv, k))
-    h = j.T @ j
-    damp = jnp.finfo(t.dtype).eps * (jnp.trace(h) + 1.0)
-    delta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), j.T @ r)
+    data = (pw, uv, k)
+    data_sg = jax.lax.stop_gradient(data)
+
+    def cost(delta: Array) -> Array:
+        return 0.5 * jnp.sum(jnp.square(_residual(ts.retract(delta), data_sg)))
+
+    zero = jnp.zeros((6,), t.dtype)
+    h = jax.hessian(cost)(zero)
+    r = _residual(ts, data).reshape(-1)
+    g = _jacobian(ts, data).T @ r
+    damp = jnp.finfo(t.dtype).eps * (jnp.trace(jnp.abs(h)) + 1.0)
+    delta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), g)
     return ts.retract(delta - jax.lax.stop_gradient(delta)).data
 
 
@@ -287,7 +297,8 @@ def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps:
             t_ref = _refine(t, pws, uvs, ks, refine_steps)
             ok = jnp.all(jnp.isfinite(t_ref)) & (status == Status.SUCCESS)
             t = jnp.where(ok, t_ref, t)
-        t = _implicit_tangent(t, pw, uv, k)
+        ok = status != Status.NON_FINITE
+        t = jnp.where(ok, _implicit_tangent(t, pw, uv, k), t)
         err = jnp.mean(safe_norm(_residual(SE3(t), (pw, uv, k))), -1)
         return t, status, err
 
