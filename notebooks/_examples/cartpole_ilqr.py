@@ -12,6 +12,7 @@ Run ``python notebooks/_examples/cartpole_ilqr.py [--horizon 80] [--u-max 5]``.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
@@ -44,20 +45,33 @@ def swing_up_cost(
     return FunctionCost(stage, terminal)
 
 
+@functools.lru_cache(maxsize=8)
+def _solver(horizon: int, dt: float, tol: float) -> Any:
+    """One compiled solver per (horizon, dt, tol); x0, u_max and max_iter are traced."""
+    model, cost = CartPole(dt=dt), swing_up_cost()
+    u0 = jnp.full((horizon, 1), 0.1)  # breaks the symmetry of the hanging equilibrium
+
+    def run(x0: jax.Array, u_max: jax.Array, max_iter: jax.Array) -> ILQRSolution:
+        return ilqr(model, cost, x0, u0, u_lower=-u_max, u_upper=u_max, max_iter=max_iter, tol=tol)
+
+    return jax.jit(run)
+
+
 def solve(
-    horizon: int = 80, dt: float = 0.05, u_max: float = 5.0, max_iter: int = 400, tol: float = 1e-7
+    horizon: int = 80,
+    dt: float = 0.05,
+    u_max: float = 5.0,
+    max_iter: int = 400,
+    tol: float = 1e-7,
+    x0: Any = None,
 ) -> tuple[ILQRSolution, CartPole]:
-    """Swing-up from rest hanging down; returns the iLQR solution and the model."""
-    model = CartPole(dt=dt)
-    cost = swing_up_cost()
-    x0 = jnp.array([0.0, 0.0, jnp.pi, 0.0])
-    u0 = jnp.full((horizon, 1), 0.1)  # break the symmetry of the hanging equilibrium
-    run = jax.jit(
-        lambda x: ilqr(
-            model, cost, x, u0, u_lower=-u_max, u_upper=u_max, max_iter=max_iter, tol=tol
-        )
+    """Swing-up (default ``x0``: at rest hanging down); returns the iLQR solution and the
+    model."""
+    x0 = jnp.array([0.0, 0.0, jnp.pi, 0.0]) if x0 is None else jnp.asarray(x0)
+    sol = _solver(horizon, float(dt), float(tol))(
+        x0, jnp.asarray(u_max, x0.dtype), jnp.asarray(max_iter)
     )
-    return run(x0), model
+    return sol, CartPole(dt=dt)
 
 
 def plot(sol: ILQRSolution, dt: float, path: str | None = None) -> None:  # pragma: no cover

@@ -1,5 +1,14 @@
-"""Session set-up: float64 enabled (tests pass dtypes explicitly to cover float32)."""
+"""Session set-up: float64 enabled (tests pass dtypes explicitly to cover float32), and the
+repository root importable so the notebooks' example scripts (``notebooks/_examples``) can
+be smoke-tested."""
+
+import os
+import sys
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)

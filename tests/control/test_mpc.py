@@ -15,9 +15,8 @@ from jaxpose.control import (
     NONFINITE,
     QuadraticCost,
     closed_loop,
-    ilqr,
 )
-from jaxpose.dynamics import LTI, CartPole, Pendulum
+from jaxpose.dynamics import LTI, Pendulum
 
 
 def fd_grad(f, flat, eps=1e-6):
@@ -147,20 +146,15 @@ def test_closed_loop_regulates_lti():
 # ----------------------------------------------------------------------------------
 # Cart-pole with force limits
 # ----------------------------------------------------------------------------------
-CP_T, CP_UMAX = 80, 5.0
+CP_UMAX = 5.0
 
 
-def _cartpole_cost():
-    from notebooks._examples.cartpole_ilqr import swing_up_cost
-
-    return swing_up_cost()
-
-
-@jax.jit
 def _cartpole(x0, u_max, max_iter):
-    u0 = jnp.full((CP_T, 1), 0.1)
-    model, cost = CartPole(dt=0.05), _cartpole_cost()
-    return ilqr(model, cost, x0, u0, u_lower=-u_max, u_upper=u_max, max_iter=max_iter, tol=1e-7)
+    """The notebook's solver (horizon 80, dt 0.05): one compilation for all these tests
+    and the example's smoke test."""
+    from notebooks._examples.cartpole_ilqr import solve
+
+    return solve(u_max=u_max, max_iter=max_iter, x0=x0)[0]
 
 
 def test_cartpole_balance_converges_within_limits():
