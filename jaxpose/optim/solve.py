@@ -39,7 +39,7 @@ def _runner(
         state = solver.init(problem, params, args, stopping=stopping, history=history)
 
         def body(s: SolverState) -> SolverState:
-            return solver.step(problem, s, args, stopping=stopping, verbose=verbose)
+            return solver._step(problem, s, args, stopping, verbose)
 
         def cond(s: SolverState) -> jax.Array:
             return ~s.done

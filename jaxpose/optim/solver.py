@@ -190,6 +190,14 @@ class AbstractSolver(eqx.Module):
             residual_fn, weights=weights, kernel=kernel, corrector=corrector, jacobian=jacobian
         )
         stopping = Stopping() if stopping is None else stopping
+        new = self._step(problem, state, args, stopping, verbose)
+        return _select(state.done, state, new)
+
+    def _step(self, problem: Problem, state: SolverState, args: PyTree, stopping: Stopping,
+              verbose: bool) -> SolverState:
+        """:meth:`step` without the freeze of finished states (inside ``least_squares``'
+        while loop a finished problem is never stepped: the loop, or its vmap batching
+        rule, already keeps it)."""
         fresh = ~state.linearized
         sys_ = state.system
         delta = self._propose(state)
@@ -278,7 +286,7 @@ class AbstractSolver(eqx.Module):
                 s=step_norm,
                 a=accepted,
             )
-        new = SolverState(
+        return SolverState(
             params=params,
             best_params=best_params,
             cost=cost,
@@ -298,7 +306,6 @@ class AbstractSolver(eqx.Module):
             status=status,
             history=hist,
         )
-        return _select(state.done, state, new)
 
 
 class GaussNewton(AbstractSolver):
