@@ -1,0 +1,354 @@
+"""Pose-graph optimisation benchmark: jaxpose's sparse LM vs GTSAM 4.3 on the g2o files.
+
+Same files, same problem (first pose fixed, cost 0.5·Σ rᵀΩr with r = Log(Z⁻¹·Xi⁻¹·Xj)),
+same stopping rule (relative decrease 1e-10, absolute 1e-12, at most ``--max-steps``
+iterations), one run. Each contestant runs each file in its own subprocess, so the peak
+resident memory (``getrusage`` ru_maxrss, read at the end of the subprocess) is that
+contestant's alone; the process baseline (Python + imports, measured before the file is
+read) is printed too.
+
+* jaxpose: ``pose_graph_problem`` + ``solve`` under ``jax.jit``; compile time (lower +
+  XLA compile) and steady-state time (whole solve, all iterations, best of
+  ``--repeats`` after a warm-up run) reported separately.
+* GTSAM: ``readG2o``, a ``PriorFactorPose3/Pose2`` with σ = 1e-6 on the first pose,
+  ``LevenbergMarquardtOptimizer`` (relative/absolute error tolerance 1e-10/1e-12);
+  time = construct the optimizer + ``optimize()``, best of ``--repeats``; cost =
+  ``graph.error`` of the file's factors (without the prior) at the result.
+
+Iteration counts differ in meaning: jaxpose counts every LM trial (accepted or not), GTSAM
+its outer iterations. Absolute times on a shared machine are noisy; the ratios from one
+run are what count, and the load average is printed with the table. A missing GTSAM is
+reported as skipped, never faked.
+
+Usage::
+
+    python bench/pgo.py [--files tinyGrid3D,smallGrid3D,parking-garage,sphere2500,intel]
+                        [--solver sparse] [--float32] [--repeats 3] [--max-steps 200]
+                        [--out FILE.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from bench._common import fmt_ratio, fmt_seconds, import_peer, markdown_table
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "g2o"
+DEFAULT_FILES = ("tinyGrid3D", "smallGrid3D", "parking-garage", "sphere2500", "intel")
+# GTSAM LM final costs listed in ../shared/data/README.md (for the acceptance column)
+README_COST = {
+    "tinyGrid3D": 9.313909, "smallGrid3D": 5.179253e2, "parking-garage": 6.341924e-1,
+    "sphere2500": 6.757010e2, "intel": 2.250212e1,
+}
+# The issue's bar (issue 4): steady-state ≤ 3x GTSAM on these, compile < 30 s, garage RSS
+BAR_RATIO_FILES = ("parking-garage", "sphere2500")
+BAR_RATIO, BAR_COMPILE_S, BAR_GARAGE_RSS = 3.0, 30.0, 3 * 2**30
+RESULT_TAG = "RESULT "
+
+
+def _path(name: str) -> Path:
+    p = Path(name)
+    if p.suffix and p.is_file():
+        return p
+    for cand in (DATA / name, DATA / f"{name}.g2o", DATA / f"{name}.txt"):
+        if cand.is_file():
+            return cand
+    return DATA / f"{name}.g2o"
+
+
+def _peak_rss() -> int:
+    """Peak resident set size of this process in bytes (Linux reports KiB)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss if sys.platform == "darwin" else rss * 1024
+
+
+# ----------------------------------------------------------------------------------
+# Workers (run in a subprocess each)
+# ----------------------------------------------------------------------------------
+def run_jaxpose(path: Path, solver: str, float32: bool, repeats: int, max_steps: int) -> dict:
+    import jax
+
+    jax.config.update("jax_enable_x64", not float32)
+    import jax.numpy as jnp
+
+    from jaxpose import read_g2o
+    from jaxpose.graph import pgo, solve
+
+    baseline = _peak_rss()
+    graph = read_g2o(path)
+    dtype = jnp.float32 if float32 else jnp.float64
+    t0 = time.perf_counter()
+    problem = pgo.pose_graph_problem(graph, dtype=dtype)
+    jax.block_until_ready(problem)
+    build_s = time.perf_counter() - t0
+    fn = jax.jit(lambda p: solve(p, linear_solver=solver, max_steps=max_steps, rtol=1e-10,
+                                 atol=1e-12))
+    t0 = time.perf_counter()
+    compiled = fn.lower(problem).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sol = jax.block_until_ready(compiled(problem))  # first run (warm-up)
+    first_s = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sol = jax.block_until_ready(compiled(problem))
+        times.append(time.perf_counter() - t0)
+    return dict(
+        poses=int(graph.n_poses), edges=int(graph.n_edges), kind=graph.kind,
+        build_s=build_s, compile_s=compile_s, first_s=first_s, steady_s=min(times),
+        times=times, iterations=int(sol.iterations), status=sol.status_name,
+        initial_cost=float(sol.initial_cost), cost=float(sol.cost),
+        linear_iterations=int(sol.linear_iterations), baseline_rss=baseline,
+        peak_rss=_peak_rss(), version=_version("jaxpose"), jax=jax.__version__,
+        backend=jax.default_backend(),
+    )
+
+
+def run_gtsam(path: Path, repeats: int, max_steps: int) -> dict:
+    import numpy as np
+
+    peer = import_peer("gtsam")
+    if not peer.available:
+        return dict(skipped=peer.reason)
+    gtsam = peer.module
+
+    baseline = _peak_rss()
+    with open(path) as fh:  # readG2o needs to be told 2D or 3D
+        is3d = any(line.startswith("VERTEX_SE3") or line.startswith("EDGE_SE3") for line in fh)
+    graph, initial = gtsam.readG2o(str(path), is3d)
+    full = gtsam.NonlinearFactorGraph(graph)  # the file's factors + a prior on pose 0
+    first = int(initial.keys()[0]) if hasattr(initial, "keys") else 0
+    if is3d:
+        full.add(gtsam.PriorFactorPose3(first, initial.atPose3(first),
+                                        gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 1e-6))))
+    else:
+        full.add(gtsam.PriorFactorPose2(first, initial.atPose2(first),
+                                        gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-12)
+    params.setMaxIterations(max_steps)
+    times, result, iterations = [], None, 0
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        opt = gtsam.LevenbergMarquardtOptimizer(full, initial, params)
+        result = opt.optimize()
+        times.append(time.perf_counter() - t0)
+        iterations = int(opt.iterations())
+    return dict(
+        poses=int(initial.size()), edges=int(graph.size()), steady_s=min(times), times=times,
+        iterations=iterations, initial_cost=float(graph.error(initial)),
+        cost=float(graph.error(result)), cost_with_prior=float(full.error(result)),
+        baseline_rss=baseline, peak_rss=_peak_rss(), version=_version("gtsam"),
+    )
+
+
+def _version(dist: str) -> str:
+    try:
+        from importlib.metadata import version
+
+        return version(dist)
+    except Exception:  # noqa: BLE001 - informative only
+        return "?"
+
+
+def _worker(args: argparse.Namespace) -> int:
+    path = Path(args.file)
+    try:
+        if args.worker == "jaxpose":
+            out = run_jaxpose(path, args.solver, args.float32, args.repeats, args.max_steps)
+        else:
+            out = run_gtsam(path, args.repeats, args.max_steps)
+    except ImportError as err:
+        out = dict(skipped=f"{err.name or err} not installed")
+    print(RESULT_TAG + json.dumps(out), flush=True)
+    return 0
+
+
+def _spawn(contestant: str, path: Path, args: argparse.Namespace) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", contestant,
+           "--file", str(path), "--solver", args.solver, "--repeats", str(args.repeats),
+           "--max-steps", str(args.max_steps)]
+    if args.float32:
+        cmd.append("--float32")
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout,
+                              cwd=str(ROOT))
+    except subprocess.TimeoutExpired:
+        return dict(failed=f"timed out after {args.timeout} s")
+    wall = time.perf_counter() - t0
+    for line in reversed(proc.stdout.splitlines()):
+        if line.startswith(RESULT_TAG):
+            out = json.loads(line[len(RESULT_TAG):])
+            out["wall_s"] = wall
+            return out
+    tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+    return dict(failed=f"exit {proc.returncode}: " + " / ".join(tail))
+
+
+# ----------------------------------------------------------------------------------
+# Report
+# ----------------------------------------------------------------------------------
+def _gib(b: int | None) -> str:
+    if b is None:
+        return "—"
+    return f"{b / 2**30:.2f} GiB" if b >= 2**30 else f"{b / 2**20:.0f} MiB"
+
+
+def _cost(x: float | None) -> str:
+    return "—" if x is None else f"{x:.7g}"
+
+
+def _status(r: dict) -> str | None:
+    return r.get("skipped") and f"skipped: {r['skipped']}" or r.get("failed") and (
+        f"failed: {r['failed']}")
+
+
+def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
+           load: tuple[tuple[float, ...], tuple[float, ...]]) -> str:
+    import platform
+
+    lines = [
+        "# Pose-graph optimisation: jaxpose vs GTSAM",
+        "",
+        f"Machine: {platform.machine()}, {os.cpu_count()} CPU cores; load average "
+        f"(1/5/15 min) {' '.join(f'{x:.2f}' for x in load[0])} at the start, "
+        f"{' '.join(f'{x:.2f}' for x in load[1])} at the end.",
+    ]
+    jp_any = next((r["jaxpose"] for r in results.values() if "cost" in r["jaxpose"]), {})
+    gt_any = next((r["gtsam"] for r in results.values() if "cost" in r["gtsam"]), None)
+    gt_skip = next((_status(r["gtsam"]) for r in results.values() if _status(r["gtsam"])), "")
+    lines.append(
+        f"jaxpose {jp_any.get('version', '?')} (jax {jp_any.get('jax', '?')}, "
+        f"{jp_any.get('backend', '?')}), linear solver `{args.solver}`, "
+        f"{'float32' if args.float32 else 'float64'}; "
+        + (f"GTSAM {gt_any['version']}" if gt_any else f"GTSAM {gt_skip or 'not run'}")
+        + f"; max {args.max_steps} iterations, best of {args.repeats} runs."
+    )
+    lines.append("")
+    header = ["file", "poses / edges", "jaxpose compile", "jaxpose steady", "GTSAM",
+              "ratio (steady / GTSAM)", "iterations (jaxpose / GTSAM)", "cost jaxpose",
+              "cost GTSAM", "rel. diff", "status", "peak RSS jaxpose", "peak RSS GTSAM"]
+    rows = []
+    for name, r in results.items():
+        jp, gt = r["jaxpose"], r["gtsam"]
+        jp_ok, gt_ok = "cost" in jp, "cost" in gt
+        size = (f"{jp['poses']} / {jp['edges']}" if jp_ok
+                else f"{gt['poses']} / {gt['edges']}" if gt_ok else "—")
+        rel = (abs(jp["cost"] - gt["cost"]) / abs(gt["cost"])) if jp_ok and gt_ok else None
+        rows.append([
+            name, size,
+            fmt_seconds(jp.get("compile_s")) if jp_ok else _status(jp),
+            fmt_seconds(jp.get("steady_s")),
+            fmt_seconds(gt.get("steady_s")) if gt_ok else _status(gt),
+            fmt_ratio(jp.get("steady_s"), gt.get("steady_s")),
+            f"{jp.get('iterations', '—')} / {gt.get('iterations', '—')}",
+            _cost(jp.get("cost")), _cost(gt.get("cost")),
+            "—" if rel is None else f"{rel:.1e}",
+            jp.get("status", "—"),
+            _gib(jp.get("peak_rss")), _gib(gt.get("peak_rss")),
+        ])
+    lines.append(markdown_table(header, rows))
+    base = [r["jaxpose"].get("baseline_rss") for r in results.values()]
+    base = [b for b in base if b]
+    gbase = [r["gtsam"].get("baseline_rss") for r in results.values()]
+    gbase = [b for b in gbase if b]
+    lines += ["", "Peak RSS includes the process baseline (Python + imports, before reading "
+              f"the file): jaxpose {_gib(max(base)) if base else '—'}, GTSAM "
+              f"{_gib(max(gbase)) if gbase else '—'}."]
+    lines += ["", "## The issue's bar", ""]
+    bar_rows = []
+    for name, r in results.items():
+        jp, gt = r["jaxpose"], r["gtsam"]
+        if "cost" not in jp:
+            continue
+        checks = []
+        if name in BAR_RATIO_FILES:
+            if "cost" in gt:
+                ratio = jp["steady_s"] / gt["steady_s"]
+                checks.append(f"steady {ratio:.1f}x GTSAM (≤ {BAR_RATIO:.0f}x): "
+                              + ("pass" if ratio <= BAR_RATIO else "FAIL"))
+            else:
+                checks.append("steady vs GTSAM: GTSAM skipped")
+        checks.append(f"compile {jp['compile_s']:.1f} s (< {BAR_COMPILE_S:.0f} s): "
+                      + ("pass" if jp["compile_s"] < BAR_COMPILE_S else "FAIL"))
+        if name == "parking-garage":
+            checks.append(f"peak RSS {_gib(jp['peak_rss'])} (< 3 GiB): "
+                          + ("pass" if jp["peak_rss"] < BAR_GARAGE_RSS else "FAIL"))
+        if name in README_COST:
+            rel = abs(jp["cost"] - README_COST[name]) / README_COST[name]
+            checks.append(f"cost vs README {rel:.1e} (≤ 1e-5): "
+                          + ("pass" if rel <= 1e-5 else "FAIL"))
+        bar_rows.append([name, "; ".join(checks)])
+    lines.append(markdown_table(["file", "checks"], bar_rows))
+    lines += ["", "jaxpose iterations count every LM trial (accepted or rejected); GTSAM's "
+              "count outer iterations. Steady-state = one whole solve after compilation."]
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--files", default=",".join(DEFAULT_FILES),
+                   help="comma-separated names in ../shared/data/g2o (or paths)")
+    p.add_argument("--solver", default="sparse", choices=["auto", "sparse", "pcg", "dense"])
+    p.add_argument("--float32", action="store_true", help="jaxpose in float32")
+    p.add_argument("--repeats", type=int, default=3, help="timed runs after the warm-up")
+    p.add_argument("--max-steps", type=int, default=200)
+    p.add_argument("--timeout", type=float, default=1800.0, help="seconds per subprocess")
+    p.add_argument("--contestants", default="jaxpose,gtsam")
+    p.add_argument("--out", help="also write the report (markdown) to this file")
+    p.add_argument("--worker", choices=["jaxpose", "gtsam"], help=argparse.SUPPRESS)
+    p.add_argument("--file", help=argparse.SUPPRESS)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> str:
+    args = build_parser().parse_args(argv)
+    if args.worker:
+        _worker(args)
+        return ""
+    load0 = os.getloadavg()
+    contestants = [c.strip() for c in args.contestants.split(",") if c.strip()]
+    results: dict[str, dict[str, Any]] = {}
+    for name in [f.strip() for f in args.files.split(",") if f.strip()]:
+        path = _path(name)
+        key = Path(name).stem
+        if not path.is_file():
+            missing = dict(skipped=f"{path} not found")
+            results[key] = {"jaxpose": missing, "gtsam": missing}
+            continue
+        results[key] = {}
+        for c in ("jaxpose", "gtsam"):
+            if c in contestants:
+                results[key][c] = _spawn(c, path, args)
+            else:
+                results[key][c] = dict(skipped="not selected (--contestants)")
+            r = results[key][c]
+            print(f"[{key} {c}] " + (
+                f"{fmt_seconds(r['steady_s'])}, cost {r['cost']:.7g}" if "cost" in r
+                else _status(r) or "?"), file=sys.stderr, flush=True)
+    text = report(results, args, (load0, os.getloadavg()))
+    if args.out:
+        Path(args.out).write_text(text + "\n", encoding="utf-8")
+    return text
+
+
+if __name__ == "__main__":
+    out = main()
+    if out:
+        print(out)

@@ -1,0 +1,94 @@
+"""Bad input to factors and graphs: clear exceptions naming the argument (raised eagerly,
+before anything is traced or compiled)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxpose.graph import Factor, FactorGraph, between_residual, solve
+from jaxpose.lie import SE3
+
+from .conftest import random_poses
+
+
+def _poses(n: int = 4) -> SE3:
+    return SE3(jnp.asarray(random_poses(np.random.default_rng(0), "SE3", n)))
+
+
+def _between(i, j, info=None, name="between"):
+    z = SE3(jnp.asarray(random_poses(np.random.default_rng(1), "SE3", len(i))))
+    return Factor(between_residual, [("pose", np.asarray(i)), ("pose", np.asarray(j))],
+                  data=z, information=info, name=name)
+
+
+def test_mismatched_index_lengths():
+    with pytest.raises(ValueError, match=r"variables\[1\].*3 indices, but slot 0 has 2"):
+        Factor(between_residual, [("pose", np.array([0, 1])), ("pose", np.array([1, 2, 3]))])
+
+
+def test_data_with_wrong_leading_axis():
+    z = SE3(jnp.asarray(random_poses(np.random.default_rng(1), "SE3", 3)))
+    with pytest.raises(ValueError, match=r"Factor\(data\).*leading axis 2"):
+        Factor(between_residual, [("pose", [0, 1]), ("pose", [1, 2])], data=z)
+
+
+def test_bad_indices_and_slots():
+    with pytest.raises(ValueError, match=r"1-D integer array"):
+        Factor(between_residual, [("pose", np.array([0.0, 1.0]))])
+    with pytest.raises(TypeError, match=r"\(type_name, indices\) pair"):
+        Factor(between_residual, [(0, np.array([0, 1]))])
+    with pytest.raises(TypeError, match="callable"):
+        Factor("between", [("pose", [0])])
+
+
+def test_non_spd_information():
+    info = np.tile(np.eye(6), (2, 1, 1))
+    info[1, 5, 5] = -1.0
+    with pytest.raises(ValueError, match="factor 1 has an information matrix that is not "
+                                         "positive definite"):
+        _between([0, 1], [1, 2], info)
+    asym = np.eye(6)
+    asym[0, 1] = 0.5
+    with pytest.raises(ValueError, match="non-symmetric"):
+        _between([0, 1], [1, 2], asym)
+    nan = np.eye(6)
+    nan[2, 2] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        _between([0, 1], [1, 2], nan)
+    with pytest.raises(ValueError, match=r"expected shape \(2, r, r\) or \(r, r\)"):
+        _between([0, 1], [1, 2], np.eye(6)[None].repeat(3, 0))
+
+
+def test_unknown_variable_type():
+    with pytest.raises(KeyError, match=r"factor 'odo' uses variable type 'pose'.*\['point'\]"):
+        FactorGraph([_between([0], [1], name="odo")], {"point": jnp.zeros((3, 3))})
+
+
+def test_out_of_range_indices():
+    with pytest.raises(IndexError, match=r"references 'pose' index 4, but only 4 variables"):
+        FactorGraph([_between([0, 1], [1, 4])], {"pose": _poses(4)})
+    with pytest.raises(IndexError, match=r"references 'pose' index -1"):
+        FactorGraph([_between([0, -1], [1, 2])], {"pose": _poses(4)})
+
+
+def test_fixed_index_out_of_range_or_unknown_type():
+    with pytest.raises(IndexError, match=r"fixed\['pose'\].*out of range for 4 variables"):
+        FactorGraph([_between([0], [1])], {"pose": _poses(4)}, fixed={"pose": [4]})
+    with pytest.raises(KeyError, match="fixed.*unknown variable type 'landmark'"):
+        FactorGraph([_between([0], [1])], {"pose": _poses(4)}, fixed={"landmark": [0]})
+
+
+def test_bad_graph_arguments():
+    with pytest.raises(ValueError, match="at least one Factor"):
+        FactorGraph([], {"pose": _poses()})
+    with pytest.raises(TypeError, match=r"factors\[0\]\): expected Factor"):
+        FactorGraph([lambda x: x], {"pose": _poses()})
+    with pytest.raises(ValueError, match=r"variables\['pose'\].*batch of shape \(n,\)"):
+        FactorGraph([_between([0], [1])], {"pose": SE3(jnp.zeros((2, 2, 7)))})
+    with pytest.raises(ValueError, match=r"variables\['point'\].*array \(n, d\)"):
+        FactorGraph([_between([0], [1])], {"pose": _poses(), "point": jnp.zeros(3)})
+    graph = FactorGraph([_between([0], [1])], {"pose": _poses()})
+    with pytest.raises(ValueError, match="linear_solver='cholmod'"):
+        solve(graph, linear_solver="cholmod")
