@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -38,38 +39,50 @@ REFS = {
 }
 
 
+@functools.cache
+def _evaluated():
+    """Every kernel's value and derivatives (analytic and autodiff) on S, float64 and
+    float32, from one compilation (eager dispatch per kernel costs far more)."""
+
+    def one(kernel, s):
+        d1 = jax.vmap(jax.grad(kernel))
+        d2 = jax.vmap(jax.grad(jax.grad(kernel)))
+        return {"rho": kernel(s), "d1": kernel.derivative(s), "d2": kernel.second_derivative(s),
+                "ad1": d1(s), "ad2": d2(s)}
+
+    @jax.jit
+    def run(s64, s32):
+        return {name: (one(k, s64), one(k, s32)) for name, (k, _) in REFS.items()}
+
+    return jax.tree.map(np.asarray, run(jnp.asarray(S), jnp.asarray(S, jnp.float32)))
+
+
 @pytest.mark.parametrize("name", sorted(REFS))
 def test_values_match_closed_form(name):
-    kernel, ref = REFS[name]
-    got = np.asarray(kernel(jnp.asarray(S)))
+    _, ref = REFS[name]
+    got = _evaluated()[name][0]["rho"]
     want = np.array([ref(float(s)) for s in S])
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
-    assert abs(float(kernel(jnp.asarray(0.0)))) < 1e-15  # ρ(0) = 0
+    assert abs(got[0]) < 1e-15  # ρ(0) = 0
 
 
 @pytest.mark.parametrize("name", sorted(REFS))
 def test_derivatives_match_autodiff(name):
-    kernel, _ = REFS[name]
-    d1 = jax.vmap(jax.grad(kernel))
-    d2 = jax.vmap(jax.grad(jax.grad(kernel)))
-    # stay off the non-smooth points of Huber (δ²) and Tukey (δ²) for the 2nd derivative
-    s = jnp.asarray(S[1:])
-    np.testing.assert_allclose(kernel.derivative(s), d1(s), rtol=1e-10, atol=1e-14)
-    np.testing.assert_allclose(kernel.second_derivative(s), d2(s), rtol=1e-9, atol=1e-14)
-    # finite and correct at s = 0 under both derivative modes
-    z = jnp.zeros((1,))
-    assert np.all(np.isfinite(d1(z))) and np.all(np.isfinite(d2(z)))
-    np.testing.assert_allclose(kernel.derivative(z), d1(z), rtol=1e-12)
+    out = _evaluated()[name][0]
+    # S[0] = 0: derivatives finite there under both modes and equal to the analytic ones
+    assert np.all(np.isfinite(out["ad1"])) and np.all(np.isfinite(out["ad2"]))
+    np.testing.assert_allclose(out["d1"], out["ad1"], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(out["d2"][1:], out["ad2"][1:], rtol=1e-9, atol=1e-14)
 
 
 @pytest.mark.parametrize("name", sorted(REFS))
 def test_float32_path(name):
-    kernel, ref = REFS[name]
-    s32 = jnp.asarray(S, jnp.float32)
-    for fn in (kernel, kernel.derivative, kernel.second_derivative):
-        out = fn(s32)
-        assert out.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(out)))
-    np.testing.assert_allclose(kernel(s32), [ref(float(s)) for s in S], rtol=2e-6, atol=1e-6)
+    _, ref = REFS[name]
+    out = _evaluated()[name][1]
+    for key in ("rho", "d1", "d2"):
+        assert out[key].dtype == np.float32 and np.all(np.isfinite(out[key]))
+    np.testing.assert_allclose(out["rho"], [ref(float(s)) for s in S], rtol=2e-6, atol=1e-6)
+    np.testing.assert_allclose(out["d1"], out["ad1"], rtol=1e-5, atol=1e-6)
 
 
 def test_kernel_shapes_and_robustness_properties():
