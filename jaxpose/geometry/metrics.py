@@ -25,10 +25,13 @@ vmap and differentiate (with respect to the poses).
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..lie import SE3, Sim3
 from ..lie.base import as_float_array
@@ -139,10 +142,8 @@ def associate(
     return (j, i, valid) if est_short else (i, j, valid)
 
 
-def _pair_poses(
-    ref: SE3, est: SE3, ref_stamps: Any, est_stamps: Any, max_diff: float, offset: float,
-    fn: str,
-) -> tuple[SE3, SE3, Array, Array]:
+def _check_trajectories(ref: Any, est: Any, ref_stamps: Any, est_stamps: Any, fn: str
+                        ) -> None:
     check_group(ref, SE3, f"{fn}(ref)")
     check_group(est, SE3, f"{fn}(est)")
     if len(ref.shape) != 1 or len(est.shape) != 1 or not ref.shape[0] or not est.shape[0]:
@@ -155,6 +156,19 @@ def _pair_poses(
             raise ValueError(f"{fn}(ref, est): without timestamps the trajectories are paired "
                              f"by index and need equal lengths, got {ref.shape[0]} and "
                              f"{est.shape[0]}")
+    else:
+        for arg, stamps, n in (("ref_stamps", ref_stamps, ref.shape[0]),
+                               ("est_stamps", est_stamps, est.shape[0])):
+            shape = np.shape(stamps)
+            if shape != (n,):
+                raise ValueError(f"{fn}({arg}): expected shape ({n},) (one stamp per pose), "
+                                 f"got {shape}")
+
+
+def _pair_poses(
+    ref: SE3, est: SE3, ref_stamps: Any, est_stamps: Any, max_diff: Any, offset: Any,
+) -> tuple[SE3, SE3, Array, Array]:
+    if ref_stamps is None:
         n = ref.shape[0]
         ri = ei = jnp.arange(n, dtype=jnp.int32)
         valid = jnp.ones((n,), bool)
@@ -218,7 +232,16 @@ def ape(
     ``etype`` and ``align`` (None, ``"se3"``, ``"sim3"``, ``"origin"``)."""
     fn = "ape"
     _check_options(fn, etype, align)
-    r, e, valid, pairs = _pair_poses(ref, est, ref_stamps, est_stamps, max_diff, offset, fn)
+    _check_trajectories(ref, est, ref_stamps, est_stamps, fn)
+    return _ape(ref.data, est.data, ref_stamps, est_stamps, max_diff, offset, etype=etype,
+                align=align)
+
+
+@functools.partial(jax.jit, static_argnames=("etype", "align"))
+def _ape(ref: Array, est: Array, ref_stamps: Any, est_stamps: Any, max_diff: Any,
+         offset: Any, *, etype: str, align: str | None) -> TrajectoryError:
+    r, e, valid, pairs = _pair_poses(SE3(ref), SE3(est), ref_stamps, est_stamps, max_diff,
+                                     offset)
     s = _alignment(r, e, valid, align)
     e = _apply(s, e)
     delta = e.inv().compose(r)
@@ -248,7 +271,17 @@ def rpe(
     _check_options(fn, etype, align)
     if not isinstance(delta, int) or delta < 1:
         raise ValueError(f"{fn}(delta): expected a positive int, got {delta!r}")
-    r, e, valid, _ = _pair_poses(ref, est, ref_stamps, est_stamps, max_diff, offset, fn)
+    _check_trajectories(ref, est, ref_stamps, est_stamps, fn)
+    return _rpe(ref.data, est.data, ref_stamps, est_stamps, max_diff, offset, etype=etype,
+                align=align, delta=delta, all_pairs=bool(all_pairs))
+
+
+@functools.partial(jax.jit, static_argnames=("etype", "align", "delta", "all_pairs"))
+def _rpe(ref: Array, est: Array, ref_stamps: Any, est_stamps: Any, max_diff: Any,
+         offset: Any, *, etype: str, align: str | None, delta: int, all_pairs: bool
+         ) -> TrajectoryError:
+    r, e, valid, _ = _pair_poses(SE3(ref), SE3(est), ref_stamps, est_stamps, max_diff,
+                                 offset)
     s = _alignment(r, e, valid, align)
     e = _apply(s, e)
     k = valid.shape[0]

@@ -21,6 +21,7 @@ fixed ``interval``. Everything is differentiable in the poses/points and in t.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -59,9 +60,15 @@ def bspline_se3(control: SE3, t: Any) -> SE3:
         raise ValueError(f"{fn}(control): expected at least 4 control poses along the last "
                          f"batch axis, got batch shape {control.shape}")
     tt = _times(t, fn, control.dtype)
-    n = control.shape[-1]
-    batch = batch_shape(control.shape[:-1], tt.shape[:-1], names=("control", "t"))
-    data = jnp.broadcast_to(control.data, (*batch, n, 7))
+    batch_shape(control.shape[:-1], tt.shape[:-1], names=("control", "t"))
+    return SE3(_bspline_eval(control.data, tt))
+
+
+@jax.jit
+def _bspline_eval(cdata: Array, tt: Array) -> Array:
+    n = cdata.shape[-2]
+    batch = tuple(np.broadcast_shapes(cdata.shape[:-2], tt.shape[:-1]))
+    data = jnp.broadcast_to(cdata, (*batch, n, 7))
     tt = jnp.broadcast_to(tt, (*batch, tt.shape[-1]))
     s, u = _segment(tt, n - 3)
     # the four control poses of each evaluation: (..., M, 4, 7)
@@ -73,7 +80,7 @@ def bspline_se3(control: SE3, t: Any) -> SE3:
     for j in range(1, 4):
         omega = SE3(ctrl[..., j, :]).rminus(SE3(ctrl[..., j - 1, :]))
         out = out.compose(SE3.exp(w[..., j, None] * omega))
-    return out
+    return out.data
 
 
 def _reflect(a: Array, b: Array) -> Array:
@@ -99,7 +106,11 @@ def bspline_se3_fit(poses: SE3, iterations: int = 20) -> SE3:
                          f"got batch shape {poses.shape}")
     if not isinstance(iterations, int) or iterations < 0:
         raise ValueError(f"{fn}(iterations): expected an int ≥ 0, got {iterations!r}")
-    p = poses.data
+    return SE3(_fit(poses.data, iterations))
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _fit(p: Array, iterations: int) -> Array:
     n = p.shape[-2]
 
     def full(c: Array) -> Array:
@@ -108,7 +119,7 @@ def bspline_se3_fit(poses: SE3, iterations: int = 20) -> SE3:
         return jnp.concatenate([first[..., None, :], c, last[..., None, :]], -2)
 
     if n == 2:
-        return SE3(full(p))
+        return full(p)
     knots = jnp.arange(1, n - 1, dtype=p.dtype)
     m = n - 2
     dtype = p.dtype
@@ -117,8 +128,7 @@ def bspline_se3_fit(poses: SE3, iterations: int = 20) -> SE3:
     dd = jnp.full((m,), 4 / 6, dtype)
 
     def sweep(_: int, c: Array) -> Array:
-        ctrl = SE3(full(c))
-        at = bspline_se3(ctrl, knots).data  # (..., m, 7)
+        at = _bspline_eval(full(c), knots)  # (..., m, 7)
         err = SE3(p[..., 1:-1, :]).rminus(SE3(at))  # (..., m, 6)
         flat = err.reshape(-1, m, 6)
         sol = jax.vmap(lambda e: jax.lax.linalg.tridiagonal_solve(dl, dd, du, e))(flat)
@@ -127,7 +137,7 @@ def bspline_se3_fit(poses: SE3, iterations: int = 20) -> SE3:
         return jnp.concatenate([c[..., :1, :], inner, c[..., -1:, :]], -2)
 
     c = jax.lax.fori_loop(0, iterations, sweep, p)
-    return SE3(full(c))
+    return full(c)
 
 
 def hermite(points: Any, t: Any, times: Any = None, tangents: Any = None) -> Array:
@@ -156,11 +166,18 @@ def hermite(points: Any, t: Any, times: Any = None, tangents: Any = None) -> Arr
         shapes.append(m.shape[:-2])
         names.append("tangents")
     batch = batch_shape(*shapes, names=tuple(names))
+    return _hermite(p, tk, tt, None if tangents is None else m, batch)
+
+
+@functools.partial(jax.jit, static_argnums=4)
+def _hermite(p: Array, tk: Array, tt: Array, m: Array | None, batch: tuple[int, ...]
+             ) -> Array:
+    n = p.shape[-2]
     p = jnp.broadcast_to(p, (*batch, *p.shape[-2:]))
     tk = jnp.broadcast_to(tk, (*batch, n))
     tt = jnp.broadcast_to(tt, (*batch, tt.shape[-1]))
     dt = tk[..., 1:] - tk[..., :-1]  # (..., N−1)
-    if tangents is None:
+    if m is None:
         sec = (p[..., 1:, :] - p[..., :-1, :]) / dt[..., None]
         mid = 0.5 * (sec[..., 1:, :] + sec[..., :-1, :])
         m = jnp.concatenate([sec[..., :1, :], mid, sec[..., -1:, :]], -2)

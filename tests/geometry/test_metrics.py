@@ -1,0 +1,153 @@
+"""APE / RPE against hand-computed values on small trajectories; association; alignment;
+PyPose parity (peer)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxpose.geometry import ape, associate, error_stats, rpe
+from jaxpose.lie import SE3, Sim3
+
+from .conftest import pypose
+
+
+def _poses(t: np.ndarray, yaw: np.ndarray | None = None) -> SE3:
+    """SE3 trajectory from translations (N, 3) and yaw angles (N,)."""
+    yaw = np.zeros(len(t)) if yaw is None else yaw
+    q = np.stack([np.zeros_like(yaw), np.zeros_like(yaw), np.sin(yaw / 2), np.cos(yaw / 2)], -1)
+    return SE3(jnp.asarray(np.concatenate([t, q], -1)))
+
+
+def test_error_stats_hand_values():
+    e = np.array([3.0, 1.0, 4.0, 1.0, 5.0, 9.0])
+    s = error_stats(e)
+    assert float(s.max) == 9 and float(s.min) == 1
+    assert float(s.mean) == pytest.approx(23 / 6)
+    assert float(s.median) == pytest.approx(3.5)  # mean of 3 and 4
+    assert float(s.sse) == pytest.approx(133)
+    assert float(s.rmse) == pytest.approx(np.sqrt(133 / 6))
+    assert float(s.std) == pytest.approx(np.sqrt(133 / 6 - (23 / 6) ** 2))
+    masked = error_stats(e, valid=[True, True, True, False, False, False])
+    assert float(masked.median) == 3 and float(masked.mean) == pytest.approx(8 / 3)
+    assert np.isnan(float(error_stats(e, valid=np.zeros(6, bool)).mean))
+
+
+def test_ape_hand_values():
+    ref = _poses(np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]))
+    # estimate: translations off by 0, 1, 2, 2 along y; last also yawed by 0.3 rad
+    est = _poses(np.array([[0.0, 0, 0], [1, 1, 0], [2, 2, 0], [3, 2, 0]]),
+                 np.array([0, 0, 0, 0.3]))
+    out = ape(ref, est)
+    np.testing.assert_allclose(out.errors, [0, 1, 2, 2], atol=1e-15)
+    assert float(out.stats.rmse) == pytest.approx(np.sqrt(9 / 4))
+    assert float(out.stats.median) == pytest.approx(1.5)
+    rad = ape(ref, est, etype="radian")
+    np.testing.assert_allclose(rad.errors, [0, 0, 0, 0.3], atol=1e-12)
+    np.testing.assert_allclose(ape(ref, est, etype="degree").errors[3], np.rad2deg(0.3))
+    # ‖R − I‖_F = 2√2 sin(θ/2) for a rotation by θ
+    rot = ape(ref, est, etype="rotation")
+    np.testing.assert_allclose(rot.errors[3], 2 * np.sqrt(2) * np.sin(0.15), rtol=1e-12)
+    # pose: T_e⁻¹ T_r = (Rᵀ, −Rᵀ(t_e − t_r)); ‖· − I‖_F² = ‖R − I‖² + ‖t_e − t_r‖²
+    pose = ape(ref, est, etype="pose")
+    np.testing.assert_allclose(pose.errors[3], np.sqrt(8 * np.sin(0.15) ** 2 + 4), rtol=1e-12)
+
+
+def test_alignment_recovers_similarity(rng):
+    ref = SE3.exp(jnp.asarray(np.cumsum(rng.normal(size=(12, 6)) * 0.3, 0)))
+    q = np.array([0.1, 0.2, -0.3, 0.9])
+    s = Sim3(jnp.asarray(np.r_[0.5, -1.0, 2.0, q / np.linalg.norm(q), 0.5]))
+    # est = s⁻¹ ∘ ref (rotations composed, translations mapped)
+    inv = s.inv()
+    est = SE3(jnp.concatenate([inv.act(ref.translation()),
+                               inv.rotation().compose(ref.rotation()).data], -1))
+    out = ape(ref, est, align="sim3", etype="pose")
+    np.testing.assert_allclose(out.errors, 0.0, atol=1e-12)
+    np.testing.assert_allclose(out.alignment.matrix(), s.matrix(), atol=1e-12)
+    se3 = ape(ref, est, align="se3")
+    assert float(se3.stats.rmse) > 0.1  # a rigid alignment cannot undo the scale
+    origin = ape(ref, ref @ SE3.exp(jnp.array([1.0, 0, 0, 0, 0, 0.2])), align="origin")
+    assert float(origin.errors[0]) == pytest.approx(0.0, abs=1e-14)
+
+
+def test_association_and_rpe_hand_values():
+    ref_t = np.array([0.0, 1.0, 2.0, 3.0, 4.0, 5.0])
+    est_t = np.array([0.004, 1.2, 2.003, 2.999, 4.001])  # 1.2 does not match
+    ri, ei, ok = associate(ref_t, est_t, max_diff=0.01)
+    np.testing.assert_array_equal(ri, [0, 1, 2, 3, 4])
+    np.testing.assert_array_equal(ei, [0, 1, 2, 3, 4])
+    np.testing.assert_array_equal(ok, [True, False, True, True, True])
+    ri, ei, ok = associate(ref_t, est_t + 0.5, max_diff=0.01, offset=-0.5)
+    np.testing.assert_array_equal(ok, [True, False, True, True, True])
+    # RPE: reference moves 1 m per frame along x; estimate 1.1 m per frame
+    ref = _poses(np.c_[np.arange(6.0), np.zeros((6, 2))])
+    est = _poses(np.c_[np.arange(5.0) * 1.1, np.zeros((5, 2))])
+    out = rpe(ref, est, ref_t, est_t, delta=1, all_pairs=True)
+    # associated frames 0, 2, 3, 4 (compacted); pairs (0,2), (2,3), (3,4) in reference time
+    np.testing.assert_array_equal(out.valid, [True, True, True, False, False])
+    np.testing.assert_allclose(np.asarray(out.errors)[:3], [0.2, 0.1, 0.1], atol=1e-12)
+    stride = rpe(ref, est, ref_t, est_t, delta=2)  # frames 0, 2 of the compacted list
+    assert int(np.sum(stride.valid)) == 1
+    np.testing.assert_allclose(stride.errors[0], 0.3, atol=1e-12)
+
+
+def test_jit_vmap_grad(rng):
+    ref = SE3.exp(jnp.asarray(np.cumsum(rng.normal(size=(2, 8, 6)) * 0.3, 1)))
+    noise = jnp.asarray(rng.normal(size=(2, 8, 6)) * 0.05)
+
+    def f(r, n):
+        return rpe(SE3(r), SE3(r) @ SE3.exp(n), etype="radian", align="se3").stats.rmse
+
+    vm = jax.jit(jax.vmap(jax.value_and_grad(f, argnums=1)))(ref.data, noise)
+    np.testing.assert_allclose(vm[0], [f(ref.data[i], noise[i]) for i in range(2)], rtol=1e-12)
+    assert np.all(np.isfinite(vm[1]))
+
+
+@pytest.mark.peer
+@pytest.mark.slow
+def test_pypose_parity(rng):
+    pp = pypose()
+    import warnings
+
+    import torch
+
+    ref = SE3.exp(jnp.asarray(np.cumsum(rng.normal(size=(20, 6)) * 0.2, 0)))
+    est = SE3.exp(ref.log().data + jnp.asarray(rng.normal(size=(20, 6)) * 0.05))
+    rs = np.arange(20.0) * 0.1
+    es = rs[3:] + 0.003
+    tr = lambda x: torch.tensor(np.asarray(x))
+    for etype in ("translation", "pose", "degree"):
+        for align, kw in [(None, {}), ("sim3", {"align": True, "scale": True})]:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                want = pp.metric.rpe(tr(rs), pp.SE3(tr(ref.data)), tr(es),
+                                     pp.SE3(tr(est.data[3:])), etype=etype, delta=2, **kw)
+                want_a = pp.metric.ape(tr(rs), pp.SE3(tr(ref.data)), tr(es),
+                                       pp.SE3(tr(est.data[3:])), etype=etype, **kw)
+            got = rpe(ref, est[3:], rs, es, etype=etype, align=align, delta=2).stats
+            got_a = ape(ref, est[3:], rs, es, etype=etype, align=align).stats
+            for key in ("Max", "Min", "Mean", "RMSE", "SSE"):
+                assert float(getattr(got, key.lower())) == pytest.approx(float(want[key]),
+                                                                         rel=1e-9, abs=1e-12)
+                assert float(getattr(got_a, key.lower())) == pytest.approx(
+                    float(want_a[key]), rel=1e-9, abs=1e-12)
+
+
+def test_bad_input():
+    p = SE3.identity((4,))
+    with pytest.raises(ValueError, match=r"ape\(ref, est\).*equal lengths"):
+        ape(p, SE3.identity((5,)))
+    with pytest.raises(ValueError, match=r"ape\(etype\)"):
+        ape(p, p, etype="angle")
+    with pytest.raises(ValueError, match=r"rpe\(align\)"):
+        rpe(p, p, align="affine")
+    with pytest.raises(ValueError, match=r"rpe\(delta\)"):
+        rpe(p, p, delta=0)
+    with pytest.raises(ValueError, match=r"give both or neither"):
+        ape(p, p, np.arange(4.0))
+    with pytest.raises(TypeError, match=r"ape\(est\).*SE3"):
+        ape(p, np.zeros((4, 7)))
+    with pytest.raises(ValueError, match=r"associate\(ref_stamps, est_stamps\)"):
+        associate(np.zeros(0), np.zeros(3))
