@@ -26,7 +26,7 @@ SPECS: dict[str, dict[str, Any]] = {
     "mpc_imitation": {
         "title": "Differentiable MPC: imitation learning of linear dynamics",
         "run": """jax.config.update("jax_enable_x64", True)
-hist = train(steps=2000)  # ~20 s on a CPU, compilation included
+hist = train(steps=3000)  # ~20 s on a CPU, compilation included
 ml = hist.model_loss
 print(f"model loss {float(ml[0]):.2e} -> {float(ml[-1]):.2e}, {float(ml[0] / ml[-1]):.1e}x lower")
 print("learned A:\\n", hist.A, "\\nexpert A:\\n", hist.expert.A)

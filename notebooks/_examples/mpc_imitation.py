@@ -87,7 +87,7 @@ def train(
     n_ctrl: int = 3,
     T: int = 5,
     batch: int = 4,
-    steps: int = 2000,
+    steps: int = 3000,
     lr: float = 3e-2,
     seed: int = 0,
     gradient: str = "implicit",
@@ -136,7 +136,7 @@ def plot(hist: History, path: str | None = None) -> None:  # pragma: no cover - 
 
 def main(argv: list[str] | None = None) -> History:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--gradient", choices=("implicit", "unroll"), default="implicit")
     ap.add_argument("--plot", type=str, default=None, help="save loss curves to this file")
     args = ap.parse_args(argv)

@@ -8,14 +8,15 @@ from notebooks._examples import bicycle_filters as bf
 
 
 def test_bicycle_filters_smoke():
-    mc = bf.monte_carlo(runs=4, steps=15, num_particles=100)
+    # EKF and PF only (UKF has the EKF's code path here; the slow test runs all three):
+    # compilation dominates this smoke run.
+    mc = bf.monte_carlo(runs=4, steps=15, num_particles=100, filters=("EKF", "PF"))
     stats = bf.summary(mc)
-    assert set(stats) == {"EKF", "UKF", "PF"}
+    assert set(stats) == {"EKF", "PF"}
     for name, s in stats.items():
         assert np.isfinite(s["rmse_pos"]) and s["rmse_pos"] < 1.0, name
         assert np.isfinite(s["anees"]), name
-    for name in ("EKF", "UKF"):  # 100 particles are too few for a meaningful PF NEES
-        assert 0.5 < stats[name]["anees"] < 20, name
+    assert 0.5 < stats["EKF"]["anees"] < 20  # 100 particles: too few for a PF NEES
     assert "ANEES" in bf.format_summary(stats, 4)
     lo, hi = bf.chi2_band(4, 100)
     assert 3.4 < lo < 3.5 and 4.5 < hi < 4.6  # χ² quantiles (400 dof) / 100
