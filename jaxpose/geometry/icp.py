@@ -113,9 +113,9 @@ def _icp_single(
     tree = build_kdtree(tgt_c) if use_tree else None
     gate = jnp.square(max_distance.astype(dtype))  # +inf: no gate
 
-    def nearest(moved: Array) -> Array:
-        if tree is not None:
-            return query_kdtree(tree, moved, 1)[1][:, 0]
+    def nearest(moved: Array, hint: Array) -> Array:
+        if tree is not None:  # the previous correspondences seed the search bound
+            return query_kdtree(tree, moved, 1, hint=hint)[1][:, 0]
         return _select(moved, tgt_c, 1, tile, False)[:, 0]
 
     def update(t: Array, idx: Array) -> tuple[Array, Array, Array]:
@@ -139,7 +139,7 @@ def _icp_single(
         return ~s.done & (s.it < max_iterations)
 
     def body(s: State) -> State:
-        idx = nearest(SE3(s.t).act(src_c))
+        idx = nearest(SE3(s.t).act(src_c), s.idx)
         t_new, w, _ = update(s.t, idx)
         finite = jnp.all(jnp.isfinite(t_new))
         enough = jnp.sum(w) >= 3

@@ -6,12 +6,13 @@ The tree is *implicit*: the points are permuted so that every node is a contiguo
 per level (``⌊log₂N⌋ + 1`` levels); each range splits along its widest axis. Nothing but
 the permuted points, the original indices and one split axis per node is stored.
 
-Queries run a best-first-by-stack search with exact pruning (a subtree is skipped only
-when its half-space lower bound is not smaller than the current k-th best squared
-distance), vectorised over a chunk of queries inside one ``lax.while_loop``; chunks are
-processed by ``lax.map``, so memory is O(N + chunk · (depth + k)). Results are exact: ties
-are the only freedom (either of two equidistant points may be returned). Everything has
-static shapes, so building and searching jit and vmap.
+Queries run a stack-free depth-first search (each query keeps only its current and
+previous node; parent/child links are stored per node) with exact pruning: a far subtree
+is skipped only when its splitting plane is not closer than the current k-th best
+distance. The search is vectorised over a chunk of queries inside one
+``lax.while_loop``; chunks are processed by ``lax.map``, so memory is O(N + chunk · k).
+Results are exact: ties are the only freedom (either of two equidistant points may be
+returned). Everything has static shapes, so building and searching jit and vmap.
 """
 
 from __future__ import annotations
@@ -27,11 +28,17 @@ from ._util import Array, points_array
 
 class KDTree(NamedTuple):
     """``points`` (M, D) permuted into tree order; ``index`` (M,) int32: the original index
-    of each; ``dim`` (M,) int32: the split axis of the node at each position."""
+    of each; per node (= position): ``dim`` split axis, ``left`` / ``right`` / ``parent``
+    positions (−1 for none); ``position`` (M,): the tree position of each original
+    point (the inverse of ``index``); all int32."""
 
     points: Array
     index: Array
     dim: Array
+    left: Array
+    right: Array
+    parent: Array
+    position: Array
 
     @property
     def depth(self) -> int:
@@ -58,7 +65,7 @@ def build_kdtree(points: Any) -> KDTree:
     p = jnp.where(jnp.all(jnp.isfinite(p), -1, keepdims=True), p, far)
 
     def level(_: int, state: tuple[Array, ...]) -> tuple[Array, ...]:
-        pts, idx, dims, lo, hi, active = state
+        pts, idx, dims, lo, hi, active, node_lo, node_hi = state
         # one segment per active range (key = lo); settled positions key on themselves
         key = jnp.where(active, lo, pos)
         big = jnp.asarray(jnp.inf, pts.dtype)
@@ -74,82 +81,94 @@ def build_kdtree(points: Any) -> KDTree:
         mid = lo + (hi - lo) // 2
         settle = active & (pos == mid)
         dims = jnp.where(settle, axis, dims)
+        node_lo = jnp.where(settle, lo, node_lo)
+        node_hi = jnp.where(settle, hi, node_hi)
         new_hi = jnp.where(active & (pos < mid), mid, hi)
         new_lo = jnp.where(active & (pos > mid), mid + 1, lo)
-        return pts, idx, dims, new_lo, new_hi, active & ~settle
+        return pts, idx, dims, new_lo, new_hi, active & ~settle, node_lo, node_hi
 
-    init = (p, pos, jnp.zeros(m, jnp.int32), jnp.zeros(m, jnp.int32),
-            jnp.full((m,), m, jnp.int32), jnp.ones(m, bool))
-    pts, idx, dims, *_ = jax.lax.fori_loop(0, num_levels(m), level, init)
-    return KDTree(pts, idx, dims)
+    zeros = jnp.zeros(m, jnp.int32)
+    init = (p, pos, zeros, zeros, jnp.full((m,), m, jnp.int32), jnp.ones(m, bool), zeros,
+            zeros)
+    pts, idx, dims, _, _, _, lo, hi = jax.lax.fori_loop(0, num_levels(m), level, init)
+    # children are the midpoints of [lo, pos) and [pos + 1, hi)
+    left = jnp.where(lo < pos, lo + (pos - lo) // 2, -1).astype(jnp.int32)
+    right = jnp.where(pos + 1 < hi, pos + 1 + (hi - pos - 1) // 2, -1).astype(jnp.int32)
+    parent = jnp.full((m,), -1, jnp.int32)
+    parent = parent.at[jnp.where(left >= 0, left, m)].set(pos, mode="drop")
+    parent = parent.at[jnp.where(right >= 0, right, m)].set(pos, mode="drop")
+    position = jnp.zeros((m,), jnp.int32).at[idx].set(pos)
+    return KDTree(pts, idx, dims, left, right, parent, position)
 
 
-def _search_chunk(tree: KDTree, q: Array, k: int) -> tuple[Array, Array]:
-    """k nearest (squared distance, tree position) for a chunk of queries q (C, D)."""
+def _search_chunk(tree: KDTree, q: Array, k: int, hint: Array | None = None
+                  ) -> tuple[Array, Array]:
+    """k nearest (squared distance, tree position) for a chunk of queries q (C, D);
+    ``hint`` (C,) tree positions of known nearby points (k = 1) seed the bound.
+
+    Stack-free traversal: each lane keeps only (current node, previous node); coming
+    down from the parent it visits the node and descends to the near child, coming back
+    from the near child it tries the far child (pruned unless the splitting plane is
+    closer than the current k-th best), and otherwise it climbs to the parent."""
     c = q.shape[0]
     m = tree.points.shape[0]
-    s = num_levels(m) + 2  # stack depth: one far child per level plus the current node
     dtype = q.dtype
-    inf = jnp.asarray(jnp.inf, dtype)
-    slots = jnp.arange(s, dtype=jnp.int32)
     lanes = jnp.arange(c)
-
-    st_lo = jnp.zeros((c, s), jnp.int32)
-    st_hi = jnp.zeros((c, s), jnp.int32).at[:, 0].set(m)
-    st_b = jnp.zeros((c, s), dtype)
-    sp = jnp.ones((c,), jnp.int32)
-    best_d = jnp.full((c, k), inf)
-    best_i = jnp.zeros((c, k), jnp.int32)
+    root = jnp.asarray(m // 2, jnp.int32)
 
     def cond(state: tuple[Array, ...]) -> Array:
-        return jnp.any(state[3] > 0)
+        return jnp.any(state[0] >= 0)
 
     def body(state: tuple[Array, ...]) -> tuple[Array, ...]:
-        st_lo, st_hi, st_b, sp, best_d, best_i = state
-        live = sp > 0
-        top = jnp.maximum(sp - 1, 0)
-        lo, hi, bound = st_lo[lanes, top], st_hi[lanes, top], st_b[lanes, top]
+        curr, prev, best_d, best_i = state
+        live = curr >= 0
+        node = jnp.clip(curr, 0, m - 1)
+        p = tree.points[node]  # (C, D)
+        ax = tree.dim[node]
+        diff = q[lanes, ax] - p[lanes, ax]
+        go_left = diff < 0
+        left, right, parent = tree.left[node], tree.right[node], tree.parent[node]
+        near = jnp.where(go_left, left, right)
+        far = jnp.where(go_left, right, left)
+        from_parent = prev == parent
+        from_near = (prev == near) & (near >= 0)
+        # visit the node on the way down
+        dist = jnp.sum(jnp.square(p - q), -1)
         worst = jnp.max(best_d, -1)
-        visit = live & (lo < hi) & (bound < worst)
-        mid = jnp.clip(lo + (hi - lo) // 2, 0, m - 1)
-        node = tree.points[mid]  # (C, D)
-        dist = jnp.sum(jnp.square(node - q), -1)
-        # replace the current worst of the k best
-        better = visit & (dist < worst)
+        better = live & from_parent & (dist < worst)
         slot = jnp.argmax(best_d, -1)
         hit = better[:, None] & (jnp.arange(k)[None, :] == slot[:, None])
         best_d = jnp.where(hit, dist[:, None], best_d)
-        best_i = jnp.where(hit, mid[:, None], best_i)
-        # children: near first (pushed last)
-        ax = tree.dim[mid]
-        diff = jnp.take_along_axis(q, ax[:, None], 1)[:, 0] - node[lanes, ax]
-        go_left = diff < 0
-        left = (lo, mid)
-        right = (mid + 1, hi)
-        near_lo = jnp.where(go_left, left[0], right[0])
-        near_hi = jnp.where(go_left, left[1], right[1])
-        far_lo = jnp.where(go_left, right[0], left[0])
-        far_hi = jnp.where(go_left, right[1], left[1])
-        far_b = jnp.maximum(bound, diff * diff)
-        # pop, then (if visited) push far at top and near at top + 1
-        at0 = (slots[None, :] == top[:, None]) & visit[:, None]
-        at1 = (slots[None, :] == (top + 1)[:, None]) & visit[:, None]
-        st_lo = jnp.where(at0, far_lo[:, None], jnp.where(at1, near_lo[:, None], st_lo))
-        st_hi = jnp.where(at0, far_hi[:, None], jnp.where(at1, near_hi[:, None], st_hi))
-        st_b = jnp.where(at0, far_b[:, None], jnp.where(at1, bound[:, None], st_b))
-        sp = jnp.where(visit, sp + 1, jnp.where(live, sp - 1, sp))
-        return st_lo, st_hi, st_b, sp, best_d, best_i
+        best_i = jnp.where(hit, node[:, None], best_i)
+        worst = jnp.max(best_d, -1)
+        far_ok = (far >= 0) & (diff * diff < worst)
+        nxt = jnp.where(
+            from_parent,
+            jnp.where(near >= 0, near, jnp.where(far_ok, far, parent)),
+            jnp.where(from_near, jnp.where(far_ok, far, parent), parent),
+        )
+        return (jnp.where(live, nxt, curr), jnp.where(live, curr, prev), best_d, best_i)
 
-    state = jax.lax.while_loop(cond, body, (st_lo, st_hi, st_b, sp, best_d, best_i))
-    return state[4], state[5]
+    best_d = jnp.full((c, k), jnp.inf, dtype)
+    best_i = jnp.zeros((c, k), jnp.int32)
+    if hint is not None:
+        d0 = jnp.sum(jnp.square(tree.points[hint] - q), -1)
+        best_d = best_d.at[:, 0].set(d0)
+        best_i = best_i.at[:, 0].set(hint)
+    init = (jnp.full((c,), root), jnp.full((c,), -1, jnp.int32), best_d, best_i)
+    _, _, best_d, best_i = jax.lax.while_loop(cond, body, init)
+    return best_d, best_i
 
 
-def query_kdtree(tree: KDTree, query: Any, k: int = 1, chunk: int = 2048) -> tuple[Array,
-                                                                                   Array]:
+def query_kdtree(tree: KDTree, query: Any, k: int = 1, chunk: int = 1024,
+                 hint: Any = None) -> tuple[Array, Array]:
     """The ``k`` nearest tree points of every query (N, D).
 
-    Returns (squared distances (N, k) ascending, original indices (N, k) int32). No
-    derivatives flow through the search (use the indices to gather and differentiate)."""
+    ``hint`` (N,) int: original indices of points believed to be near each query (e.g.
+    the previous ICP correspondences; k = 1 only). They only tighten the initial bound, so
+    the answer stays exact. Returns (squared distances (N, k) ascending, original indices
+    (N, k) int32). No derivatives flow through the search (use the indices to gather and
+    differentiate)."""
     q = points_array(query, "query_kdtree(query)", tree.points.shape[-1], min_points=0)
     if q.ndim != 2:
         raise ValueError(f"query_kdtree(query): expected shape (N, D), got {tuple(q.shape)}")
@@ -161,11 +180,18 @@ def query_kdtree(tree: KDTree, query: Any, k: int = 1, chunk: int = 2048) -> tup
         return jnp.zeros((0, k), q.dtype), jnp.zeros((0, k), jnp.int32)
     q = jax.lax.stop_gradient(q.astype(tree.points.dtype))
     t = jax.lax.stop_gradient(tree)
+    if hint is not None and k != 1:
+        raise ValueError("query_kdtree(hint): hints are supported for k = 1 only")
     c = max(1, min(chunk, n))
     n_chunks = math.ceil(n / c)
     pad = n_chunks * c - n
     qs = jnp.concatenate([q, jnp.broadcast_to(q[:1], (pad, d))], 0).reshape(n_chunks, c, d)
-    dist, pos = jax.lax.map(lambda qc: _search_chunk(t, qc, k), qs)
+    if hint is None:
+        dist, pos = jax.lax.map(lambda qc: _search_chunk(t, qc, k), qs)
+    else:
+        hp = t.position[jnp.clip(jnp.asarray(hint, jnp.int32), 0, m - 1)]
+        hp = jnp.concatenate([hp, jnp.broadcast_to(hp[:1], (pad,))]).reshape(n_chunks, c)
+        dist, pos = jax.lax.map(lambda a: _search_chunk(t, a[0], k, a[1]), (qs, hp))
     dist, pos = dist.reshape(-1, k)[:n], pos.reshape(-1, k)[:n]
     order = jnp.argsort(dist, -1)
     dist = jnp.take_along_axis(dist, order, -1)
