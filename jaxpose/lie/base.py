@@ -138,7 +138,7 @@ class LieAlgebra(eqx.Module):
         return self.data.dtype
 
     def __getitem__(self: A, idx: Any) -> A:
-        return type(self)(self.data[_batch_index(idx)])
+        return type(self)(self.data[_batch_index(idx, self)])
 
     def __len__(self) -> int:
         if not self.shape:
@@ -152,10 +152,12 @@ class LieAlgebra(eqx.Module):
     # -- arithmetic (vector space) -------------------------------------------------
     def __add__(self: A, other: A) -> A:
         _check_same_type(self, other, "algebra addition")
+        broadcast_batch(self.shape, other.shape, what=f"{type(self).__name__} addition")
         return type(self)(self.data + other.data)
 
     def __sub__(self: A, other: A) -> A:
         _check_same_type(self, other, "algebra subtraction")
+        broadcast_batch(self.shape, other.shape, what=f"{type(self).__name__} subtraction")
         return type(self)(self.data - other.data)
 
     def __neg__(self: A) -> A:
@@ -239,7 +241,7 @@ class LieGroup(eqx.Module):
         return self.data.dtype
 
     def __getitem__(self: G, idx: Any) -> G:
-        return type(self)(self.data[_batch_index(idx)])
+        return type(self)(self.data[_batch_index(idx, self)])
 
     def __len__(self) -> int:
         if not self.shape:
@@ -298,8 +300,9 @@ class LieGroup(eqx.Module):
         if check:
             tol_ = (1e-5 if m.dtype == jnp.float32 else 1e-9) if tol is None else tol
             err = jnp.max(jnp.abs(cls._matrix(data) - m)) if m.size else jnp.asarray(0.0)
+            bound = tol_ * jnp.maximum(1.0, jnp.max(jnp.abs(m)) if m.size else 1.0)
             data = eqx.error_if(
-                data, err > tol_ * jnp.maximum(1.0, jnp.max(jnp.abs(m)) if m.size else 1.0),
+                data, ~(err <= bound),  # also true for NaN (non-finite input or result)
                 f"{cls.__name__}.from_matrix(matrix): not a valid {cls.__name__} matrix "
                 f"(rotation block not orthonormal with det +1, or wrong structure); "
                 f"pass check=False to project instead",
@@ -365,6 +368,7 @@ class LieGroup(eqx.Module):
     def adj(self, a: Any) -> LieAlgebra:
         """Adjoint action Adj(X)·a on an algebra element (or tangent array)."""
         data = _tangent_data(a, self.algebra, f"{type(self).__name__}.adj(a)")
+        broadcast_batch(self.shape, data.shape[:-1], what=f"{type(self).__name__}.adj(a)")
         return self.algebra(matvec(self.adj_matrix(), data))
 
     def Adj(self, a: Any) -> LieAlgebra:  # noqa: N802 - PyPose spelling
@@ -373,6 +377,7 @@ class LieGroup(eqx.Module):
     def adjT(self, a: Any) -> LieAlgebra:  # noqa: N802 - PyPose name
         """Transposed adjoint action Adj(X)ᵀ·a."""
         data = _tangent_data(a, self.algebra, f"{type(self).__name__}.adjT(a)")
+        broadcast_batch(self.shape, data.shape[:-1], what=f"{type(self).__name__}.adjT(a)")
         return self.algebra(matvec(jnp.swapaxes(self.adj_matrix(), -1, -2), data))
 
     AdjT = adjT
@@ -380,6 +385,7 @@ class LieGroup(eqx.Module):
     def jinvp(self, a: Any) -> LieAlgebra:
         """``Jl⁻¹(Log X) · a`` (PyPose's ``Jinvp``)."""
         data = _tangent_data(a, self.algebra, f"{type(self).__name__}.jinvp(a)")
+        broadcast_batch(self.shape, data.shape[:-1], what=f"{type(self).__name__}.jinvp(a)")
         return self.algebra(matvec(self._jl_inv(self._log(self.data)), data))
 
     Jinvp = jinvp
@@ -392,19 +398,24 @@ class LieGroup(eqx.Module):
         """Geodesic interpolation ``X · Exp(t · Log(X⁻¹ Y))``; t = 0 → X, t = 1 → Y.
 
         ``t`` broadcasts with the batch shape."""
-        _check_same_type(self, other, f"{type(self).__name__}.interpolate")
+        name = f"{type(self).__name__}.interpolate"
+        _check_same_type(self, other, name)
         tt = jnp.asarray(t, self.dtype)
+        broadcast_batch(self.shape, other.shape, tt.shape, what=f"{name} (x, other, t)")
         delta = self._log(self._compose(self._inv(self.data), other.data))
         return type(self)(self._compose(self.data, self._exp(tt[..., None] * delta)))
 
     def retract(self: G, delta: Any) -> G:
         """Right retraction ``X ⊕ δ = X · Exp(δ)``."""
-        data = _tangent_data(delta, self.algebra, f"{type(self).__name__}.retract(delta)")
+        name = f"{type(self).__name__}.retract(delta)"
+        data = _tangent_data(delta, self.algebra, name)
+        broadcast_batch(self.shape, data.shape[:-1], what=name)
         return type(self)(self._compose(self.data, self._exp(data)))
 
     def rminus(self, other: LieGroup) -> Array:
         """Right minus ``Log(other⁻¹ · self)`` so that ``other ⊕ (self ⊖ other) = self``."""
         _check_same_type(self, other, f"{type(self).__name__}.rminus")
+        broadcast_batch(self.shape, other.shape, what=f"{type(self).__name__}.rminus")
         return self._log(self._compose(self._inv(other.data), self.data))
 
     def cumprod(self: G, axis: int = 0, left: bool = True) -> G:
@@ -467,9 +478,14 @@ def _shape_args(shape: tuple[Any, ...]) -> tuple[int, ...]:
     return tuple(shape)
 
 
-def _batch_index(idx: Any) -> Any:
+def _batch_index(idx: Any, x: Any) -> Any:
     """Index only the batch axes of ``data`` (never the storage axis)."""
     idx_t = idx if isinstance(idx, tuple) else (idx,)
+    if not x.shape and any(i is not Ellipsis and i is not None for i in idx_t):
+        raise IndexError(
+            f"{type(x).__name__}[{idx!r}]: the element is unbatched (batch shape ()), "
+            f"there is no batch axis to index"
+        )
     if any(i is Ellipsis for i in idx_t):
         return (*idx_t, slice(None))
     return (*idx_t, Ellipsis)

@@ -95,22 +95,17 @@ def _lift(fun: Callable[..., Any], args: tuple[Any, ...], argnums: int | Sequenc
         return fun(*new_args)
 
     zeros = tuple(zero_tangent(args[i]) for i in nums)
-    return lifted, zeros, nums
-
-
-def _squeeze(out: Any, argnums: int | Sequence[int]) -> Any:
-    return out[0] if isinstance(argnums, int) else out
+    # an int argnums gives jax an int too, so results are not wrapped in a 1-tuple
+    inner = 0 if isinstance(argnums, int) else tuple(range(len(nums)))
+    return lifted, zeros, inner
 
 
 def grad(fun: Callable[..., Any], argnums: int | Sequence[int] = 0, has_aux: bool = False):
     """Like :func:`jax.grad`, with respect to tangent deltas of the chosen arguments."""
 
     def g(*args: Any) -> Any:
-        lifted, zeros, nums = _lift(fun, args, argnums)
-        out = jax.grad(lifted, argnums=tuple(range(len(nums))), has_aux=has_aux)(*zeros)
-        if has_aux:
-            return _squeeze(out[0], argnums), out[1]
-        return _squeeze(out, argnums)
+        lifted, zeros, inner = _lift(fun, args, argnums)
+        return jax.grad(lifted, argnums=inner, has_aux=has_aux)(*zeros)
 
     return g
 
@@ -121,11 +116,8 @@ def value_and_grad(
     """Like :func:`jax.value_and_grad`, with tangent-space gradients."""
 
     def vg(*args: Any) -> Any:
-        lifted, zeros, nums = _lift(fun, args, argnums)
-        val, gr = jax.value_and_grad(
-            lifted, argnums=tuple(range(len(nums))), has_aux=has_aux
-        )(*zeros)
-        return val, _squeeze(gr, argnums)
+        lifted, zeros, inner = _lift(fun, args, argnums)
+        return jax.value_and_grad(lifted, argnums=inner, has_aux=has_aux)(*zeros)
 
     return vg
 
@@ -143,7 +135,7 @@ def jacobian(
         raise ValueError(f"jacobian(mode={mode!r}): expected 'auto', 'fwd' or 'rev'")
 
     def jac(*args: Any) -> Any:
-        lifted, zeros, nums = _lift(fun, args, argnums)
+        lifted, zeros, inner = _lift(fun, args, argnums)
         m = mode
         if m == "auto":
             n_in = sum(leaf.size for leaf in jax.tree.leaves(zeros))
@@ -153,10 +145,7 @@ def jacobian(
             n_out = sum(_prod(s.shape) for s in jax.tree.leaves(out_shape))
             m = "fwd" if n_in <= n_out else "rev"
         jf = jax.jacfwd if m == "fwd" else jax.jacrev
-        out = jf(lifted, argnums=tuple(range(len(nums))), has_aux=has_aux)(*zeros)
-        if has_aux:
-            return _squeeze_tree(out[0], argnums), out[1]
-        return _squeeze_tree(out, argnums)
+        return jf(lifted, argnums=inner, has_aux=has_aux)(*zeros)
 
     return jac
 
@@ -166,12 +155,6 @@ def _prod(shape: Sequence[int]) -> int:
     for s in shape:
         out *= int(s)
     return out
-
-
-def _squeeze_tree(out: Any, argnums: int | Sequence[int]) -> Any:
-    if not isinstance(argnums, int):
-        return out
-    return jax.tree.map(lambda t: t[0], out, is_leaf=lambda t: isinstance(t, tuple))
 
 
 # ----------------------------------------------------------------------------------

@@ -10,67 +10,75 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from . import series
-from .series import horner
 
 Array = jnp.ndarray
 
 
+def _parts(a: Array) -> list[Array]:
+    """The components of the last axis as (…,) arrays. These kernels work on components
+    and stack once at the end: XLA:CPU vectorises elementwise code over the batch, but not
+    reductions or gathers along a 3- or 4-wide minor axis."""
+    return [a[..., i] for i in range(a.shape[-1])]
+
+
+def _stack(parts: list[Array]) -> Array:
+    return jnp.stack(jnp.broadcast_arrays(*parts), -1)
+
+
 def multiply(q1: Array, q2: Array) -> Array:
     """Hamilton product q1 ⊗ q2 (rotation q1 after q2)."""
-    v1, w1 = q1[..., :3], q1[..., 3:]
-    v2, w2 = q2[..., :3], q2[..., 3:]
-    v = w1 * v2 + w2 * v1 + jnp.cross(v1, v2)
-    w = w1 * w2 - jnp.sum(v1 * v2, -1, keepdims=True)
-    return jnp.concatenate([v, w], -1)
+    x1, y1, z1, w1 = _parts(q1)
+    x2, y2, z2, w2 = _parts(q2)
+    return _stack([
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+    ])
 
 
 def conjugate(q: Array) -> Array:
     """Inverse of a unit quaternion."""
-    return jnp.concatenate([-q[..., :3], q[..., 3:]], -1)
+    return q * jnp.asarray([-1.0, -1.0, -1.0, 1.0], q.dtype)
 
 
 def rotate(q: Array, p: Array) -> Array:
     """R(q) p for points p (..., 3): p + w·t + v × t with t = 2 v × p."""
-    v, w = q[..., :3], q[..., 3:]
-    t = 2.0 * jnp.cross(v, p)
-    return p + w * t + jnp.cross(v, t)
+    x, y, z, w = _parts(q)
+    px, py, pz = _parts(p)
+    tx, ty, tz = 2.0 * (y * pz - z * py), 2.0 * (z * px - x * pz), 2.0 * (x * py - y * px)
+    return _stack([
+        px + w * tx + y * tz - z * ty,
+        py + w * ty + z * tx - x * tz,
+        pz + w * tz + x * ty - y * tx,
+    ])
 
 
 def exp(phi: Array) -> Array:
     """SO(3) exponential of a rotation vector (..., 3) → unit quaternion (..., 4)."""
-    t4 = series.safe_norm_sq(phi) * 0.25  # (θ/2)²
+    x, y, z = _parts(phi)
+    t4 = 0.25 * (x * x + y * y + z * z)  # (θ/2)²
     s = 0.5 * series.sinc(t4)  # sin(θ/2)/θ
     w = series.cos(t4)  # cos(θ/2)
+    # one use per scalar coefficient: XLA:CPU would otherwise recompute the whole scalar
+    # chain once per output component (it duplicates cheap producers into each consumer)
     return jnp.concatenate([phi * s[..., None], w[..., None]], -1)
-
-
-_LOG_S0 = 0.04  # switch on s = (|v|/w)² where atan(x)/x has its series
 
 
 def log(q: Array) -> Array:
     """SO(3) logarithm (..., 4) → rotation vector (..., 3) with angle in [0, π].
 
-    Uses θ = 2·atan2(|v|, |w|) (accurate near θ = π) and a series of atan(x)/x near
-    the identity; q and −q give the same result."""
-    sign = jnp.where(q[..., 3:] < 0, -1.0, 1.0).astype(q.dtype)
-    v = q[..., :3] * sign
-    w = q[..., 3] * sign[..., 0]
-    n2 = series.safe_norm_sq(v)
-    small = n2 < _LOG_S0 * w * w
-    # series branch: factor = (2/w)·atan(x)/x with x² = n²/w² < 0.04
-    w_s = jnp.where(small, w, jnp.ones_like(w))
-    s = jnp.where(small, n2 / (w_s * w_s), jnp.zeros_like(n2))
-    f_series = 2.0 / w_s * horner(series._ATAN_COEFFS, s)
-    # direct branch: factor = 2·atan2(n, w)/n with n bounded away from 0
-    n = jnp.sqrt(jnp.where(small, jnp.ones_like(n2), n2))
-    f_direct = 2.0 * jnp.arctan2(n, w) / n
-    factor = jnp.where(small, f_series, f_direct)
-    return v * factor[..., None]
+    θ = 2·atan2(|v|, |w|) by :func:`series.quat_log_coeff` (accurate near 0 and π,
+    branch-free, no atan2 call); q and −q give the same result."""
+    x, y, z, w = _parts(q)
+    sign = jnp.where(w < 0, -1.0, 1.0).astype(q.dtype)
+    f = sign * series.quat_log_coeff(x * x + y * y + z * z, w * sign)
+    return q[..., :3] * f[..., None]
 
 
 def to_matrix(q: Array) -> Array:
     """Unit quaternion (..., 4) → rotation matrix (..., 3, 3)."""
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    x, y, z, w = _parts(q)
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z

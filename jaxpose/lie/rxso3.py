@@ -32,8 +32,11 @@ def _block_diag_1(m: Array) -> Array:
 
 
 def cbrt_det(m: Array) -> Array:
-    """Scale s = det(M)^(1/3) of a scaled rotation M = sR (…, 3, 3) → (…,)."""
-    return jnp.cbrt(jnp.linalg.det(m))
+    """Scale s = |det M|^(1/3) of a scaled rotation M = sR (…, 3, 3) → (…,).
+
+    The absolute value keeps s > 0 for an improper M (a reflection), which then fails the
+    ``from_matrix`` check instead of producing an element with a negative scale."""
+    return jnp.cbrt(jnp.abs(jnp.linalg.det(m)))
 
 
 class RxSO3(LieGroup):

@@ -77,9 +77,14 @@ class SO2(LieGroup):
     @staticmethod
     def _from_matrix(m: Array) -> Array:
         # Projection onto SO(2): the angle of the rotation closest to m.
+        # A reflection has c = s = 0 (every rotation is equally close): the identity is
+        # returned there, so the result is always a valid element (double-where, NaN-free).
         c = m[..., 0, 0] + m[..., 1, 1]
         s = m[..., 1, 0] - m[..., 0, 1]
-        return normalize2(jnp.stack([c, s], -1))
+        n2 = c * c + s * s
+        ok = n2 > jnp.finfo(m.dtype).tiny
+        inv = 1.0 / jnp.sqrt(jnp.where(ok, n2, 1.0))
+        return jnp.stack([jnp.where(ok, c * inv, 1.0), jnp.where(ok, s * inv, 0.0)], -1)
 
     @staticmethod
     def _adj_matrix(x: Array) -> Array:

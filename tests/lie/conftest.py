@@ -8,10 +8,11 @@
 * References built without the code under test: ``ref_matrix`` (storage → matrix, via
   scipy's quaternion conversion), ``ref_hat`` / ``ref_vee``, ``ref_exp_matrix``
   (scipy.linalg.expm), ``ref_log`` (scipy.linalg.logm), ``rot_x/rot_y/rot_z``.
-* ``J``: jitted wrappers around the public methods. XLA compilation dominates the run time of
-  this suite, so the property tests call these shared wrappers (one compilation per op, group,
-  batch shape and dtype for the whole session) instead of compiling their own kernels;
-  ``test_transforms.py`` checks that jit and eager agree.
+* ``J``: jitted wrappers around the public methods, compiled with :data:`FAST_COMPILE`. XLA
+  compilation dominates the run time of this suite, so the property tests call these shared
+  wrappers (one compilation per op, group, batch shape and dtype for the whole session)
+  instead of compiling their own kernels or running eagerly (eager compiles every primitive
+  separately, about twice the cost); ``test_transforms.py`` checks that jit and eager agree.
 
 Other test modules import the helpers with ``from .conftest import ...`` (``tests/lie`` is a
 package).
@@ -421,32 +422,50 @@ def central_diff(f: Any, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
 # ------------------------------------------------------------------------------------
 # jitted wrappers around the public methods (shared compilation cache)
 # ------------------------------------------------------------------------------------
+# XLA's default CPU pipeline makes compilation dominate this suite's run time; these options
+# cut it about threefold and change results only by rounding (no fast-math). Scoped to the
+# test's own jits (a global XLA_FLAGS would leak into the whole session).
+FAST_COMPILE = {
+    "xla_backend_optimization_level": 0,
+    "xla_cpu_use_fusion_emitters": False,
+    "xla_llvm_disable_expensive_passes": True,
+}
+
+
+def fast_jit(fun: Any = None, **kw: Any) -> Any:
+    """``jax.jit`` with :data:`FAST_COMPILE` (usable as ``@fast_jit`` or
+    ``@fast_jit(static_argnums=...)``)."""
+    if fun is None:
+        return lambda f: jax.jit(f, compiler_options=FAST_COMPILE, **kw)
+    return jax.jit(fun, compiler_options=FAST_COMPILE, **kw)
+
+
 J = SimpleNamespace(
-    exp=jax.jit(lambda a: a.exp()),  # algebra element → group
-    log=jax.jit(lambda x: x.log()),
-    inv=jax.jit(lambda x: x.inv()),
-    compose=jax.jit(lambda x, y: x @ y),
-    act=jax.jit(lambda x, p: x @ p),
-    matrix=jax.jit(lambda x: x.matrix()),
-    adj=jax.jit(lambda x, a: x.adj(a)),
-    adjT=jax.jit(lambda x, a: x.adjT(a)),
-    adj_matrix=jax.jit(lambda x: x.adj_matrix()),
-    jinvp=jax.jit(lambda x, a: x.jinvp(a)),
-    jr=jax.jit(lambda a: a.jr()),
-    jl=jax.jit(lambda a: a.jl()),
-    jr_inv=jax.jit(lambda a: a.jr_inv()),
-    jl_inv=jax.jit(lambda a: a.jl_inv()),
-    hat=jax.jit(lambda a: a.hat()),
-    from_matrix=jax.jit(
+    exp=fast_jit(lambda a: a.exp()),  # algebra element → group
+    log=fast_jit(lambda x: x.log()),
+    inv=fast_jit(lambda x: x.inv()),
+    compose=fast_jit(lambda x, y: x @ y),
+    act=fast_jit(lambda x, p: x @ p),
+    matrix=fast_jit(lambda x: x.matrix()),
+    adj=fast_jit(lambda x, a: x.adj(a)),
+    adjT=fast_jit(lambda x, a: x.adjT(a)),
+    adj_matrix=fast_jit(lambda x: x.adj_matrix()),
+    jinvp=fast_jit(lambda x, a: x.jinvp(a)),
+    jr=fast_jit(lambda a: a.jr()),
+    jl=fast_jit(lambda a: a.jl()),
+    jr_inv=fast_jit(lambda a: a.jr_inv()),
+    jl_inv=fast_jit(lambda a: a.jl_inv()),
+    hat=fast_jit(lambda a: a.hat()),
+    from_matrix=fast_jit(
         lambda m, cls, check=True: cls.from_matrix(m, check=check), static_argnums=(1, 2)
     ),
-    normalize=jax.jit(lambda x: x.normalize()),
-    interpolate=jax.jit(lambda x, y, t: x.interpolate(y, t)),
-    cumprod=jax.jit(lambda x, axis, left: x.cumprod(axis, left), static_argnums=(1, 2)),
-    retract=jax.jit(lambda x, d: x.retract(d)),
-    rminus=jax.jit(lambda x, y: x.rminus(y)),
-    euler=jax.jit(lambda x: x.euler()),
-    from_euler=jax.jit(lambda e: SO3.from_euler(e)),
+    normalize=fast_jit(lambda x: x.normalize()),
+    interpolate=fast_jit(lambda x, y, t: x.interpolate(y, t)),
+    cumprod=fast_jit(lambda x, axis, left: x.cumprod(axis, left), static_argnums=(1, 2)),
+    retract=fast_jit(lambda x, d: x.retract(d)),
+    rminus=fast_jit(lambda x, y: x.rminus(y)),
+    euler=fast_jit(lambda x: x.euler()),
+    from_euler=fast_jit(lambda e: SO3.from_euler(e)),
 )
 
 
@@ -462,6 +481,7 @@ __all__ = [
     "DATA_SCALE_INDEX",
     "DATA_TRANS_SLICE",
     "DTYPES",
+    "FAST_COMPILE",
     "GROUPS",
     "GROUPS_3D",
     "J",
@@ -477,6 +497,7 @@ __all__ = [
     "cases",
     "central_diff",
     "dtypes",
+    "fast_jit",
     "gid",
     "group_data",
     "random_group_data",

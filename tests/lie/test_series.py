@@ -1,0 +1,303 @@
+"""The small-angle-safe scalar functions of ``jaxpose.lie.series`` against mpmath.
+
+For every function (the eight in ``series.ALL`` plus ``atanc`` and ``expm1c``):
+
+* values in float64 and float32 on a log-spaced range and just below / above the switch
+  point ``t0``, against the closed form evaluated by mpmath with enough extra digits to
+  absorb its cancellation (float32: the float32-rounded argument is fed to the reference);
+* the exact rational Taylor coefficients (and the float coefficients actually used) against
+  an mpmath Taylor expansion of the closed form, computed independently of the library's
+  power-series algebra: the Cauchy integral of the closed form on a circle around 0
+  (trapezoidal rule, spectrally accurate for these analytic functions), cross-checked against
+  ``mpmath.taylor`` for the leading coefficients;
+* first and second derivatives (autodiff) on both sides of the switch: continuous to
+  ~1e-12 relative and equal to mpmath's derivative of the closed form; first to third
+  derivatives finite at t = 0 and at t0.
+"""
+
+from __future__ import annotations
+
+import functools
+from fractions import Fraction
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import mpmath as mp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from jaxpose.lie import series  # noqa: E402
+
+DPS = 60  # base working precision of every reference (decimal digits)
+
+# ------------------------------------------------------------------------------------
+# references: closed forms in mpmath of the angle θ (t = θ²); work for mpf and mpc
+# ------------------------------------------------------------------------------------
+_CLOSED_FORMS = {
+    "sinc": lambda th: mp.sin(th) / th,
+    "cos": lambda th: mp.cos(th),
+    "one_minus_cos_over_t": lambda th: (1 - mp.cos(th)) / th**2,
+    "theta_minus_sin_over_theta3": lambda th: (th - mp.sin(th)) / th**3,
+    "jinv_coeff": lambda th: (1 - (th / 2) * mp.cot(th / 2)) / th**2,
+    "half_cot_half": lambda th: (th / 2) * mp.cot(th / 2),
+    "se3_q_c2": lambda th: (th**2 + 2 * mp.cos(th) - 2) / (2 * th**4),
+    "se3_q_c3": lambda th: (2 * th - 3 * mp.sin(th) + th * mp.cos(th)) / (2 * th**5),
+    # atanc is a function of s = x² with f = atan(x)/x; expm1c of x itself
+    "atanc": lambda x: mp.atan(x) / x,
+    "expm1c": lambda x: mp.expm1(x) / x,
+}
+# every closed form is 0/0-free away from 0; the worst cancellation at angle θ loses about
+# 5·|log10 θ| digits (θ⁵ in the denominator), so the reference adds that many.
+_EVEN = [fn.name for fn in series.ALL]  # functions of t = θ²
+# (name, callable, t0, domain upper bound in t) for the even functions of θ
+_FUNCS = {fn.name: (fn, fn.t0) for fn in series.ALL}
+_FUNCS["atanc"] = (series.atanc, series._ATAN_T0)
+# radius of convergence in θ (or x): cot(θ/2) has poles at ±2π, atan(x)/x branch points at ±i
+_RADIUS = {"jinv_coeff": 2 * np.pi, "half_cot_half": 2 * np.pi, "atanc": 1.0}
+# largest t at which each function is tested (cot-based ones blow up at θ = 2π)
+_T_MAX = {"jinv_coeff": 30.0, "half_cot_half": 30.0, "atanc": 1e4}
+
+F64_TOL = 1e-14
+F32_TOL = 2e-6
+DERIV_CONT_TOL = 1e-12
+
+
+def _extra_digits(x: float) -> int:
+    return 10 + int(5 * max(0.0, -np.log10(abs(x)))) if x != 0 else 0
+
+
+def ref_value(name: str, t: float) -> float:
+    """f(t) (or f(x) for expm1c) correctly rounded to float64 from mpmath."""
+    f = _CLOSED_FORMS[name]
+    if name == "expm1c":
+        if t == 0:
+            return 1.0
+        with mp.workdps(DPS + _extra_digits(t)):
+            return float(f(mp.mpf(t)))
+    if t == 0:
+        return float(_exact_coeffs(name)[0])
+    with mp.workdps(DPS + _extra_digits(t)):
+        return float(f(mp.sqrt(mp.mpf(t))))
+
+
+def ref_derivative(name: str, t: float, n: int) -> float:
+    """n-th derivative in t (in x for expm1c) by mpmath's numerical differentiation."""
+    f = _CLOSED_FORMS[name]
+    g = (lambda u: f(u)) if name == "expm1c" else (lambda u: f(mp.sqrt(u)))
+    with mp.workdps(DPS + 30):
+        return float(mp.diff(g, mp.mpf(t), n))
+
+
+def _exact_coeffs(name: str) -> list[Fraction]:
+    if name == "atanc":
+        return [Fraction((-1) ** k, 2 * k + 1) for k in range(len(series._ATAN_COEFFS) + 2)]
+    return list(_FUNCS[name][0].exact_coeffs)
+
+
+@functools.cache
+def cauchy_taylor(name: str, n_terms: int) -> tuple:
+    """Coefficients c_k of f = Σ c_k θ^k by the trapezoidal rule for the Cauchy integral
+    c_k = (1 / 2πi) ∮ f(z) z^{-k-1} dz on |z| = r (mpmath, 80 digits)."""
+    f = _CLOSED_FORMS[name]
+    r = mp.mpf(min(2.0, 0.5 * _RADIUS.get(name, np.inf)))
+    n_nodes = 160
+    with mp.workdps(80):
+        zs = [r * mp.expjpi(mp.mpf(2 * j) / n_nodes) for j in range(n_nodes)]
+        fz = [f(z) for z in zs]
+        out = []
+        for k in range(n_terms):
+            acc = mp.fsum(fz[j] * mp.expjpi(-mp.mpf(2 * j * k) / n_nodes) for j in range(n_nodes))
+            out.append(mp.re(acc) / n_nodes / r**k)
+        return tuple(out)
+
+
+def _jfun(name: str):
+    if name == "expm1c":
+        return series.expm1c
+    return _FUNCS[name][0]
+
+
+ALL_NAMES = [*_EVEN, "atanc", "expm1c"]
+
+
+def _switch_points(name: str) -> list[float]:
+    if name == "expm1c":
+        return [-1e-2, 1e-2]
+    return [_FUNCS[name][1]]
+
+
+def _sample_args(name: str) -> np.ndarray:
+    """Log-spaced arguments plus a cluster around every switch point."""
+    if name == "expm1c":
+        mag = np.logspace(-12, np.log10(30.0), 40)
+        base = np.concatenate([mag, -mag, [0.0]])
+    else:
+        base = np.concatenate([[0.0], np.logspace(-24, np.log10(_T_MAX.get(name, 30.0)), 50)])
+    near = [
+        s * (1 + d) for s in _switch_points(name) for d in
+        (-1e-3, -1e-6, -1e-12, -2.0**-52, 0.0, 2.0**-52, 1e-12, 1e-6, 1e-3)
+    ]
+    return np.unique(np.concatenate([base, near]))
+
+
+# ------------------------------------------------------------------------------------
+# values
+# ------------------------------------------------------------------------------------
+@functools.cache
+def _reference_table(name: str, dtype_name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Arguments (rounded to the dtype first), reference values and error scales.
+
+    The scale is max(|f|, |θ·df/dθ|): cos, sinc and (θ/2)cot(θ/2) cross zero inside the
+    tested range, where any evaluation through θ = √t (rounded) has an absolute error of
+    about |θ f'(θ)|·ε; elsewhere the scale is |f| and the error is the plain relative one."""
+    args = _sample_args(name).astype(dtype_name)
+    refs = np.array([ref_value(name, float(a)) for a in args])
+    f = _CLOSED_FORMS[name]
+    scales = []
+    with mp.workdps(30):
+        for a, r in zip(args, refs, strict=True):
+            a = float(a)
+            if a == 0:
+                scales.append(abs(r))
+                continue
+            if name == "expm1c":
+                slope = a * mp.diff(f, mp.mpf(a))
+            else:  # θ·d/dθ = 2t·d/dt
+                slope = 2 * a * mp.diff(lambda u: f(mp.sqrt(u)), mp.mpf(a))
+            scales.append(max(abs(r), abs(float(slope))))
+    return args, refs, np.array(scales)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("name", ALL_NAMES)
+def test_values_against_mpmath(name, dtype):
+    args, refs, scales = _reference_table(name, np.dtype(dtype).name)
+    out = np.asarray(jax.jit(_jfun(name))(jnp.asarray(args, dtype)))
+    assert out.dtype == np.dtype(dtype)
+    rel = np.abs(out.astype(np.float64) - refs) / scales
+    tol = F64_TOL if dtype == np.float64 else F32_TOL
+    worst = int(np.argmax(rel))
+    assert rel.max() <= tol, (
+        f"{name} {np.dtype(dtype).name}: max rel err {rel.max():.3g} at arg={args[worst]!r}"
+    )
+
+
+@pytest.mark.parametrize("name", ALL_NAMES)
+def test_switch_point_both_sides(name):
+    """float64 values at the last representable arguments on either side of the switch
+    agree with the reference (and hence with each other) to 1e-14 relative."""
+    fn = _jfun(name)
+    for s in _switch_points(name):
+        below = np.nextafter(s, -np.inf if s > 0 else np.inf)
+        pts = np.array([below, s, np.nextafter(s, np.inf if s > 0 else -np.inf)])
+        out = np.asarray(fn(jnp.asarray(pts)))
+        refs = np.array([ref_value(name, float(p)) for p in pts])
+        rel = np.abs(out - refs) / np.abs(refs)
+        assert rel.max() <= F64_TOL, (name, s, rel)
+
+
+# ------------------------------------------------------------------------------------
+# Taylor coefficients
+# ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", [*_EVEN, "atanc"])
+def test_exact_taylor_coefficients(name):
+    exact = _exact_coeffs(name)
+    used = series._ATAN_COEFFS if name == "atanc" else _FUNCS[name][0].coeffs
+    n_used = len(used)
+    # the coefficients in use are the exact ones rounded to float64
+    assert tuple(float(c) for c in exact[:n_used]) == tuple(used)
+    # the exact ones are the Taylor coefficients of the closed form (even powers of θ)
+    cs = cauchy_taylor(name, 2 * n_used + 2)
+    with mp.workdps(80):
+        for k in range(n_used):
+            e = mp.mpf(exact[k].numerator) / exact[k].denominator
+            assert abs(cs[2 * k] - e) <= mp.mpf("1e-30") * abs(e), (name, k, cs[2 * k], e)
+            assert abs(cs[2 * k + 1]) <= mp.mpf("1e-40"), (name, k, "odd coefficient")
+    # the series is truncated where the first dropped term is negligible at t0
+    t0 = _FUNCS[name][1]
+    dropped = abs(float(exact[n_used])) * t0**n_used
+    assert dropped <= 1e-17 * abs(ref_value(name, t0)), (name, dropped)
+
+
+def test_cauchy_coefficients_match_mpmath_taylor():
+    """The Cauchy-integral coefficients agree with ``mpmath.taylor`` (numerical
+    differentiation, which cannot be centred on the removable singularity θ = 0): the
+    Taylor polynomial of the closed form at θ = 0.5 equals the re-expansion of the series."""
+    with mp.workdps(40):
+        for name in ("se3_q_c3", "jinv_coeff", "sinc"):
+            f = _CLOSED_FORMS[name]
+            x0 = mp.mpf("0.5")
+            tay = mp.taylor(f, x0, 4)
+            cs = cauchy_taylor(name, 40)
+            for m in range(5):  # m-th Taylor coefficient at x0 from the series at 0
+                val = mp.fsum(
+                    cs[k] * mp.binomial(k, m) * x0 ** (k - m) for k in range(m, len(cs))
+                )
+                assert abs(val - tay[m]) <= mp.mpf("1e-20") * (1 + abs(tay[m])), (name, m)
+
+
+# ------------------------------------------------------------------------------------
+# derivatives across the switch
+# ------------------------------------------------------------------------------------
+# nested derivatives compile slowly with XLA's default CPU pipeline; these options cut the
+# compile time several-fold and change results by rounding only
+FAST_COMPILE = {
+    "xla_backend_optimization_level": 0,
+    "xla_cpu_use_fusion_emitters": False,
+    "xla_llvm_disable_expensive_passes": True,
+}
+
+
+@functools.cache
+def _derivs(name: str):
+    """x ↦ [f, df, d²f, d³f] by autodiff, vmapped over x (one compile per dtype)."""
+    fn = _jfun(name)
+    d1 = jax.grad(fn)
+    d2 = jax.grad(d1)
+    d3 = jax.grad(d2)
+
+    def one(x):
+        return jnp.stack([fn(x), d1(x), d2(x), d3(x)])
+
+    return jax.jit(jax.vmap(one), compiler_options=FAST_COMPILE)
+
+
+@pytest.mark.parametrize("name", ALL_NAMES)
+def test_derivatives_continuous_across_switch(name):
+    f = _derivs(name)
+    for s in _switch_points(name):
+        eps = 1e-9 * abs(s)
+        pts = jnp.asarray([s - eps, s + eps])
+        out = np.asarray(f(pts))  # (2, 4): value, d1, d2, d3 below / above
+        assert np.all(np.isfinite(out))
+        for n in (1, 2):
+            ref = ref_derivative(name, s, n)
+            below, above = out[0, n], out[1, n]
+            # the true derivative changes by f^{(n+1)}·2ε ≈ 1e-9 relative over the gap, so
+            # compare each side with the reference at its own point
+            ref_b = ref_derivative(name, s - eps, n)
+            ref_a = ref_derivative(name, s + eps, n)
+            assert abs(below - ref_b) <= DERIV_CONT_TOL * abs(ref), (name, s, n, below, ref_b)
+            assert abs(above - ref_a) <= DERIV_CONT_TOL * abs(ref), (name, s, n, above, ref_a)
+            jump = (above - below) - (ref_a - ref_b)
+            assert abs(jump) <= DERIV_CONT_TOL * abs(ref), (name, s, n, "jump", jump)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("name", ALL_NAMES)
+def test_derivatives_finite_at_zero_and_switch(name, dtype):
+    f = _derivs(name)
+    pts = [0.0, *(_switch_points(name))]
+    out = np.asarray(f(jnp.asarray(pts, dtype)))
+    assert np.all(np.isfinite(out)), (name, out)
+    # at 0 the derivatives in t are k!·c_k (θ-series coefficients at even powers)
+    if name != "expm1c":
+        exact = _exact_coeffs(name)
+        want = [float(exact[k]) * float(np.prod(np.arange(1, k + 1))) for k in range(4)]
+    else:
+        want = [1.0 / (k + 1) for k in range(4)]  # d^k/dx^k (eˣ−1)/x at 0 = k!/(k+1)!
+    rtol = 1e-14 if dtype == np.float64 else 1e-6
+    np.testing.assert_allclose(out[0], want, rtol=rtol, atol=0, err_msg=name)
