@@ -255,6 +255,7 @@ class AbstractSolver(eqx.Module):
                 finite=finite,
                 step_norm=step_norm,
                 predicted=pred,
+                initial=state.initial_cost,
                 grad_inf=grad_inf,
                 rejects=rejects,
                 plateau_count=plateau,

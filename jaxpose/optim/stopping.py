@@ -67,7 +67,9 @@ class Stopping(eqx.Module):
       CONVERGED;
     * always: a rejected finite trial whose *predicted* decrease is below the cost's
       floating-point resolution (16·eps·cost) → CONVERGED (no measurable decrease is
-      left; this is where float32 solves end);
+      left); and a rejected finite trial once the cost is at rounding level,
+      cost ≤ eps²·initial cost (the residual has shrunk by the dtype's precision, as in
+      zero-residual problems: further "decreases" are rounding noise) → CONVERGED;
     * ``max_rejects``: that many consecutive rejected trials → DIVERGED (or NON_FINITE
       if the last one was not finite). A rejected trial that leaves the damping unchanged
       (Constant strategy, damping clamped at its bound, Gauss-Newton) ends the solve at
@@ -113,6 +115,7 @@ class Trial(NamedTuple):
     finite: Array  # bool: trial step, residual and Jacobian all finite
     step_norm: Array  # ‖δ‖₂
     predicted: Array  # decrease predicted by the quadratic model for this trial
+    initial: Array  # cost at the start
     grad_inf: Array  # ‖g‖_∞ at the (possibly new) current estimate
     rejects: Array  # consecutive rejected trials so far (int32)
     plateau_count: Array  # consecutive non-decreasing iterations so far (int32)
@@ -135,8 +138,9 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     conv = t.accepted & (decrease <= stopping.cost_atol + stopping.cost_rtol * t.last)
     conv = conv | (t.grad_inf <= stopping.gtol)
     conv = conv | (t.finite & (t.step_norm <= stopping.xtol))
-    resolution = 16 * jnp.finfo(t.last.dtype).eps * jnp.abs(t.last)
-    conv = conv | (t.finite & ~t.accepted & (t.predicted <= resolution))
+    eps = jnp.finfo(t.last.dtype).eps
+    noise = (t.predicted <= 16 * eps * jnp.abs(t.last)) | (t.last <= eps * eps * t.initial)
+    conv = conv | (t.finite & ~t.accepted & noise)
     if stopping.plateau is not None:
         conv = conv | (t.plateau_count >= stopping.plateau.patience)
     stalled = t.rejects >= stopping.max_rejects
