@@ -1,10 +1,12 @@
 """Linear solvers for the damped sparse normal equations (H + λD) δ = −g.
 
-* :func:`solve_sparse_direct` — sparse Cholesky (CHOLMOD, through the ``cholespy``
-  package) called with ``jax.pure_callback``; works under ``jit`` and (sequentially) under
-  ``vmap``. Without cholespy it falls back to SciPy's SuperLU, which is much slower on
-  large graphs (measured on sphere2500: 355 s for one SuperLU factorisation vs 1.0 s with
-  CHOLMOD on a loaded 2-core machine).
+* :func:`solve_sparse_direct` — sparse supernodal Cholesky (CHOLMOD) on the host, called
+  with ``jax.pure_callback``; works under ``jit`` and (sequentially) under ``vmap``. The
+  symbolic analysis of each sparsity pattern is computed once and reused
+  (:mod:`jaxpose.graph.cholmod`). If that module cannot load CHOLMOD, cholespy's public API
+  is used (re-analyses every call: 2–4x slower), and without cholespy SciPy's SuperLU, which
+  is much slower on large graphs (measured on sphere2500: 355 s for one SuperLU
+  factorisation vs 1.0 s with cholespy on a loaded 2-core machine).
 * :func:`solve_pcg` — matrix-free conjugate gradient with a block-Jacobi preconditioner,
   written with ``lax.while_loop`` (jit/vmap/differentiable, runs on any backend).
 * :func:`solve_dense` — assembles H densely and uses Cholesky (small problems; fully
@@ -19,10 +21,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import cholmod
+
 Array = jax.Array
 
 
 def _cholmod_solve(
+    data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, b: np.ndarray
+) -> np.ndarray:
+    if cholmod.available():
+        return cholmod.solve(data, indices, indptr, b).astype(b.dtype)
+    return _cholespy_solve(data, indices, indptr, b)
+
+
+def _cholespy_solve(
     data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, b: np.ndarray
 ) -> np.ndarray:
     try:

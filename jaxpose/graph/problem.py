@@ -2,9 +2,10 @@
 
 Layout of the tangent vector: variable types in sorted-name order; within a type,
 variable ``i`` owns the contiguous slice ``offset + i·d : offset + (i+1)·d``.
-The sparsity pattern of the Gauss–Newton matrix H = J̃ᵀJ̃ is computed once on the host
-(numpy) when the graph is built; each iteration only fills in values, so jit compiles
-one program whose size grows with the number of factor *types*, not factors.
+The block-sparsity pattern of the Gauss–Newton matrix H = J̃ᵀJ̃ (:mod:`.pattern`) is
+computed once on the host (numpy) when the graph is built; each iteration only fills in
+values, so jit compiles one program whose size grows with the number of factor *types*,
+not factors.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from ..lie.base import LieGroup
 from .factor import Factor
+from .pattern import BlockPattern, build_pattern, scatter_blocks
 
 Array = jax.Array
 Variables = dict[str, Any]  # name → LieGroup with batch (n,) or array (n, d)
@@ -52,14 +54,33 @@ class Structure(eqx.Module):
     dims: tuple[int, ...] = eqx.field(static=True)
     offsets: tuple[int, ...] = eqx.field(static=True)
     size: int = eqx.field(static=True)  # total tangent dimension N
-    nnz: int = eqx.field(static=True)
     free: tuple[Array, ...]  # per type (n,) 1.0 for free, 0.0 for fixed variables
-    csr_indices: Array  # (nnz,) column indices of H in CSR
-    csr_indptr: Array  # (N + 1,)
-    diag_pos: Array  # (N,) CSR positions of the diagonal
-    block_pos: tuple[tuple[Array, ...], ...]  # per factor, per (s, t) slot pair: (m, ds, dt)
-    contribution_order: Array  # permutation sorting all block entries by CSR position
-    contribution_pos: Array  # their sorted CSR positions
+    pattern: BlockPattern  # block-sparse pattern of H = J̃ᵀJ̃
+    # per factor group, per ordered slot pair (s, t) (row-major): class id and (m,) blocks
+    block_class: tuple[tuple[int, ...], ...] = eqx.field(static=True)
+    block_index: tuple[tuple[Array, ...], ...]
+    schur: Any = None  # SchurStructure when the graph eliminates a variable type
+
+    @property
+    def nnz(self) -> int:
+        return self.pattern.nnz
+
+    @property
+    def csr_indices(self) -> Array:
+        return self.pattern.indices
+
+    @property
+    def csr_indptr(self) -> Array:
+        return self.pattern.indptr
+
+    @property
+    def diag_pos(self) -> Array:
+        return self.pattern.diag_pos
+
+
+def slot_pairs(n_slots: int) -> list[tuple[int, int]]:
+    """Ordered slot pairs (s, t) in the order of ``Structure.block_class``."""
+    return [(s, t) for s in range(n_slots) for t in range(n_slots)]
 
 
 class FactorGraph(eqx.Module):
@@ -69,6 +90,9 @@ class FactorGraph(eqx.Module):
         factors: the factor groups (:class:`Factor`).
         variables: initial values, ``{name: group (n,) | array (n, d)}``.
         fixed: ``{name: indices}`` of variables held constant (gauge freedom).
+        eliminate: optional variable type (e.g. the points of bundle adjustment) to
+            eliminate with the Schur complement (``solve(linear_solver="schur")``); no
+            factor may link two variables of this type.
     """
 
     factors: tuple[Factor, ...]
@@ -80,6 +104,7 @@ class FactorGraph(eqx.Module):
         factors: Sequence[Factor],
         variables: Mapping[str, Any],
         fixed: Mapping[str, Any] | None = None,
+        eliminate: str | None = None,
     ):
         if not factors:
             raise ValueError("FactorGraph(factors): expected at least one Factor")
@@ -120,7 +145,7 @@ class FactorGraph(eqx.Module):
                     )
         self.factors = tuple(factors)
         self.variables = variables
-        self.structure = _build_structure(self.factors, variables, dict(fixed or {}))
+        self.structure = _build_structure(self.factors, variables, dict(fixed or {}), eliminate)
 
     @property
     def size(self) -> int:
@@ -129,14 +154,17 @@ class FactorGraph(eqx.Module):
 
 
 def _build_structure(
-    factors: tuple[Factor, ...], variables: Variables, fixed: dict[str, Any]
+    factors: tuple[Factor, ...], variables: Variables, fixed: dict[str, Any],
+    eliminate: str | None = None,
 ) -> Structure:
     names = tuple(sorted(variables))
     counts = tuple(_count(variables[n]) for n in names)
     dims = tuple(_tangent_dim(variables[n]) for n in names)
     offsets = tuple(int(x) for x in np.concatenate([[0], np.cumsum(np.multiply(counts, dims))]))
-    size = offsets[-1]
     type_of = {n: k for k, n in enumerate(names)}
+    for n in fixed:
+        if n not in type_of:
+            raise KeyError(f"FactorGraph(fixed): unknown variable type {n!r}")
     free = []
     for n, c in zip(names, counts, strict=True):
         mask = np.ones(c)
@@ -146,57 +174,40 @@ def _build_structure(
                 raise IndexError(f"FactorGraph(fixed[{n!r}]): index out of range for {c} variables")
             mask[idx] = 0.0
         free.append(jnp.asarray(mask))
-    for n in fixed:
-        if n not in type_of:
-            raise KeyError(f"FactorGraph(fixed): unknown variable type {n!r}")
 
-    # Dof indices of every (factor, slot, row-entry) → (m, d) global rows.
-    def dofs(slot: str, idx: np.ndarray) -> np.ndarray:
-        k = type_of[slot]
-        return offsets[k] + idx[:, None] * dims[k] + np.arange(dims[k])[None, :]
-
-    rows_all, cols_all, entry_blocks = [], [], []
+    pairs = []
     for f in factors:
-        d_slots = [dofs(s, np.asarray(i)) for s, i in zip(f.slots, f.indices, strict=True)]
-        pairs = []
-        for a in d_slots:
-            for b in d_slots:
-                r = np.broadcast_to(a[:, :, None], (a.shape[0], a.shape[1], b.shape[1]))
-                c = np.broadcast_to(b[:, None, :], r.shape)
-                rows_all.append(r.reshape(-1))
-                cols_all.append(c.reshape(-1))
-                pairs.append((r, c))
-        entry_blocks.append(pairs)
-    diag = np.arange(size)
-    rows = np.concatenate([*rows_all, diag])
-    cols = np.concatenate([*cols_all, diag])
-    keys = np.unique(rows.astype(np.int64) * size + cols)
-    csr_rows, csr_cols = keys // size, keys % size
-    indptr = np.zeros(size + 1, dtype=np.int64)
-    np.add.at(indptr, csr_rows + 1, 1)
-    indptr = np.cumsum(indptr)
+        for s, t in slot_pairs(len(f.slots)):
+            pairs.append((type_of[f.slots[s]], np.asarray(f.indices[s]),
+                          type_of[f.slots[t]], np.asarray(f.indices[t])))
+    pattern, located = build_pattern(counts, dims, pairs)
+    block_class, block_index, k = [], [], 0
+    for f in factors:
+        n_pairs = len(slot_pairs(len(f.slots)))
+        block_class.append(tuple(c for c, _ in located[k : k + n_pairs]))
+        block_index.append(tuple(jnp.asarray(i, jnp.int32) for _, i in located[k : k + n_pairs]))
+        k += n_pairs
+    schur = None
+    if eliminate is not None:
+        from .schur import build_schur
 
-    def position(r: np.ndarray, c: np.ndarray) -> np.ndarray:
-        return np.searchsorted(keys, r.astype(np.int64) * size + c)
-
-    pos_np = [[position(r, c) for r, c in pairs] for pairs in entry_blocks]
-    block_pos = tuple(tuple(jnp.asarray(p, jnp.int32) for p in pairs) for pairs in pos_np)
-    flat_pos = np.concatenate([p.reshape(-1) for pairs in pos_np for p in pairs])
-    order = np.argsort(flat_pos, kind="stable")
+        if eliminate not in type_of:
+            raise KeyError(
+                f"FactorGraph(eliminate={eliminate!r}): not a variable type; expected one of "
+                f"{list(names)}"
+            )
+        schur = build_schur(factors, names, counts, dims, eliminate)
     return Structure(
         names=names,
         counts=counts,
         dims=dims,
         offsets=offsets,
-        size=size,
-        nnz=int(keys.size),
+        size=offsets[-1],
         free=tuple(free),
-        csr_indices=jnp.asarray(csr_cols, jnp.int32),
-        csr_indptr=jnp.asarray(indptr, jnp.int32),
-        diag_pos=jnp.asarray(position(diag, diag), jnp.int32),
-        block_pos=block_pos,
-        contribution_order=jnp.asarray(order, jnp.int32),
-        contribution_pos=jnp.asarray(flat_pos[order], jnp.int32),
+        pattern=pattern,
+        block_class=tuple(block_class),
+        block_index=tuple(block_index),
+        schur=schur,
     )
 
 
@@ -347,22 +358,26 @@ def hessian_vector(graph: FactorGraph, lin: Linearization, v: Array) -> Array:
     return join(out)
 
 
-def csr_values(graph: FactorGraph, lin: Linearization) -> Array:
-    """Values of H in the precomputed CSR pattern (nnz,).
-
-    All block products are concatenated and summed into their CSR positions with one
-    sorted ``segment_sum`` (the permutation is precomputed with the pattern)."""
+def hessian_blocks(graph: FactorGraph, lin: Linearization) -> list[Array]:
+    """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``."""
     st = graph.structure
-    parts = [
-        jnp.einsum("mri,mrj->mij", a, b).reshape(-1)
-        for jac in lin.jacobians
-        for a in jac
-        for b in jac
-    ]
-    contributions = jnp.concatenate(parts)[st.contribution_order]
-    return jax.ops.segment_sum(
-        contributions, st.contribution_pos, num_segments=st.nnz, indices_are_sorted=True
-    )
+    contributions = []
+    for f, jac, classes, indices in zip(
+        graph.factors, lin.jacobians, st.block_class, st.block_index, strict=True
+    ):
+        prods: dict[tuple[int, int], Array] = {}
+        for (s, t), c, idx in zip(slot_pairs(len(f.slots)), classes, indices, strict=True):
+            # J_sᵀJ_t; the block (t, s) below the diagonal is the transpose of (s, t)
+            prods[s, t] = (
+                prods[t, s].mT if t < s else jnp.einsum("mri,mrj->mij", jac[s], jac[t])
+            )
+            contributions.append((c, idx, prods[s, t]))
+    return scatter_blocks(st.pattern.zeros(lin.cost.dtype), contributions)
+
+
+def csr_values(graph: FactorGraph, lin: Linearization) -> Array:
+    """Values of H in the precomputed CSR pattern (nnz,)."""
+    return graph.structure.pattern.csr(hessian_blocks(graph, lin))
 
 
 def retract_all(graph: FactorGraph, variables: Variables, step: Array) -> Variables:

@@ -1,11 +1,18 @@
 """Levenberg–Marquardt on factor graphs (sparse path), one ``lax.while_loop``.
 
-Damping: (H + λ·D) δ = −g with D = diag(H) clamped to [1e-6, 1e32] (Marquardt scaling,
-as GTSAM's ``diagonalDamping``). Step acceptance uses the gain ratio
-ρ = (F(x) − F(x ⊕ δ)) / (L(0) − L(δ)); λ follows Nielsen's rule: accepted →
-λ·max(1/3, 1 − (2ρ − 1)³), rejected → λ·ν, ν ← 2ν. Damping never compounds across
-accepted steps. The loop only ever moves to an accepted (lower-cost) point, so the
-returned estimate is the best one seen.
+Each iteration solves the damped normal equations (H + λ·D) δ = −g and evaluates the cost
+at X ⊕ δ. Damping D: ``"identity"`` (λ·I, GTSAM's default) or ``"diagonal"`` (Marquardt
+scaling, D = diag(H) clamped to [1e-6, 1e32], as Ceres and GTSAM's ``diagonalDamping``).
+A step is accepted when it lowers the cost; the gain ratio
+ρ = (F(x) − F(x ⊕ δ)) / (L(0) − L(δ)) drives λ: with ``lambda_factor`` f (GTSAM's rule)
+λ ← λ/f on success and λ·f on failure; with ``lambda_factor=None`` Nielsen's rule
+(λ·max(1/3, 1 − (2ρ − 1)³) on success, λ·ν with ν doubling on failure). The loop only
+ever moves to an accepted (lower-cost) point, so the returned estimate is the best seen.
+
+Stopping: an accepted step lowering the cost by at most ``rtol``·cost or ``atol``; a
+model decrease L(0) − L(δ) at the cost's floating-point resolution (16·eps·cost: nothing
+measurable is left, whether the step was accepted or not); ‖g‖∞ ≤ ``gtol``; ``max_steps``
+linear solves; λ beyond ``lambda_max`` (stalled).
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from .problem import (
     linearize,
     retract_all,
 )
+from .schur import schur_step
 
 Array = jax.Array
 
@@ -37,6 +45,8 @@ STATUS_NAMES = {
     STALLED: "stalled",
     NON_FINITE: "non_finite",
 }
+LINEAR_SOLVERS = ("auto", "sparse", "pcg", "dense", "schur")
+DENSE_MAX = 600  # "auto": dense Cholesky up to this many tangent dimensions
 
 
 class GraphSolution(eqx.Module):
@@ -44,6 +54,7 @@ class GraphSolution(eqx.Module):
 
     ``status``: 0 converged, 1 max_steps, 2 stalled (damping exhausted; the estimate is
     the best found), 3 non_finite (a non-finite cost or step appeared; best estimate kept).
+    ``iterations``: linear solves (accepted and rejected trials).
     ``history``: cost after each iteration (NaN beyond ``iterations``)."""
 
     variables: Variables
@@ -59,16 +70,24 @@ class GraphSolution(eqx.Module):
         return STATUS_NAMES[int(self.status)]
 
 
+def default_rtol(dtype: Any) -> float:
+    """1e-10 in float64; 1e-6 (about 8 eps) in float32."""
+    return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-6
+
+
 def solve(
     graph: FactorGraph,
     variables: Variables | None = None,
     *,
     linear_solver: str = "auto",
     max_steps: int = 100,
-    rtol: float = 1e-10,
+    rtol: float | None = None,
     atol: float = 0.0,
     gtol: float = 0.0,
+    damping: str = "identity",
     lambda_init: float = 1e-5,
+    lambda_factor: float | None = 10.0,
+    lambda_min: float = 1e-15,
     lambda_max: float = 1e16,
     cg_rtol: float = 1e-8,
     cg_max_iters: int = 2000,
@@ -79,25 +98,44 @@ def solve(
     Args:
         graph: the :class:`FactorGraph` (its ``variables`` are the default start).
         variables: optional starting values with the same structure.
-        linear_solver: ``"sparse"`` (sparse LU via SciPy, CPU), ``"pcg"`` (block-Jacobi
-            preconditioned CG, any backend), ``"dense"`` (Cholesky, small problems) or
-            ``"auto"`` (dense up to 600 tangent dimensions, sparse above).
-        max_steps: maximum LM iterations (accepted or rejected trials).
+        linear_solver: ``"sparse"`` (sparse Cholesky, CHOLMOD on the host through a
+            callback; its symbolic analysis is reused across iterations), ``"pcg"``
+            (block-Jacobi preconditioned CG, any backend), ``"dense"`` (Cholesky, small
+            problems), ``"schur"`` (eliminate the graph's ``eliminate`` variable type, then
+            a dense or sparse Cholesky of the reduced system) or ``"auto"`` (schur when the
+            graph eliminates a type, else dense up to 600 tangent dimensions, else sparse).
+        max_steps: maximum LM iterations (linear solves, accepted or rejected).
         rtol, atol: stop when an accepted step lowers the cost by less than
-            ``rtol·cost`` or ``atol``.
+            ``rtol·cost`` or ``atol``; ``rtol=None``: :func:`default_rtol` of the dtype.
         gtol: stop when ‖g‖∞ ≤ gtol.
+        damping: ``"identity"`` (λ·I) or ``"diagonal"`` (λ·diag(H), Marquardt).
+        lambda_init, lambda_factor, lambda_min, lambda_max: damping schedule (module
+            docstring); ``lambda_factor=None`` selects Nielsen's rule.
+        cg_rtol, cg_max_iters: inner tolerance and budget of ``"pcg"``.
         verbose: print one line per iteration from inside jit.
     """
-    if linear_solver not in ("auto", "sparse", "pcg", "dense"):
+    if linear_solver not in LINEAR_SOLVERS:
         raise ValueError(
-            f"solve(linear_solver={linear_solver!r}): expected 'auto', 'sparse', 'pcg' or 'dense'"
+            f"solve(linear_solver={linear_solver!r}): expected one of {LINEAR_SOLVERS}"
+        )
+    if damping not in ("identity", "diagonal"):
+        raise ValueError(f"solve(damping={damping!r}): expected 'identity' or 'diagonal'")
+    if lambda_factor is not None and not lambda_factor > 1.0:
+        raise ValueError(f"solve(lambda_factor={lambda_factor!r}): expected a float > 1 or None")
+    st = graph.structure
+    if linear_solver == "schur" and st.schur is None:
+        raise ValueError(
+            "solve(linear_solver='schur'): the graph eliminates no variable type; build it "
+            "with FactorGraph(..., eliminate=TYPE_NAME)"
         )
     if linear_solver == "auto":
-        linear_solver = "dense" if graph.size <= 600 else "sparse"
+        linear_solver = ("schur" if st.schur is not None
+                         else "dense" if graph.size <= DENSE_MAX else "sparse")
     x0 = graph.variables if variables is None else variables
-    st = graph.structure
     lin0 = linearize(graph, x0)
     dtype = lin0.cost.dtype
+    rtol = default_rtol(dtype) if rtol is None else rtol
+    eps = jnp.finfo(dtype).eps
     free_flat = jnp.concatenate(
         [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]
     ).astype(dtype)
@@ -108,28 +146,38 @@ def solve(
         "information matrices and initial values)",
     )
 
+    def scale(diag, lam):
+        if damping == "identity":
+            return lam * jnp.ones_like(diag)
+        return lam * jnp.clip(diag, 1e-6, 1e32)
+
     def solve_step(lin, g, lam):
         if linear_solver == "pcg":
             blocks = block_diagonal(graph, lin)
             damped = tuple(
                 b
-                + lam * jax.vmap(jnp.diag)(jnp.clip(jax.vmap(jnp.diag)(b), 1e-6, 1e32))
-                + jax.vmap(jnp.diag)(1.0 - jnp.repeat(f[:, None], b.shape[-1], 1).astype(dtype))
+                + jax.vmap(jnp.diag)(
+                    scale(jax.vmap(jnp.diag)(b), lam)
+                    + 1.0 - jnp.repeat(f[:, None], b.shape[-1], 1).astype(dtype)
+                )
                 for b, f in zip(blocks, st.free, strict=True)
             )
             diag = jnp.concatenate([jax.vmap(jnp.diag)(b).reshape(-1) for b in blocks])
-            dvec = jnp.clip(diag, 1e-6, 1e32)
+            dvec = scale(diag, lam)
 
             def matvec(v):
-                return hessian_vector(graph, lin, v) + lam * dvec * v + (1.0 - free_flat) * v
+                return hessian_vector(graph, lin, v) + dvec * v + (1.0 - free_flat) * v
 
-            step, its = linear.solve_pcg(
+            return linear.solve_pcg(
                 matvec, -g, linear.block_jacobi(damped), rtol=cg_rtol, max_iters=cg_max_iters
             )
-            return step, its
+        if linear_solver == "schur":
+            reduced = st.schur.pattern.size
+            direct = linear.solve_dense if reduced <= DENSE_MAX else linear.solve_sparse_direct
+            return schur_step(graph, lin, g, lambda d: scale(d, lam), direct), jnp.asarray(0)
         data = csr_values(graph, lin)
         diag = data[st.diag_pos]
-        data = data.at[st.diag_pos].add(lam * jnp.clip(diag, 1e-6, 1e32) + (1.0 - free_flat))
+        data = data.at[st.diag_pos].add(scale(diag, lam) + (1.0 - free_flat))
         solver = linear.solve_sparse_direct if linear_solver == "sparse" else linear.solve_dense
         return solver(data, st.csr_indices, st.csr_indptr, -g), jnp.asarray(0)
 
@@ -149,20 +197,27 @@ def solve(
         finite = jnp.isfinite(lin_new.cost) & jnp.all(jnp.isfinite(step))
         rho = actual / jnp.where(predicted > 0, predicted, 1.0)
         accept = finite & (predicted > 0) & (actual > 0)
-        lam_acc = lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-        new_lam = jnp.where(accept, lam_acc, lam * nu)
-        new_nu = jnp.where(accept, 2.0, nu * 2.0)
+        if lambda_factor is None:  # Nielsen
+            lam_acc = lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            lam_rej = jnp.maximum(lam, lambda_min) * nu
+            new_nu = jnp.where(accept, 2.0, nu * 2.0)
+        else:
+            lam_acc = lam / lambda_factor
+            lam_rej = jnp.maximum(lam, lambda_min) * lambda_factor
+            new_nu = nu
+        new_lam = jnp.where(accept, jnp.maximum(lam_acc, lambda_min), lam_rej)
         pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(accept, u, v), a, b)  # noqa: E731
         x_next = pick(x_new, x)
         lin_next = pick(lin_new, lin)
         g_next = jnp.where(accept, gradient(graph, lin_new), g)
         small_decrease = accept & ((actual <= rtol * lin.cost) | (actual <= atol))
+        at_resolution = finite & (predicted <= 16 * eps * jnp.abs(lin.cost))
         small_grad = jnp.max(jnp.abs(g_next)) <= gtol
         status = jnp.where(
             ~jnp.isfinite(lin_new.cost) & (new_lam >= lambda_max),
             NON_FINITE,
             jnp.where(
-                small_decrease | small_grad,
+                small_decrease | at_resolution | small_grad,
                 CONVERGED,
                 jnp.where(
                     new_lam >= lambda_max, STALLED, jnp.where(k + 1 >= max_steps, MAX_STEPS, -1)
@@ -205,7 +260,9 @@ def solve(
         history=jnp.full((max_steps,), jnp.nan, dtype),
         cg=jnp.asarray(0),
     )
-    init["status"] = jnp.where(jnp.max(jnp.abs(init["g"])) <= gtol, CONVERGED, -1)
+    init["status"] = jnp.where(
+        (jnp.max(jnp.abs(init["g"])) <= gtol) | (max_steps == 0), CONVERGED, -1
+    )
     out = jax.lax.while_loop(cond, body, init)
     return GraphSolution(
         variables=out["x"],

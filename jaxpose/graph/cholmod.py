@@ -1,0 +1,205 @@
+"""Host-side sparse Cholesky that reuses its symbolic analysis (CHOLMOD through ctypes).
+
+The ``cholespy`` package (a declared dependency) ships a complete CHOLMOD (supernodal
+factorisation, AMD/METIS orderings), but its Python API re-runs the fill-reducing ordering
+and the symbolic analysis and then a simplicial factorisation on every call. Levenberg–
+Marquardt factorises matrices of one fixed pattern over and over, so this module calls
+CHOLMOD's C entry points in that library directly: ``cholmod_analyze`` once per sparsity
+pattern (kept in a small cache keyed by the pattern), ``cholmod_factorize`` (numeric only,
+supernodal LLᵀ) and ``cholmod_solve`` per call.
+
+The ctypes structure layouts are CHOLMOD's public ``cholmod_sparse``/``cholmod_dense``
+structs and the leading fields of ``cholmod_common``/``cholmod_factor``; they are checked
+when the library is loaded (``cholmod_start``'s documented defaults must read back at their
+offsets, and a small SPD and a non-SPD system must solve/fail as expected). On any mismatch
+:func:`available` is False and callers use cholespy's public API instead.
+
+Matrices are given as symmetric CSR (full pattern, sorted column indices); CHOLMOD reads
+the same arrays as CSC and uses one triangle (``stype = 1``).
+"""
+
+from __future__ import annotations
+
+import atexit
+import ctypes
+import glob
+import os
+import struct
+import threading
+import zlib
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+_SIZE_T, _VOIDP, _INT = ctypes.c_size_t, ctypes.c_void_p, ctypes.c_int
+CACHE_SIZE = 4  # sparsity patterns whose symbolic factorisation is kept
+
+
+class _Sparse(ctypes.Structure):
+    _fields_ = [("nrow", _SIZE_T), ("ncol", _SIZE_T), ("nzmax", _SIZE_T), ("p", _VOIDP),
+                ("i", _VOIDP), ("nz", _VOIDP), ("x", _VOIDP), ("z", _VOIDP), ("stype", _INT),
+                ("itype", _INT), ("xtype", _INT), ("dtype", _INT), ("sorted", _INT),
+                ("packed", _INT)]
+
+
+class _Dense(ctypes.Structure):
+    _fields_ = [("nrow", _SIZE_T), ("ncol", _SIZE_T), ("nzmax", _SIZE_T), ("d", _SIZE_T),
+                ("x", _VOIDP), ("z", _VOIDP), ("xtype", _INT), ("dtype", _INT)]
+
+
+# cholmod_common: offsets of leading fields (unchanged since CHOLMOD 1.x) and their defaults
+_DEFAULTS = (("d", 0, 0.0), ("d", 8, 1.2), ("d", 16, 1.2), ("Q", 24, 5), ("Q", 32, 8),
+             ("d", 40, 40.0), ("i", 48, 1), ("d", 80, 0.8), ("d", 88, 0.1), ("d", 96, 0.05),
+             ("Q", 104, 4), ("Q", 112, 16), ("Q", 120, 48), ("i", 144, 3))
+_PRINT_OFFSET, _SUPERNODAL_OFFSET, _SUPERNODAL = 144, 48, 2
+_REAL, _INT_INDEX, _DOUBLE, _SOLVE_A = 1, 0, 0, 0
+
+
+class _Library:
+    """The loaded CHOLMOD and one ``cholmod_common`` (all calls hold ``lock``)."""
+
+    def __init__(self, path: str):
+        lib = ctypes.CDLL(path)
+        lib.cholmod_start.argtypes = [_VOIDP]
+        lib.cholmod_analyze.restype = _VOIDP
+        lib.cholmod_analyze.argtypes = [ctypes.POINTER(_Sparse), _VOIDP]
+        lib.cholmod_factorize.argtypes = [ctypes.POINTER(_Sparse), _VOIDP, _VOIDP]
+        lib.cholmod_solve.restype = ctypes.POINTER(_Dense)
+        lib.cholmod_solve.argtypes = [_INT, _VOIDP, ctypes.POINTER(_Dense), _VOIDP]
+        lib.cholmod_free_dense.argtypes = [ctypes.POINTER(ctypes.POINTER(_Dense)), _VOIDP]
+        lib.cholmod_free_factor.argtypes = [ctypes.POINTER(_VOIDP), _VOIDP]
+        lib.cholmod_finish.argtypes = [_VOIDP]
+        self.lib = lib
+        self.common = ctypes.create_string_buffer(1 << 16)  # sizeof(cholmod_common) < 8 KiB
+        if not lib.cholmod_start(self.common):
+            raise OSError("cholmod_start failed")
+        raw = self.common.raw
+        for fmt, off, want in _DEFAULTS:
+            if struct.unpack_from(fmt, raw, off)[0] != want:
+                raise OSError(f"unexpected cholmod_common layout at offset {off}")
+        struct.pack_into("i", self.common, _PRINT_OFFSET, 0)  # failures are reported by value
+        # always LLᵀ (supernodal): a non-positive pivot stops it, so "not SPD" is detected
+        struct.pack_into("i", self.common, _SUPERNODAL_OFFSET, _SUPERNODAL)
+        self.lock = threading.Lock()
+        self.cache: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, int]] = OrderedDict()
+
+    def _matrix(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray) -> _Sparse:
+        n = indptr.shape[0] - 1
+        return _Sparse(n, n, data.shape[0], indptr.ctypes.data, indices.ctypes.data, None,
+                       data.ctypes.data, None, 1, _INT_INDEX, _REAL, _DOUBLE, 1, 1)
+
+    def _symbolic(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray) -> int:
+        key = (indptr.shape[0], indices.shape[0], zlib.crc32(indptr), zlib.crc32(indices))
+        hit = self.cache.get(key)
+        if hit is not None and np.array_equal(hit[0], indptr) and np.array_equal(hit[1], indices):
+            self.cache.move_to_end(key)
+            return hit[2]
+        factor = self.lib.cholmod_analyze(ctypes.byref(self._matrix(data, indices, indptr)),
+                                          self.common)
+        if not factor:
+            raise MemoryError("cholmod_analyze failed")
+        if hit is not None:
+            self._free(hit[2])
+        self.cache[key] = (indptr.copy(), indices.copy(), factor)
+        while len(self.cache) > CACHE_SIZE:
+            self._free(self.cache.popitem(last=False)[1][2])
+        return factor
+
+    def _free(self, factor: int) -> None:
+        self.lib.cholmod_free_factor(ctypes.byref(_VOIDP(factor)), self.common)
+
+    def solve(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray,
+              b: np.ndarray) -> np.ndarray:
+        n = indptr.shape[0] - 1
+        with self.lock:
+            factor = self._symbolic(data, indices, indptr)
+            self.lib.cholmod_factorize(ctypes.byref(self._matrix(data, indices, indptr)),
+                                       factor, self.common)
+            _, minor = struct.unpack("QQ", ctypes.string_at(factor, 16))  # L->n, L->minor
+            if minor < n:  # not positive definite
+                return np.full(n, np.nan)
+            rhs = _Dense(n, 1, n, n, b.ctypes.data, None, _REAL, _DOUBLE)
+            out = self.lib.cholmod_solve(_SOLVE_A, factor, ctypes.byref(rhs), self.common)
+            if not out:
+                return np.full(n, np.nan)
+            x = np.ctypeslib.as_array(ctypes.cast(out.contents.x, ctypes.POINTER(ctypes.c_double)),
+                                      (n,)).copy()
+            self.lib.cholmod_free_dense(ctypes.byref(out), self.common)
+            return x
+
+    def clear(self) -> None:
+        """Free the cached factorisations."""
+        with self.lock:
+            while self.cache:
+                self._free(self.cache.popitem()[1][2])
+
+    def close(self) -> None:
+        self.clear()
+        with self.lock:
+            self.lib.cholmod_finish(self.common)
+
+
+def _self_test(lib: _Library) -> None:
+    """A 3×3 SPD system must solve exactly and an indefinite one must be reported."""
+    a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+    rows, cols = np.nonzero(a)
+    indptr = np.searchsorted(rows, np.arange(4)).astype(np.int32)
+    indices = cols.astype(np.int32)
+    b = np.array([1.0, 2.0, 3.0])
+    x = lib.solve(a[rows, cols].copy(), indices, indptr, b)
+    if not np.allclose(x, np.linalg.solve(a, b), rtol=1e-12, atol=0):
+        raise OSError("CHOLMOD self-test: wrong solution")
+    a[2, 2] = -2.0
+    if not np.all(np.isnan(lib.solve(a[rows, cols].copy(), indices, indptr, b))):
+        raise OSError("CHOLMOD self-test: an indefinite matrix was not reported")
+    lib.clear()
+
+
+_LIB: _Library | None = None
+_LOAD_ERROR: str | None = None
+_LOADED = False
+
+
+def _load() -> _Library | None:
+    global _LIB, _LOAD_ERROR, _LOADED
+    if _LOADED:
+        return _LIB
+    _LOADED = True
+    try:
+        import cholespy
+
+        paths = glob.glob(os.path.join(os.path.dirname(cholespy.__file__), "_cholespy_core*"))
+        if not paths:
+            raise OSError("cholespy's compiled core not found")
+        lib = _Library(paths[0])
+        _self_test(lib)
+        _LIB = lib
+        atexit.register(lib.close)
+    except (ImportError, OSError, AttributeError) as err:  # no usable CHOLMOD
+        _LOAD_ERROR = f"{type(err).__name__}: {err}"
+    return _LIB
+
+
+def available() -> bool:
+    """True when CHOLMOD could be loaded and passed its layout checks."""
+    return _load() is not None
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`available` is False (None when it is True)."""
+    _load()
+    return _LOAD_ERROR
+
+
+def solve(data: Any, indices: Any, indptr: Any, b: Any) -> np.ndarray:
+    """Solve A x = b for SPD A in symmetric CSR (float64 result; NaN if A is not SPD).
+
+    The symbolic factorisation of the pattern (``indices``, ``indptr``) is cached."""
+    lib = _load()
+    if lib is None:
+        raise RuntimeError(f"CHOLMOD is not available ({_LOAD_ERROR})")
+    return lib.solve(np.ascontiguousarray(data, np.float64),
+                     np.ascontiguousarray(indices, np.int32),
+                     np.ascontiguousarray(indptr, np.int32),
+                     np.ascontiguousarray(b, np.float64))
