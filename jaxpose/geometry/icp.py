@@ -41,6 +41,7 @@ from ._util import (
     Status,
     batch_shape,
     check_group,
+    exp_act2,
     flatten_batch,
     points_array,
     same_count,
@@ -82,9 +83,9 @@ def _plane_implicit(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Arr
     Hessian held constant): the value of T, the implicit-function derivative."""
     data_sg = jax.lax.stop_gradient((src, q, nrm, w))
 
-    def cost(delta: Array) -> Array:
+    def cost(delta: Array) -> Array:  # Exp(δ)·T·p to second order (exact Hessian at 0)
         s_, q_, n_, w_ = data_sg
-        moved = SE3.exp(delta).compose(SE3(t)).act(s_)
+        moved = exp_act2(delta, SE3(t).act(s_))
         return 0.5 * jnp.sum(w_ * jnp.square(jnp.sum(n_ * (moved - q_), -1)))
 
     h = jax.hessian(cost)(jnp.zeros((6,), t.dtype))

@@ -49,6 +49,7 @@ from ._util import (
     Array,
     Status,
     batch_shape,
+    exp_act2,
     flatten_batch,
     matrix_array,
     points_array,
@@ -274,10 +275,11 @@ def _implicit_tangent(t: Array, pw: Array, uv: Array, k: Array) -> Array:
     constant; g = Jᵀ r carries the derivatives)."""
     ts = SE3(jax.lax.stop_gradient(t))
     data = (pw, uv, k)
-    data_sg = jax.lax.stop_gradient(data)
+    pw_sg, uv_sg, k_sg = jax.lax.stop_gradient(data)
 
-    def cost(delta: Array) -> Array:
-        return 0.5 * jnp.sum(jnp.square(_residual(ts.retract(delta), data_sg)))
+    def cost(delta: Array) -> Array:  # T·Exp(δ)·p to second order (exact Hessian at 0)
+        h = ts.act(exp_act2(delta, pw_sg)) @ k_sg.T
+        return 0.5 * jnp.sum(jnp.square(h[:, :2] / h[:, 2:] - uv_sg))
 
     zero = jnp.zeros((6,), t.dtype)
     h = jax.hessian(cost)(zero)
