@@ -1,7 +1,8 @@
 """Control: time-varying LQR (Riccati in ``lax.scan``), iLQR with box control limits
 (projected Newton), and differentiable MPC (implicit or unrolled gradients).
 
-Status codes of solutions: 0 converged, 1 max iterations, 2 non-finite, 3 stalled.
+Status codes of solutions: ``CONVERGED`` (0), ``MAX_ITER`` (1), ``NONFINITE`` (2),
+``STALLED`` (3); ``STATUS_NAMES`` maps each code to its description.
 """
 
 from .boxqp import BoxQPResult, box_qp

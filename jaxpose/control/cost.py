@@ -25,9 +25,11 @@ class Cost(eqx.Module):
     :meth:`terminal`. Array fields are differentiable parameters."""
 
     def stage(self, x: Array, u: Array, t: Any) -> Array:
+        """Scalar stage cost ℓ(x, u, t) for one state (n,) and input (m,) at step ``t``."""
         raise NotImplementedError(f"{type(self).__name__} must implement stage")
 
     def terminal(self, x: Array) -> Array:
+        """Scalar terminal cost ℓ_T(x) of the final state (n,) (default 0)."""
         return jnp.zeros((), x.dtype)
 
     def quadratize(self, x: Array, u: Array, t: Any) -> tuple[Array, Array]:

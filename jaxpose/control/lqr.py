@@ -289,6 +289,10 @@ class LQR(eqx.Module):
         self.system, self.cost, self.horizon = system, cost, check_horizon(horizon)
 
     def __call__(self, x0: Any, u_lower: Any = None, u_upper: Any = None) -> LQRSolution:
+        """Solve the LQ problem from ``x0`` (n,) or a batch (…, n) (alias of :func:`lqr`).
+
+        LQR has no control limits: passing ``u_lower``/``u_upper`` raises ``ValueError``.
+        """
         if u_lower is not None or u_upper is not None:
             raise ValueError(
                 "u_lower/u_upper: LQR has no control limits; use MPC or ilqr, "

@@ -281,6 +281,11 @@ class MPC(eqx.Module):
         raise ValueError("u_init: needed to know the input size m for this system/cost")
 
     def __call__(self, x0: Any, u_init: Any = None) -> MPCSolution:
+        """Solve the horizon-``T`` problem from ``x0`` (n,) or a batch (…, n) (vmapped).
+
+        ``u_init`` (T, m) or (…, T, m) warm-starts the controls (zeros by default). Returns an
+        :class:`MPCSolution` whose ``u[0]`` is the control to apply.
+        """
         x0 = as_array(x0, "x0")
         if x0.ndim == 0:
             raise ValueError("x0: expected a state (n,) or a batch (..., n), got a scalar")

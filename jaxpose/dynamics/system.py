@@ -150,10 +150,12 @@ class LTI(System):
 
     @property
     def state_dim(self) -> int:
+        """State size n (``A.shape[-1]``)."""
         return self.A.shape[-1]
 
     @property
     def input_dim(self) -> int:
+        """Input size m (``B.shape[-1]``)."""
         return self.B.shape[-1]
 
     def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:
@@ -221,14 +223,17 @@ class LTV(System):
 
     @property
     def horizon(self) -> int:
+        """Number of time steps T covered by the stacked matrices (``A.shape[0]``)."""
         return self.A.shape[0]
 
     @property
     def state_dim(self) -> int:
+        """State size n (``A.shape[-1]``)."""
         return self.A.shape[-1]
 
     @property
     def input_dim(self) -> int:
+        """Input size m (``B.shape[-1]``)."""
         return self.B.shape[-1]
 
     def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:

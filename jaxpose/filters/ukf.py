@@ -91,6 +91,10 @@ class UKF(eqx.Module):
         return pts, offs, wm, wc
 
     def predict(self, x: Any, P: Array, u: Array, t: Any = 0) -> tuple[Any, Array]:
+        """Propagate the sigma points through ``f(·, u, t)``: predicted mean and ``P⁻`` (k, k) + Q.
+
+        ``x`` is an array (n,) or a Lie group element; ``P`` (k, k) in its tangent coordinates.
+        """
         ts = tangent_space(x)
         check_noise_dim(self.Q, ts.dim, "Q", "state tangent size")
         pts, _, wm, wc = self.sigma_points(x, P)
@@ -100,6 +104,10 @@ class UKF(eqx.Module):
         return mean, symmetrize(Pp)
 
     def update(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
+        """Correct ``(x, P)`` with a measurement ``y`` (p,) of ``h(x, u, t)`` (sigma points).
+
+        Returns the posterior estimate and covariance (k, k).
+        """
         ts = tangent_space(x)
         pts, offs, wm, wc = self.sigma_points(x, P)
         obs = jax.vmap(lambda s: self.model.observation(s, u, t))(pts)
@@ -113,6 +121,7 @@ class UKF(eqx.Module):
         return x_new, symmetrize(P - K @ Pyy @ K.T)
 
     def step(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
+        """Predict with ``u`` then update with ``y``; also ``ukf(x, P, y, u, t)``."""
         xp, Pp = self.predict(x, P, u, t)
         return self.update(xp, Pp, y, u, t)
 

@@ -42,6 +42,7 @@ class KDTree(NamedTuple):
 
     @property
     def depth(self) -> int:
+        """Number of tree levels, ⌊log₂ M⌋ + 1 (0 for an empty tree)."""
         return num_levels(self.points.shape[0])
 
 

@@ -32,7 +32,9 @@ from ._util import Array, batch_shape, flatten_batch, points_array, safe_norm
 from .kdtree import build_kdtree, query_kdtree
 
 DEFAULT_BUDGET = 1 << 22  # elements of the (tile, M) distance block (16 MiB in float32)
+"""Default ``budget``: elements of one (tile, M) block of distances (16 MiB in float32)."""
 AUTO_KDTREE_PAIRS = 1 << 27  # "auto" switches to the k-d tree on CPU from ~11k × 11k
+"""``method="auto"`` uses the k-d tree on CPU when N·M exceeds this (from ~11k × 11k)."""
 
 
 class KNNResult(NamedTuple):

@@ -2,8 +2,8 @@
 
 Groups: :class:`SO3`, :class:`SE3`, :class:`Sim3`, :class:`RxSO3`, :class:`SO2`,
 :class:`SE2`; algebras: :class:`so3`, :class:`se3`, :class:`sim3`, :class:`rxso3`,
-:class:`so2`, :class:`se2`. See ``docs/conventions.md`` for layouts and Jacobian
-conventions.
+:class:`so2`, :class:`se2`; ``GROUPS`` and ``ALGEBRAS`` are tuples of these classes in
+that order. See ``docs/conventions.md`` for layouts and Jacobian conventions.
 """
 
 from . import convert, manifold, series

@@ -135,6 +135,7 @@ class LieAlgebra(eqx.Module):
 
     @property
     def dtype(self) -> Any:
+        """Floating dtype of ``data``."""
         return self.data.dtype
 
     def __getitem__(self: A, idx: Any) -> A:
@@ -146,6 +147,7 @@ class LieAlgebra(eqx.Module):
         return self.shape[0]
 
     def reshape(self: A, *shape: int) -> A:
+        """Reshape the batch axes (the tangent axis is kept): ``a.reshape(2, 3)``."""
         shape = _shape_args(shape)
         return type(self)(self.data.reshape(*shape, self.tangent_dim))
 
@@ -175,6 +177,7 @@ class LieAlgebra(eqx.Module):
         return self.group(self.group._exp(self.data))
 
     def Exp(self) -> LieGroup:  # noqa: N802 - PyPose spelling
+        """PyPose spelling of :meth:`exp`."""
         return self.exp()
 
     def hat(self) -> Array:
@@ -202,6 +205,7 @@ class LieAlgebra(eqx.Module):
         return self.group._jl_inv(self.data)
 
     def Jr(self) -> Array:  # noqa: N802 - PyPose spelling
+        """PyPose spelling of :meth:`jr`."""
         return self.jr()
 
 
@@ -238,6 +242,7 @@ class LieGroup(eqx.Module):
 
     @property
     def dtype(self) -> Any:
+        """Floating dtype of ``data``."""
         return self.data.dtype
 
     def __getitem__(self: G, idx: Any) -> G:
@@ -249,10 +254,12 @@ class LieGroup(eqx.Module):
         return self.shape[0]
 
     def reshape(self: G, *shape: int) -> G:
+        """Reshape the batch axes (the storage axis is kept): ``X.reshape(2, 3)``."""
         shape = _shape_args(shape)
         return type(self)(self.data.reshape(*shape, self.storage_dim))
 
     def broadcast_to(self: G, shape: Sequence[int]) -> G:
+        """Broadcast to batch ``shape`` (data shape ``(*shape, storage_dim)``)."""
         return type(self)(jnp.broadcast_to(self.data, (*shape, self.storage_dim)))
 
     # -- constructors ----------------------------------------------------------------
@@ -315,6 +322,7 @@ class LieGroup(eqx.Module):
         return self.algebra(self._log(self.data))
 
     def Log(self) -> LieAlgebra:  # noqa: N802 - PyPose spelling
+        """PyPose spelling of :meth:`log`."""
         return self.log()
 
     def inv(self: G) -> G:
@@ -322,6 +330,7 @@ class LieGroup(eqx.Module):
         return type(self)(self._inv(self.data))
 
     def Inv(self: G) -> G:  # noqa: N802 - PyPose spelling
+        """PyPose spelling of :meth:`inv`."""
         return self.inv()
 
     def compose(self: G, other: G) -> G:
@@ -342,6 +351,7 @@ class LieGroup(eqx.Module):
         return self._act_homogeneous(self.data, pts)
 
     def Act(self, points: Any) -> Array:  # noqa: N802 - PyPose spelling
+        """PyPose spelling of :meth:`act`."""
         return self.act(points)
 
     def __matmul__(self, other: Any) -> Any:
@@ -372,6 +382,7 @@ class LieGroup(eqx.Module):
         return self.algebra(matvec(self.adj_matrix(), data))
 
     def Adj(self, a: Any) -> LieAlgebra:  # noqa: N802 - PyPose spelling
+        """PyPose spelling of :meth:`adj`."""
         return self.adj(a)
 
     def adjT(self, a: Any) -> LieAlgebra:  # noqa: N802 - PyPose name
@@ -438,9 +449,11 @@ class LieGroup(eqx.Module):
 
     # -- components (overridden where they exist) -------------------------------------
     def translation(self) -> Array:
+        """Translation (…, point_dim); zeros for rotation-only groups."""
         return jnp.zeros((*self.shape, self.point_dim), self.dtype)
 
     def scale(self) -> Array:
+        """Scale (…,); ones for groups without a scale."""
         return jnp.ones(self.shape, self.dtype)
 
     # -- defaults for raw functions ------------------------------------------------------

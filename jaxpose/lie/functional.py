@@ -45,6 +45,7 @@ def log(x: LieGroup) -> LieAlgebra:
 
 
 def inv(x: LieGroup) -> LieGroup:
+    """Group inverse X⁻¹; same type and batch shape as ``x``."""
     return _group(x, "inv").inv()
 
 
@@ -74,36 +75,51 @@ def jinvp(x: LieGroup, a: Any) -> LieAlgebra:
 
 
 def jr(a: LieAlgebra) -> Array:
+    """Right Jacobian Jr(a) (…, d, d): Exp(a + δ) ≈ Exp(a)·Exp(Jr(a)·δ)."""
     return _algebra(a, "jr").jr()
 
 
 def jl(a: LieAlgebra) -> Array:
+    """Left Jacobian Jl(a) = Jr(−a) (…, d, d): Exp(a + δ) ≈ Exp(Jl(a)·δ)·Exp(a)."""
     return _algebra(a, "jl").jl()
 
 
 def jr_inv(a: LieAlgebra) -> Array:
+    """Inverse right Jacobian Jr(a)⁻¹ (…, d, d)."""
     return _algebra(a, "jr_inv").jr_inv()
 
 
 def jl_inv(a: LieAlgebra) -> Array:
+    """Inverse left Jacobian Jl(a)⁻¹ (…, d, d)."""
     return _algebra(a, "jl_inv").jl_inv()
 
 
 def hat(a: LieAlgebra) -> Array:
+    """Matrix form of an algebra element (…, n, n), e.g. [φ]× for so3."""
     return _algebra(a, "hat").hat()
 
 
 def matrix(x: LieGroup | LieAlgebra) -> Array:
+    """Matrix of a group element (…, n, n); for an algebra element, the matrix of ``Exp(a)``.
+
+    n = 3 for SO3 / RxSO3 (``s·R``), 4 for SE3 / Sim3, 2 for SO2, 3 for SE2.
+    """
     if isinstance(x, LieAlgebra):
         return x.matrix()
     return _group(x, "matrix").matrix()
 
 
 def from_matrix(group: type[LieGroup], m: Any, check: bool = True) -> LieGroup:
+    """Group element of type ``group`` from matrices (…, n, n).
+
+    ``check=True`` verifies at run time (``eqx.error_if``) that the rotation block is
+    orthonormal with det +1; ``check=False`` projects onto the group instead.
+    """
     return _group_type(group, "from_matrix").from_matrix(m, check=check)
 
 
 def identity(group: type[LieGroup], shape: Sequence[int] = (), dtype: Any = None) -> LieGroup:
+    """Identity element of ``group`` with batch ``shape`` (data shape ``(*shape, storage_dim)``)."""
     return _group_type(group, "identity").identity(shape, dtype)
 
 
@@ -111,14 +127,20 @@ def random(
     group: type[LieGroup], key: Array, shape: Sequence[int] = (), sigma: float = 1.0,
     dtype: Any = None,
 ) -> LieGroup:
+    """Random elements ``Exp(σ·n)``, n ~ N(0, I) in the tangent space, batch ``shape``.
+
+    ``key`` is an explicit ``jax.random`` key; ``sigma`` scales the tangent noise.
+    """
     return _group_type(group, "random").random(key, shape, sigma, dtype)
 
 
 def translation(x: LieGroup) -> Array:
+    """Translation part (…, 2) or (…, 3); zeros for rotation-only groups."""
     return _group(x, "translation").translation()
 
 
 def rotation(x: LieGroup) -> LieGroup:
+    """Rotation part as SO3 (3D groups) or SO2 (planar groups); raises ``TypeError`` otherwise."""
     x = _group(x, "rotation")
     if not hasattr(x, "rotation"):
         raise TypeError(f"rotation(x): {type(x).__name__} has no rotation part")
@@ -126,10 +148,12 @@ def rotation(x: LieGroup) -> LieGroup:
 
 
 def scale(x: LieGroup) -> Array:
+    """Scale s (…,) of Sim3 / RxSO3; ones for the other groups."""
     return _group(x, "scale").scale()
 
 
 def euler(x: LieGroup) -> Array:
+    """Roll-pitch-yaw ``[r, p, y]`` (…, 3) of a 3D rotation, R = Rz(y)·Ry(p)·Rx(r)."""
     x = _group(x, "euler")
     if not hasattr(x, "euler"):
         raise TypeError(f"euler(x): {type(x).__name__} has no 3D rotation")
@@ -137,20 +161,27 @@ def euler(x: LieGroup) -> Array:
 
 
 def from_euler(e: Any) -> LieGroup:
+    """SO3 from roll-pitch-yaw ``e`` (…, 3), R = Rz(y)·Ry(p)·Rx(r) (PyPose's ``euler2SO3``)."""
     from .so3 import SO3
 
     return SO3.from_euler(e)
 
 
 def normalize(x: LieGroup) -> LieGroup:
+    """Project the stored data back onto the group (unit quaternions, unit complex numbers)."""
     return _group(x, "normalize").normalize()
 
 
 def interpolate(x: LieGroup, y: LieGroup, t: Any) -> LieGroup:
+    """Geodesic interpolation ``x·Exp(t·Log(x⁻¹·y))``; ``t`` (…,) broadcasts with the batch."""
     return _group(x, "interpolate").interpolate(_group(y, "interpolate", "y"), t)
 
 
 def cumprod(x: LieGroup, axis: int = 0, left: bool = True) -> LieGroup:
+    """Cumulative product along batch ``axis`` (``jax.lax.associative_scan``).
+
+    ``left=True``: Yᵢ = Xᵢ·…·X₀ (PyPose's default); ``left=False``: Yᵢ = X₀·…·Xᵢ.
+    """
     return _group(x, "cumprod").cumprod(axis, left)
 
 

@@ -103,6 +103,7 @@ class RxSO3(LieGroup):
         return jnp.concatenate([quat.normalize(x[..., :4]), x[..., 4:]], -1)
 
     def rotation(self) -> SO3:
+        """Rotation part as SO3 (data (…, 4) = ``[qx, qy, qz, qw]``)."""
         return SO3(self.data[..., :4])
 
     def scale(self) -> Array:
@@ -110,6 +111,7 @@ class RxSO3(LieGroup):
         return self.data[..., 4]
 
     def euler(self) -> Array:
+        """Roll-pitch-yaw ``[r, p, y]`` (…, 3) of the rotation part."""
         return self.rotation().euler()
 
 

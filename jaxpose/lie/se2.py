@@ -135,6 +135,7 @@ class SE2(LieGroup):
         return self.data[..., :2]
 
     def rotation(self) -> SO2:
+        """Rotation part as SO2 (data (…, 2) = ``[cos θ, sin θ]``)."""
         return SO2(self.data[..., 2:])
 
     def angle(self) -> Array:

@@ -137,13 +137,16 @@ class SE3(LieGroup):
         return self.data[..., :3]
 
     def rotation(self) -> SO3:
+        """Rotation part as SO3 (data (…, 4) = ``[qx, qy, qz, qw]``)."""
         return SO3(self.data[..., 3:])
 
     def euler(self) -> Array:
+        """Roll-pitch-yaw ``[r, p, y]`` (…, 3) of the rotation part."""
         return self.rotation().euler()
 
     @classmethod
     def from_rotation_translation(cls, rotation: SO3, translation: Array) -> SE3:
+        """SE3 from an SO3 ``rotation`` (…) and a ``translation`` (…, 3); batch shapes broadcast."""
         t = jnp.asarray(translation, rotation.dtype)
         shape = jnp.broadcast_shapes(rotation.shape, t.shape[:-1])
         return cls(jnp.concatenate([jnp.broadcast_to(t, (*shape, 3)),

@@ -130,6 +130,7 @@ class Sim3(LieGroup):
         return self.data[..., :3]
 
     def rotation(self) -> SO3:
+        """Rotation part as SO3 (data (…, 4) = ``[qx, qy, qz, qw]``)."""
         return SO3(self.data[..., 3:7])
 
     def scale(self) -> Array:
@@ -137,6 +138,7 @@ class Sim3(LieGroup):
         return self.data[..., 7]
 
     def euler(self) -> Array:
+        """Roll-pitch-yaw ``[r, p, y]`` (…, 3) of the rotation part."""
         return self.rotation().euler()
 
     def rxso3(self) -> RxSO3:

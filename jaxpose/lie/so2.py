@@ -105,6 +105,7 @@ class SO2(LieGroup):
         return jnp.stack([jnp.stack([z, -t], -1), jnp.stack([t, z], -1)], -2)
 
     def rotation(self) -> SO2:
+        """The element itself (it is a rotation)."""
         return self
 
     def angle(self) -> Array:

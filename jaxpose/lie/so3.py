@@ -50,6 +50,7 @@ class SO3(LieGroup):
 
     # -- components --------------------------------------------------------------------
     def rotation(self) -> SO3:
+        """The element itself (it is a rotation)."""
         return self
 
     def euler(self) -> Array:

@@ -32,6 +32,16 @@ class Corrector(eqx.Module):
     """Base class. ``__call__(kernel, e (b, d), J (b, d, n)) -> (ẽ, J̃)`` per block b."""
 
     def __call__(self, kernel: Kernel, e: Array, jac: Array) -> tuple[Array, Array]:
+        """Corrected block residuals and Jacobians.
+
+        Args:
+            kernel: the robust kernel ρ.
+            e: whitened residual blocks (b, d).
+            jac: whitened Jacobian blocks (b, d, n).
+
+        Returns:
+            ``(ẽ, J̃)`` of shapes (b, d) and (b, d, n).
+        """
         raise NotImplementedError
 
 

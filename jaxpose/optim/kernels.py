@@ -38,12 +38,15 @@ class Kernel(eqx.Module):
     """Base class: ρ(s) with analytic first and second derivatives."""
 
     def __call__(self, s: Array) -> Array:
+        """ρ(s), elementwise on s = rᵀWr ≥ 0 of any shape."""
         raise NotImplementedError
 
     def derivative(self, s: Array) -> Array:
+        """ρ'(s), elementwise (the IRLS weight used by every corrector)."""
         raise NotImplementedError
 
     def second_derivative(self, s: Array) -> Array:
+        """ρ''(s), elementwise (used by :class:`~jaxpose.optim.Triggs`)."""
         raise NotImplementedError
 
 

@@ -29,6 +29,18 @@ class LinearSolver(eqx.Module):
     """Base class for the step's linear solve."""
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        """Solve (H + diag(a)) δ = −g for the step δ (n,).
+
+        Args:
+            jac: whitened, corrected Jacobian J̃ (m, n) (used by :class:`QR`).
+            res: whitened, corrected residual ẽ (m,) (used by :class:`QR`).
+            hess: H = J̃ᵀJ̃ (n, n).
+            grad: g = J̃ᵀẽ (n,).
+            diag_add: damping a ≥ 0 added to the diagonal (n,).
+
+        Returns:
+            δ (n,); non-finite when the system is singular (the optimiser rejects the trial).
+        """
         raise NotImplementedError
 
     def _normal(self, hess: Array, diag_add: Array, tags: object = ()) -> lx.MatrixLinearOperator:

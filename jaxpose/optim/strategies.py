@@ -50,6 +50,7 @@ class Strategy(eqx.Module):
     """Base class: Levenberg-Marquardt damping with a state-dependent λ."""
 
     def init(self, dtype: Any) -> Any:
+        """Initial strategy state (a pytree of scalars of ``dtype``, one per problem)."""
         raise NotImplementedError
 
     def damping(self, state: Any) -> Array:
@@ -57,9 +58,17 @@ class Strategy(eqx.Module):
         raise NotImplementedError
 
     def update(self, state: Any, ratio: Array, step_norm: Array) -> Any:
+        """New state from the gain ratio ρ (scalar, −∞ for a non-finite trial) and ‖δ‖.
+
+        Called after every trial, accepted or rejected.
+        """
         raise NotImplementedError
 
     def step(self, state: Any, system: System, linear_solver: LinearSolver) -> Array:
+        """Trial step δ (n,): solves (H + diag(c) + λ·diag(D)) δ = −g with ``linear_solver``.
+
+        λ comes from ``state`` afresh for every trial (damping never compounds).
+        """
         lam = self.damping(state)
         diag_add = system.lift + lam * system.scale
         return linear_solver.solve(system.jac, system.res, system.hess, system.grad, diag_add)
@@ -131,6 +140,7 @@ class Adaptive(Strategy):
 
 
 class TrustRegionState(NamedTuple):
+    """State of :class:`TrustRegion`: damping λ = 1/Δ and the current shrink factor (scalars)."""
     damping: Array  # λ = 1 / radius
     down: Array  # current shrink factor
 
