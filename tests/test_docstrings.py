@@ -159,6 +159,8 @@ def _undocumented(module: types.ModuleType) -> list[str]:
         if isinstance(obj, types.ModuleType):
             if not (obj.__doc__ or "").strip():
                 problems.append(f"{qualname} (module docstring)")
+            if not hasattr(obj, "__all__"):  # e.g. jaxpose.manifold: its own public names
+                problems += _undocumented(_defined_names(obj))
         elif inspect.isclass(obj):
             if obj.__module__.startswith("jaxpose"):
                 problems += _class_problems(qualname, obj)
@@ -168,6 +170,23 @@ def _undocumented(module: types.ModuleType) -> list[str]:
         elif name != "__version__" and not _constant_documented(name, module):
             problems.append(f"{qualname} (constant: no attribute docstring or mention)")
     return problems
+
+
+def _defined_names(module: types.ModuleType) -> types.ModuleType:
+    """A stand-in module whose ``__all__`` lists the public functions and classes defined
+    in ``module`` itself (for exported modules without an ``__all__``)."""
+    view = types.ModuleType(module.__name__, module.__doc__)
+    names = [
+        name
+        for name, obj in vars(module).items()
+        if not name.startswith("_")
+        and (inspect.isfunction(obj) or inspect.isclass(obj))
+        and getattr(obj, "__module__", None) == module.__name__
+    ]
+    for name in names:
+        setattr(view, name, getattr(module, name))
+    view.__all__ = names
+    return view
 
 
 MODULES = _public_modules()

@@ -42,10 +42,12 @@ def quaternion_to_euler(q: Array) -> Array:
 
 
 def wxyz_to_xyzw(q: Array) -> Array:
+    """Reorder quaternions (…, 4) from scalar-first ``[w, x, y, z]`` to ``[x, y, z, w]``."""
     return jnp.concatenate([q[..., 1:], q[..., :1]], -1)
 
 
 def xyzw_to_wxyz(q: Array) -> Array:
+    """Reorder quaternions (…, 4) from ``[x, y, z, w]`` to scalar-first ``[w, x, y, z]``."""
     return jnp.concatenate([q[..., 3:], q[..., :3]], -1)
 
 

@@ -172,6 +172,7 @@ class ManifoldOptimizer(NamedTuple):
 
     @staticmethod
     def apply_updates(params: PyTree, updates: PyTree) -> PyTree:
+        """``params ⊕ updates`` (:func:`retract`): replaces ``optax.apply_updates``."""
         return retract(params, updates)
 
 

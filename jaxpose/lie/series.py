@@ -159,6 +159,7 @@ class Series:
         self.by_dtype = {k: _truncate(exact, t0, rel) for k, rel in TRUNCATION.items()}
 
     def __call__(self, t: Array) -> Array:
+        """Σ cₖ tᵏ with the coefficients truncated for ``t``'s dtype (Horner's rule)."""
         return horner(self.by_dtype[dtype_key(t)], t)
 
 
