@@ -7,6 +7,9 @@ the measurements), and an information matrix per factor (or one shared).
 
 Cost convention: ``0.5 · Σ ρ(rᵀ Ω r)`` over factors, with ρ the identity unless a robust
 kernel is given. Whitening uses the upper Cholesky factor S of Ω (Ω = SᵀS): r̃ = S r.
+Robust kernels are :class:`jaxpose.optim.Kernel` objects (plain callables ρ(s) are wrapped,
+their derivatives taken by autodiff) and are folded into the least-squares blocks by a
+:class:`jaxpose.optim.Corrector` (default :class:`~jaxpose.optim.FastTriggs`, i.e. IRLS).
 """
 
 from __future__ import annotations
@@ -20,8 +23,36 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..lie.base import LieGroup
+from ..optim.correctors import Corrector, FastTriggs
+from ..optim.kernels import Kernel
 
 Array = jax.Array
+
+
+class CallableKernel(Kernel):
+    """A plain scalar callable ρ(s) as a :class:`~jaxpose.optim.Kernel` (applied
+    elementwise; derivatives by autodiff)."""
+
+    fn: Callable[[Array], Array] = eqx.field(static=True)
+
+    def __call__(self, s: Array) -> Array:
+        return jnp.vectorize(self.fn)(s)
+
+    def derivative(self, s: Array) -> Array:
+        return jnp.vectorize(jax.grad(self.fn))(s)
+
+    def second_derivative(self, s: Array) -> Array:
+        return jnp.vectorize(jax.grad(jax.grad(self.fn)))(s)
+
+
+def as_kernel(kernel: Any, where: str = "Factor(kernel)") -> Kernel | None:
+    """None, a :class:`~jaxpose.optim.Kernel`, or a callable ρ(s) wrapped as one."""
+    if kernel is None or isinstance(kernel, Kernel):
+        return kernel
+    if not callable(kernel):
+        raise TypeError(f"{where}: expected a jaxpose.optim Kernel or a callable ρ(s), got "
+                        f"{type(kernel).__name__}")
+    return CallableKernel(kernel)
 
 
 class Factor(eqx.Module):
@@ -34,7 +65,10 @@ class Factor(eqx.Module):
         data: pytree with leading axis m passed to ``residual`` (or None).
         information: (m, r, r), (r, r) or None (identity); symmetric positive definite.
         kernel: optional robust kernel ρ(s) of the squared whitened norm s = |r̃|²
-            (any callable; the kernels of :mod:`jaxpose.optim` qualify).
+            (a :class:`jaxpose.optim.Kernel`, e.g. ``Huber(1.0)``, or any callable).
+        corrector: how the kernel enters the Gauss–Newton blocks: a
+            :class:`jaxpose.optim.Corrector` (default ``FastTriggs()``: rows scaled by
+            √ρ'(s); ``Triggs()`` adds the ρ'' curvature term).
         jacobian: optional analytic Jacobian ``jacobian(*variables, data) -> (r, J_1, …)``
             for ONE factor, J_s of shape (r, tangent_dim_s) with respect to the right
             perturbation X_s ⊕ δ_s. Default: forward-mode autodiff of ``residual``.
@@ -46,7 +80,8 @@ class Factor(eqx.Module):
     indices: tuple[Array, ...]
     data: Any
     sqrt_info: Array | None
-    kernel: Callable[[Array], Array] | None = eqx.field(static=True)
+    kernel: Kernel | None = eqx.field(static=True)
+    corrector: Corrector = eqx.field(static=True)
     jacobian: Callable[..., Any] | None = eqx.field(static=True)
     name: str = eqx.field(static=True)
     count: int = eqx.field(static=True)
@@ -60,6 +95,7 @@ class Factor(eqx.Module):
         kernel: Callable[[Array], Array] | None = None,
         name: str | None = None,
         jacobian: Callable[..., Any] | None = None,
+        corrector: Corrector | None = None,
     ):
         if not callable(residual):
             raise TypeError(f"Factor(residual): expected a callable, got {type(residual).__name__}")
@@ -99,7 +135,13 @@ class Factor(eqx.Module):
         self.indices = tuple(idx)
         self.data = data
         self.sqrt_info = None if information is None else _sqrt_information(information, count)
-        self.kernel = kernel
+        self.kernel = as_kernel(kernel)
+        if corrector is not None and not isinstance(corrector, Corrector):
+            raise TypeError(
+                f"Factor(corrector): expected a jaxpose.optim Corrector, got "
+                f"{type(corrector).__name__}"
+            )
+        self.corrector = FastTriggs() if corrector is None else corrector
         if jacobian is not None and not callable(jacobian):
             raise TypeError(f"Factor(jacobian): expected a callable, got {type(jacobian).__name__}")
         self.jacobian = jacobian

@@ -35,6 +35,8 @@ class BlockPattern(eqx.Module):
     indptr: Array  # (size + 1,)
     diag_pos: Array  # (size,) CSR positions of the diagonal
     perm: Array  # (nnz,) CSR entry → position in the concatenated class arrays
+    block_rows: tuple[Array, ...]  # per class (n_blocks,): row variable (within its type)
+    block_cols: tuple[Array, ...]  # per class (n_blocks,): column variable
 
     def class_id(self, ta: int, tb: int) -> int:
         for c, (a, b, _) in enumerate(self.classes):
@@ -108,6 +110,12 @@ def build_pattern(
     diag_pos = np.nonzero(rows == cols)[0]
     assert diag_pos.size == size
 
+    block_rows, block_cols = [], []
+    for c in present:
+        sel = order[cls_sorted == c]  # this class's blocks in rank order
+        block_rows.append(jnp.asarray(ka[sel] - base[var_type[ka[sel]]], jnp.int32))
+        block_cols.append(jnp.asarray(kb[sel] - base[var_type[kb[sel]]], jnp.int32))
+
     located = []
     for (ta, _, tb, _), (a, b) in zip(pairs, glob, strict=True):
         pos = np.searchsorted(keys, a * n_vars + b)
@@ -121,6 +129,8 @@ def build_pattern(
         indptr=jnp.asarray(indptr, jnp.int32),
         diag_pos=jnp.asarray(diag_pos, jnp.int32),
         perm=jnp.asarray(perm, jnp.int32),
+        block_rows=tuple(block_rows),
+        block_cols=tuple(block_cols),
     )
     return pattern, located
 

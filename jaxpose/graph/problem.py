@@ -222,13 +222,10 @@ class Linearization(eqx.Module):
     cost: Array  # scalar 0.5·Σ ρ(|r̃|²)
 
 
-def _robust(kernel: Any, r: Array) -> tuple[Array, Array]:
-    """(ρ(s), sqrt(ρ'(s))) for s = |r|² per row; identity when kernel is None."""
+def _rho(kernel: Any, r: Array) -> Array:
+    """ρ(s) per row, s = |r|² (s itself when kernel is None)."""
     s = jnp.sum(r * r, -1)
-    if kernel is None:
-        return s, jnp.ones_like(s)
-    rho, drho = jax.vmap(jax.value_and_grad(kernel))(s)
-    return rho, jnp.sqrt(jnp.maximum(drho, 0.0))
+    return s if kernel is None else kernel(s)
 
 
 def factor_residuals(factor: Factor, variables: Variables) -> Array:
@@ -244,16 +241,16 @@ def cost(graph: FactorGraph, variables: Variables) -> Array:
     """0.5 · Σ ρ(rᵀΩr) over all factors."""
     total = 0.0
     for f in graph.factors:
-        rho, _ = _robust(f.kernel, factor_residuals(f, variables))
-        total = total + 0.5 * jnp.sum(rho)
+        total = total + 0.5 * jnp.sum(_rho(f.kernel, factor_residuals(f, variables)))
     return jnp.asarray(total)
 
 
 def linearize(graph: FactorGraph, variables: Variables) -> Linearization:
     """Residuals and tangent-space Jacobian blocks (fixed variables get zero blocks).
 
-    Robust kernels use the square-root IRLS weighting (FastTriggs): residual and
-    Jacobian rows are scaled by sqrt(ρ'(s))."""
+    Robust kernels enter through each factor's corrector (default FastTriggs: residual
+    and Jacobian rows scaled by sqrt(ρ'(s)), square-root IRLS); ``cost`` is the robust
+    cost 0.5·Σ ρ(s)."""
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
     residuals, jacobians, total = [], [], 0.0
@@ -280,10 +277,11 @@ def linearize(graph: FactorGraph, variables: Variables) -> Linearization:
             s = f.sqrt_info.astype(r.dtype)
             r = jnp.einsum("mij,mj->mi", s, r)
             jac = tuple(jnp.einsum("mij,mjk->mik", s, j) for j in jac)
-        rho, w = _robust(f.kernel, r)
+        rho = _rho(f.kernel, r)
         if f.kernel is not None:
-            r = r * w[:, None]
-            jac = tuple(j * w[:, None, None] for j in jac)
+            sizes = [j.shape[-1] for j in jac]
+            r, jcat = f.corrector(f.kernel, r, jnp.concatenate(jac, axis=-1))
+            jac = tuple(jnp.split(jcat, np.cumsum(sizes)[:-1].tolist(), axis=-1))
         jac = tuple(
             j * st.free[type_of[slot]][idx][:, None, None].astype(j.dtype)
             for j, slot, idx in zip(jac, f.slots, f.indices, strict=True)
@@ -326,6 +324,19 @@ def gradient(graph: FactorGraph, lin: Linearization) -> Array:
         for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
             k = type_of[slot]
             out[k] = out[k].at[idx].add(jnp.einsum("mri,mr->mi", j, r))
+    return join(out)
+
+
+def hessian_diagonal(graph: FactorGraph, lin: Linearization) -> Array:
+    """diag(H) = column sums of J̃² (N,), without forming any block of H."""
+    st = graph.structure
+    type_of = {n: k for k, n in enumerate(st.names)}
+    dtype = lin.cost.dtype
+    out = [jnp.zeros((c, d), dtype) for c, d in zip(st.counts, st.dims, strict=True)]
+    for f, jac in zip(graph.factors, lin.jacobians, strict=True):
+        for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
+            k = type_of[slot]
+            out[k] = out[k].at[idx].add(jnp.sum(j * j, axis=1))
     return join(out)
 
 

@@ -9,8 +9,11 @@ links two eliminated variables), so
 W is kept as one block B = J_sᵀ J_e per (factor, kept slot) — an "entry" — with its kept
 variable and its eliminated variable. S gets ``−Y_a B_bᵀ`` (Y = B V⁻¹) for every ordered
 pair (a, b) of entries that share an eliminated variable; those pairs, their target blocks
-in the reduced pattern and the reduced pattern itself are computed once on the host. The
-pair products are accumulated in chunks (``lax.scan``) so memory stays bounded.
+in the reduced pattern and the reduced pattern itself are computed once on the host.
+
+Only the upper triangle of S is accumulated (pairs sorted by target block, in chunks of
+``CHUNK`` pairs under ``lax.scan`` so memory stays bounded); the lower blocks are
+transposed copies.
 """
 
 from __future__ import annotations
@@ -48,11 +51,16 @@ class SchurStructure(eqx.Module):
     w_counts: tuple[int, ...] = eqx.field(static=True)  # entries per kept type
     w_point: tuple[Array, ...]  # per kept type: (n_k,) eliminated variable of each entry
     w_var: tuple[Array, ...]  # per kept type: (n_k,) kept variable of each entry
-    # per pair class: (k1, k2, reduced class); index arrays (chunks, CHUNK)
+    # upper pair classes (k1 <= k2): (k1, k2, reduced class); index arrays (chunks, CHUNK)
+    # of the entries a, b and the target block (padding: block index n_blocks, dropped)
     pair_classes: tuple[tuple[int, int, int], ...] = eqx.field(static=True)
     pair_a: tuple[Array, ...]
     pair_b: tuple[Array, ...]
     pair_block: tuple[Array, ...]
+    # lower blocks: (class, mirror class, lower-block mask (n,) or None, mirror index (n,))
+    mirror_classes: tuple[tuple[int, int, bool], ...] = eqx.field(static=True)
+    mirror_mask: tuple[Array, ...]
+    mirror_index: tuple[Array, ...]
 
 
 def build_schur(
@@ -129,14 +137,29 @@ def build_schur(
         u_index.append(tuple(jnp.asarray(x, jnp.int32) for _, x in located[i : i + len(pairs)]))
         i += len(pairs)
     pair_classes, pa, pb, pblk = [], [], [], []
-    for (k1, k2, la, lb, _, _), (c, blk) in zip(pair_groups, located[i:], strict=True):
+    for (k1, k2, la, lb, va, vb), (c, blk) in zip(pair_groups, located[i:], strict=True):
+        if k1 > k2:
+            continue
+        keep = np.flatnonzero(va <= vb if k1 == k2 else np.ones(va.size, bool))
+        keep = keep[np.argsort(blk[keep], kind="stable")]
         n_blocks = pattern.classes[c][2]
-        pad = (-la.size) % CHUNK
         pair_classes.append((k1, k2, c))
-        pa.append(jnp.asarray(np.pad(la, (0, pad)).reshape(-1, CHUNK), jnp.int32))
-        pb.append(jnp.asarray(np.pad(lb, (0, pad)).reshape(-1, CHUNK), jnp.int32))
-        pblk.append(jnp.asarray(np.pad(blk, (0, pad), constant_values=n_blocks)
-                                .reshape(-1, CHUNK), jnp.int32))
+        pa.append(_chunked(la[keep], 0))
+        pb.append(_chunked(lb[keep], 0))
+        pblk.append(_chunked(blk[keep], n_blocks))
+    mirror_classes, mirror_mask, mirror_index = [], [], []
+    for c, (ka, kb, _) in enumerate(pattern.classes):
+        if ka < kb:
+            continue
+        m = pattern.class_id(kb, ka)
+        rows, cols = _block_coords(pattern, c)
+        mrows, mcols = _block_coords(pattern, m)
+        key = mrows * (kc[kb] + kc[ka]) + mcols
+        order = np.argsort(key)
+        idx = order[np.searchsorted(key[order], cols * (kc[kb] + kc[ka]) + rows)]
+        mirror_classes.append((c, m, ka == kb))
+        mirror_mask.append(jnp.asarray(rows > cols))
+        mirror_index.append(jnp.asarray(idx, jnp.int32))
     return SchurStructure(
         eliminated=e,
         kept=kept,
@@ -153,21 +176,35 @@ def build_schur(
         pair_a=tuple(pa),
         pair_b=tuple(pb),
         pair_block=tuple(pblk),
+        mirror_classes=tuple(mirror_classes),
+        mirror_mask=tuple(mirror_mask),
+        mirror_index=tuple(mirror_index),
     )
+
+
+def _chunked(x: np.ndarray, fill: int) -> Array:
+    """(chunks, CHUNK) int32, padded with ``fill``."""
+    pad = (-x.size) % CHUNK
+    return jnp.asarray(np.pad(x, (0, pad), constant_values=fill).reshape(-1, CHUNK), jnp.int32)
+
+
+def _block_coords(pattern: BlockPattern, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row variable, column variable) of every block of class c (within their types)."""
+    return np.asarray(pattern.block_rows[c]), np.asarray(pattern.block_cols[c])
 
 
 def schur_step(
     graph: Any,
     lin: Any,
     g: Array,
-    damp: Callable[[Array], Array],
+    diag_add: Array,
     solve_reduced: Callable[[Array, Array, Array, Array], Array],
 ) -> Array:
-    """Solve the damped normal equations ``(H + diag(damp(diag H))) δ = −g`` by elimination.
+    """Solve the damped normal equations ``(H + diag(diag_add)) δ = −g`` by elimination.
 
-    ``damp(d)`` maps a diagonal of H (of one variable type, flattened, with the fixed
-    variables' identity already included by the caller's ``free`` handling) to the values
-    added to it. ``solve_reduced(data, indices, indptr, b)`` solves the reduced CSR system.
+    ``diag_add`` (N,), in the graph's tangent layout, holds everything added to the
+    diagonal of H (damping, and 1 for fixed variables, whose Jacobian columns are zero).
+    ``solve_reduced(data, indices, indptr, b)`` solves the reduced CSR system.
     Returns δ (N,) in the graph's tangent layout."""
     from .problem import split
 
@@ -186,7 +223,9 @@ def schur_step(
         sc.w_slots, strict=True,
     ):
         for (s, t), c, idx in zip(pairs, classes, indices, strict=True):
-            u_contrib.append((c, idx, jnp.einsum("mri,mrj->mij", jac[s], jac[t])))
+            ka, kb, _ = sc.pattern.classes[c]
+            if ka <= kb:  # lower classes are mirrored from the upper ones below
+                u_contrib.append((c, idx, jnp.einsum("mri,mrj->mij", jac[s], jac[t])))
         if q >= 0:
             v = v.at[f.indices[q]].add(jnp.einsum("mri,mrj->mij", jac[q], jac[q]))
             for s, k in ws:
@@ -195,30 +234,32 @@ def schur_step(
     w = [jnp.concatenate(p) if p else jnp.zeros((0, st.dims[t], d_e), dtype)
          for p, t in zip(w_parts, kept, strict=True)]
 
-    # damping: fixed variables get an identity row (their J columns are zero)
+    # damping (and the identity rows of fixed variables) on the diagonals of V and U
+    add = split(graph, diag_add.astype(dtype))
     diag_idx = jnp.arange(d_e)
-    v_diag = v[:, diag_idx, diag_idx]
-    fixed_e = (1.0 - st.free[e]).astype(dtype)[:, None]
-    v = v.at[:, diag_idx, diag_idx].add(damp(v_diag) + fixed_e)
+    v = v.at[:, diag_idx, diag_idx].add(add[e])
     v_inv = jnp.linalg.inv(v)
-    data = sc.pattern.csr(u)
-    free_k = jnp.concatenate([jnp.repeat(st.free[t], st.dims[t]) for t in kept]).astype(dtype)
-    diag_k = data[sc.pattern.diag_pos]
 
-    # S = U − Σ_pairs Y_a B_bᵀ, accumulated in chunks
+    # S = U − Σ_pairs Y_a B_bᵀ over the upper triangle, accumulated in chunks
     y = [jnp.einsum("nie,nef->nif", wk, v_inv[p]) for wk, p in zip(w, sc.w_point, strict=True)]
-    s_blocks = sc.pattern.zeros(dtype)
+    s_blocks = u
     for (k1, k2, c), pa, pb, blk in zip(
         sc.pair_classes, sc.pair_a, sc.pair_b, sc.pair_block, strict=True
     ):
         def body(acc, chunk, k1=k1, k2=k2):
             ia, ib, ic = chunk
             prod = jnp.einsum("pie,pje->pij", y[k1][ia], w[k2][ib])
-            return acc.at[ic].add(-prod, mode="drop"), None
+            return acc.at[ic].add(-prod, mode="drop", indices_are_sorted=True), None
 
         s_blocks[c], _ = jax.lax.scan(body, s_blocks[c], (pa, pb, blk))
-    data = data + sc.pattern.csr(s_blocks)
-    data = data.at[sc.pattern.diag_pos].add(damp(diag_k) + (1.0 - free_k))
+    for (c, m, same), mask, idx in zip(sc.mirror_classes, sc.mirror_mask, sc.mirror_index,
+                                       strict=True):
+        mirrored = s_blocks[m][idx].mT
+        s_blocks[c] = (jnp.where(mask[:, None, None], mirrored, s_blocks[c]) if same
+                       else mirrored)
+    data = sc.pattern.csr(s_blocks)
+    data = data.at[sc.pattern.diag_pos].add(
+        jnp.concatenate([add[t].reshape(-1) for t in kept]))
 
     # reduced right-hand side and back-substitution
     g_blocks = split(graph, g)

@@ -1,18 +1,24 @@
 """Levenberg–Marquardt on factor graphs (sparse path), one ``lax.while_loop``.
 
-Each iteration solves the damped normal equations (H + λ·D) δ = −g and evaluates the cost
-at X ⊕ δ. Damping D: ``"identity"`` (λ·I, GTSAM's default) or ``"diagonal"`` (Marquardt
-scaling, D = diag(H) clamped to [1e-6, 1e32], as Ceres and GTSAM's ``diagonalDamping``).
-A step is accepted when it lowers the cost; the gain ratio
-ρ = (F(x) − F(x ⊕ δ)) / (L(0) − L(δ)) drives λ: with ``lambda_factor`` f (GTSAM's rule)
-λ ← λ/f on success and λ·f on failure; with ``lambda_factor=None`` Nielsen's rule
-(λ·max(1/3, 1 − (2ρ − 1)³) on success, λ·ν with ν doubling on failure). The loop only
-ever moves to an accepted (lower-cost) point, so the returned estimate is the best seen.
+The pieces are those of :mod:`jaxpose.optim`: a damping :class:`~jaxpose.optim.Strategy`
+(default :class:`~jaxpose.graph.strategies.LambdaFactor`, GTSAM's rule, or Nielsen's rule
+with ``lambda_factor=None``; :class:`~jaxpose.optim.Constant`, ``Adaptive``,
+``TrustRegion`` and ``Dogleg`` work too), robust kernels and correctors per factor
+(:class:`~jaxpose.graph.Factor`), :class:`~jaxpose.optim.Stopping` tolerances and
+:class:`~jaxpose.optim.Status` codes. Only the linear algebra is sparse: each trial solves
+``(H + diag(lift) + λ·diag(D)) δ = −g`` with H = J̃ᵀJ̃ block-sparse, D = 1 (``damping=
+"identity"``, GTSAM's default) or D = clamp(diag H, 1e-6, 1e32) (``"diagonal"``, Marquardt,
+as Ceres and GTSAM's ``diagonalDamping``), then evaluates the cost at X ⊕ δ. One
+iteration is one trial: a finite trial that lowers the cost is accepted (gain ratio
+ρ = (F(x) − F(x ⊕ δ)) / (L(0) − L(δ)) > 0), otherwise only the damping changes. The loop
+only ever moves to an accepted (lower-cost) point, so the returned estimate is the best
+seen.
 
-Stopping: an accepted step lowering the cost by at most ``rtol``·cost or ``atol``; a
-model decrease L(0) − L(δ) at the cost's floating-point resolution (16·eps·cost: nothing
-measurable is left, whether the step was accepted or not); ‖g‖∞ ≤ ``gtol``; ``max_steps``
-linear solves; λ beyond ``lambda_max`` (stalled).
+Stopping (:func:`jaxpose.optim.stopping.check`): an accepted step lowering the cost by at
+most ``atol + rtol·cost``; ‖g‖∞ ≤ ``gtol``; ‖δ‖ ≤ ``xtol``; a rejected trial whose
+predicted decrease is at the cost's floating-point resolution; ``max_steps`` trials; a
+rejection that cannot change the damping (λ at its bound: status ``STALLED``, which is
+``Status.DIVERGED``).
 """
 
 from __future__ import annotations
@@ -23,6 +29,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..optim.stopping import Status, Stopping, Trial, check, plateau_count
+from ..optim.strategies import Strategy, System
 from . import linear
 from .problem import (
     FactorGraph,
@@ -30,15 +38,21 @@ from .problem import (
     block_diagonal,
     csr_values,
     gradient,
+    hessian_diagonal,
     hessian_vector,
     linearize,
     retract_all,
+    split,
 )
 from .schur import schur_step
+from .strategies import LambdaFactor, Nielsen
 
 Array = jax.Array
 
-CONVERGED, MAX_STEPS, STALLED, NON_FINITE = 0, 1, 2, 3
+CONVERGED = int(Status.CONVERGED)
+MAX_STEPS = int(Status.MAX_STEPS)
+STALLED = int(Status.DIVERGED)  # no trial lowers the cost at the largest damping
+NON_FINITE = int(Status.NON_FINITE)
 STATUS_NAMES = {
     CONVERGED: "converged",
     MAX_STEPS: "max_steps",
@@ -52,10 +66,12 @@ DENSE_MAX = 600  # "auto": dense Cholesky up to this many tangent dimensions
 class GraphSolution(eqx.Module):
     """Result of :func:`solve`.
 
-    ``status``: 0 converged, 1 max_steps, 2 stalled (damping exhausted; the estimate is
-    the best found), 3 non_finite (a non-finite cost or step appeared; best estimate kept).
+    ``status``: a :class:`jaxpose.optim.Status` code: 0 converged, 1 max_steps,
+    2 stalled (``Status.DIVERGED``: damping exhausted; the estimate is the best found),
+    3 non_finite (a non-finite cost or step appeared; best estimate kept).
     ``iterations``: linear solves (accepted and rejected trials).
-    ``history``: cost after each iteration (NaN beyond ``iterations``)."""
+    ``history``: cost after each iteration (NaN beyond ``iterations``).
+    ``linear_iterations``: total CG iterations (``"pcg"``; 0 for direct solvers)."""
 
     variables: Variables
     cost: Array
@@ -75,6 +91,58 @@ def default_rtol(dtype: Any) -> float:
     return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-6
 
 
+class _Hessian:
+    """H = J̃ᵀJ̃ as an operator (``H @ v``) for the strategies' step rules."""
+
+    def __init__(self, graph: FactorGraph, lin: Any):
+        self.graph, self.lin = graph, lin
+
+    def __matmul__(self, v: Array) -> Array:
+        return hessian_vector(self.graph, self.lin, v)
+
+
+class _SparseLinear:
+    """The ``solve(jac, res, hess, grad, diag_add)`` protocol of the optim linear solvers
+    on the sparse path: solves ``(H + diag(diag_add)) δ = −grad`` with H from the
+    linearisation (fixed variables get an identity row). Records CG iterations."""
+
+    def __init__(self, kind: str, graph: FactorGraph, lin: Any, free: Array,
+                 cg_rtol: Any, cg_max_iters: int):
+        self.kind, self.graph, self.lin, self.free = kind, graph, lin, free
+        self.cg_rtol, self.cg_max_iters = cg_rtol, cg_max_iters
+        self.iterations = jnp.asarray(0)
+
+    def solve(self, jac: Any, res: Any, hess: Any, grad: Array, diag_add: Array) -> Array:
+        graph, lin, st = self.graph, self.lin, self.graph.structure
+        add = diag_add + (1.0 - self.free)
+        if self.kind == "pcg":
+            blocks = block_diagonal(graph, lin)
+            damped = tuple(b + jax.vmap(jnp.diag)(a) for b, a in
+                           zip(blocks, split(graph, add), strict=True))
+            x, its = linear.solve_pcg(
+                lambda v: hessian_vector(graph, lin, v) + add * v, -grad,
+                linear.block_jacobi(damped), rtol=self.cg_rtol, max_iters=self.cg_max_iters,
+            )
+            self.iterations = self.iterations + its
+            return x
+        if self.kind == "schur":
+            reduced = st.schur.pattern.size
+            direct = linear.solve_dense if reduced <= DENSE_MAX else linear.solve_sparse_direct
+            return schur_step(graph, lin, grad, add, direct)
+        data = csr_values(graph, lin).at[st.diag_pos].add(add)
+        direct = linear.solve_sparse_direct if self.kind == "sparse" else linear.solve_dense
+        return direct(data, st.csr_indices, st.csr_indptr, -grad)
+
+
+def _default_strategy(lambda_init: float, lambda_factor: float | None, lambda_min: float,
+                      lambda_max: float) -> Strategy:
+    if lambda_factor is None:
+        return Nielsen(lambda_init, lambda_min, lambda_max)
+    if not lambda_factor > 1.0:
+        raise ValueError(f"solve(lambda_factor={lambda_factor!r}): expected a float > 1 or None")
+    return LambdaFactor(lambda_init, lambda_factor, lambda_min, lambda_max)
+
+
 def solve(
     graph: FactorGraph,
     variables: Variables | None = None,
@@ -84,12 +152,15 @@ def solve(
     rtol: float | None = None,
     atol: float = 0.0,
     gtol: float = 0.0,
+    xtol: float = 0.0,
     damping: str = "identity",
     lambda_init: float = 1e-5,
     lambda_factor: float | None = 10.0,
     lambda_min: float = 1e-15,
     lambda_max: float = 1e16,
-    cg_rtol: float = 1e-8,
+    strategy: Strategy | None = None,
+    stopping: Stopping | None = None,
+    cg_rtol: float | str = 1e-8,
     cg_max_iters: int = 2000,
     verbose: bool = False,
 ) -> GraphSolution:
@@ -105,13 +176,20 @@ def solve(
             a dense or sparse Cholesky of the reduced system) or ``"auto"`` (schur when the
             graph eliminates a type, else dense up to 600 tangent dimensions, else sparse).
         max_steps: maximum LM iterations (linear solves, accepted or rejected).
-        rtol, atol: stop when an accepted step lowers the cost by less than
-            ``rtol·cost`` or ``atol``; ``rtol=None``: :func:`default_rtol` of the dtype.
-        gtol: stop when ‖g‖∞ ≤ gtol.
+        rtol, atol: stop when an accepted step lowers the cost by at most
+            ``atol + rtol·cost``; ``rtol=None``: :func:`default_rtol` of the dtype.
+        gtol: stop when ‖g‖∞ ≤ gtol.  xtol: stop when a finite step has ‖δ‖ ≤ xtol.
         damping: ``"identity"`` (λ·I) or ``"diagonal"`` (λ·diag(H), Marquardt).
-        lambda_init, lambda_factor, lambda_min, lambda_max: damping schedule (module
-            docstring); ``lambda_factor=None`` selects Nielsen's rule.
-        cg_rtol, cg_max_iters: inner tolerance and budget of ``"pcg"``.
+        lambda_init, lambda_factor, lambda_min, lambda_max: the default damping schedule:
+            :class:`~jaxpose.graph.strategies.LambdaFactor` (GTSAM), or
+            :class:`~jaxpose.graph.strategies.Nielsen` with ``lambda_factor=None``.
+        strategy: any :class:`jaxpose.optim.Strategy` instead (``Constant``, ``Adaptive``,
+            ``TrustRegion``, ``Dogleg``, ``LambdaFactor``, ``Nielsen``).
+        stopping: a :class:`jaxpose.optim.Stopping` instead of ``max_steps``/``rtol``/
+            ``atol``/``gtol``/``xtol`` (e.g. with a ``StopOnPlateau`` rule).
+        cg_rtol, cg_max_iters: inner tolerance and budget of ``"pcg"``; ``cg_rtol=
+            "inexact"`` uses the inexact-Newton forcing sequence
+            η = min(0.1, √(‖g‖/‖g₀‖)) (Eisenstat–Walker style).
         verbose: print one line per iteration from inside jit.
     """
     if linear_solver not in LINEAR_SOLVERS:
@@ -120,8 +198,18 @@ def solve(
         )
     if damping not in ("identity", "diagonal"):
         raise ValueError(f"solve(damping={damping!r}): expected 'identity' or 'diagonal'")
-    if lambda_factor is not None and not lambda_factor > 1.0:
-        raise ValueError(f"solve(lambda_factor={lambda_factor!r}): expected a float > 1 or None")
+    if strategy is None:
+        strategy = _default_strategy(lambda_init, lambda_factor, lambda_min, lambda_max)
+    elif not isinstance(strategy, Strategy):
+        raise TypeError(
+            f"solve(strategy): expected a jaxpose.optim Strategy, got {type(strategy).__name__}"
+        )
+    if stopping is not None and not isinstance(stopping, Stopping):
+        raise TypeError(
+            f"solve(stopping): expected a jaxpose.optim Stopping, got {type(stopping).__name__}"
+        )
+    if isinstance(cg_rtol, str) and cg_rtol != "inexact":
+        raise ValueError(f"solve(cg_rtol={cg_rtol!r}): expected a float or 'inexact'")
     st = graph.structure
     if linear_solver == "schur" and st.schur is None:
         raise ValueError(
@@ -134,8 +222,11 @@ def solve(
     x0 = graph.variables if variables is None else variables
     lin0 = linearize(graph, x0)
     dtype = lin0.cost.dtype
-    rtol = default_rtol(dtype) if rtol is None else rtol
-    eps = jnp.finfo(dtype).eps
+    if stopping is None:
+        stopping = Stopping(
+            max_steps=max_steps, cost_atol=atol,
+            cost_rtol=default_rtol(dtype) if rtol is None else rtol, gtol=gtol, xtol=xtol,
+        )
     free_flat = jnp.concatenate(
         [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]
     ).astype(dtype)
@@ -145,125 +236,77 @@ def solve(
         "solve: the cost is not finite at the initial variables (check measurements, "
         "information matrices and initial values)",
     )
-
-    def scale(diag, lam):
-        if damping == "identity":
-            return lam * jnp.ones_like(diag)
-        return lam * jnp.clip(diag, 1e-6, 1e32)
-
-    def solve_step(lin, g, lam):
-        if linear_solver == "pcg":
-            blocks = block_diagonal(graph, lin)
-            damped = tuple(
-                b
-                + jax.vmap(jnp.diag)(
-                    scale(jax.vmap(jnp.diag)(b), lam)
-                    + 1.0 - jnp.repeat(f[:, None], b.shape[-1], 1).astype(dtype)
-                )
-                for b, f in zip(blocks, st.free, strict=True)
-            )
-            diag = jnp.concatenate([jax.vmap(jnp.diag)(b).reshape(-1) for b in blocks])
-            dvec = scale(diag, lam)
-
-            def matvec(v):
-                return hessian_vector(graph, lin, v) + dvec * v + (1.0 - free_flat) * v
-
-            return linear.solve_pcg(
-                matvec, -g, linear.block_jacobi(damped), rtol=cg_rtol, max_iters=cg_max_iters
-            )
-        if linear_solver == "schur":
-            reduced = st.schur.pattern.size
-            direct = linear.solve_dense if reduced <= DENSE_MAX else linear.solve_sparse_direct
-            return schur_step(graph, lin, g, lambda d: scale(d, lam), direct), jnp.asarray(0)
-        data = csr_values(graph, lin)
-        diag = data[st.diag_pos]
-        data = data.at[st.diag_pos].add(scale(diag, lam) + (1.0 - free_flat))
-        solver = linear.solve_sparse_direct if linear_solver == "sparse" else linear.solve_dense
-        return solver(data, st.csr_indices, st.csr_indptr, -g), jnp.asarray(0)
-
-    def cond(state):
-        return state["status"] < 0
+    g0 = gradient(graph, lin0)
+    g0_norm = jnp.linalg.norm(g0)
 
     def body(state):
-        x, lin, g = state["x"], state["lin"], state["g"]
-        lam, nu, k = state["lam"], state["nu"], state["k"]
-        step, its = solve_step(lin, g, lam)
-        step = step * free_flat
+        x, lin, g, sstate, k = state["x"], state["lin"], state["g"], state["s"], state["k"]
+        if damping == "identity":
+            scale = jnp.ones_like(g)
+        else:
+            scale = jnp.clip(hessian_diagonal(graph, lin), 1e-6, 1e32)
+        system = System(None, None, _Hessian(graph, lin), g, scale, jnp.zeros_like(g))
+        if cg_rtol == "inexact":
+            eta = jnp.minimum(0.1, jnp.sqrt(jnp.linalg.norm(g) / jnp.maximum(g0_norm, 1e-300)))
+        else:
+            eta = cg_rtol
+        solver = _SparseLinear(linear_solver, graph, lin, free_flat, eta, cg_max_iters)
+        step = strategy.step(sstate, system, solver) * free_flat
+        step_ok = jnp.all(jnp.isfinite(step))
+        step = jnp.where(step_ok, step, 0.0)
         x_new = retract_all(graph, x, step)
         lin_new = linearize(graph, x_new)
-        hstep = hessian_vector(graph, lin, step)
-        predicted = -(jnp.vdot(g, step) + 0.5 * jnp.vdot(step, hstep))
+        predicted = -(jnp.vdot(g, step) + 0.5 * jnp.vdot(step, hessian_vector(graph, lin, step)))
         actual = lin.cost - lin_new.cost
-        finite = jnp.isfinite(lin_new.cost) & jnp.all(jnp.isfinite(step))
-        rho = actual / jnp.where(predicted > 0, predicted, 1.0)
-        accept = finite & (predicted > 0) & (actual > 0)
-        if lambda_factor is None:  # Nielsen
-            lam_acc = lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-            lam_rej = jnp.maximum(lam, lambda_min) * nu
-            new_nu = jnp.where(accept, 2.0, nu * 2.0)
-        else:
-            lam_acc = lam / lambda_factor
-            lam_rej = jnp.maximum(lam, lambda_min) * lambda_factor
-            new_nu = nu
-        new_lam = jnp.where(accept, jnp.maximum(lam_acc, lambda_min), lam_rej)
+        finite = step_ok & jnp.isfinite(lin_new.cost)
+        tiny = jnp.finfo(dtype).tiny
+        rho = jnp.where(predicted > tiny, actual / jnp.where(predicted > tiny, predicted, 1.0),
+                        jnp.where(actual > 0, 1.0, -jnp.inf))
+        rho = jnp.where(finite, rho, -jnp.inf)
+        accept = finite & (actual > 0) & (rho > 0)
+        new_s = strategy.update(sstate, rho, jnp.linalg.norm(step))
         pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(accept, u, v), a, b)  # noqa: E731
         x_next = pick(x_new, x)
         lin_next = pick(lin_new, lin)
         g_next = jnp.where(accept, gradient(graph, lin_new), g)
-        small_decrease = accept & ((actual <= rtol * lin.cost) | (actual <= atol))
-        at_resolution = finite & (predicted <= 16 * eps * jnp.abs(lin.cost))
-        small_grad = jnp.max(jnp.abs(g_next)) <= gtol
-        status = jnp.where(
-            ~jnp.isfinite(lin_new.cost) & (new_lam >= lambda_max),
-            NON_FINITE,
-            jnp.where(
-                small_decrease | at_resolution | small_grad,
-                CONVERGED,
-                jnp.where(
-                    new_lam >= lambda_max, STALLED, jnp.where(k + 1 >= max_steps, MAX_STEPS, -1)
-                ),
-            ),
-        )
+        rejects = jnp.where(accept, 0, state["rejects"] + 1).astype(jnp.int32)
+        # a rejection that cannot change the damping would repeat the same trial
+        stuck = ~accept & (strategy.damping(new_s) == strategy.damping(sstate))
+        rejects = jnp.where(stuck, jnp.maximum(rejects, stopping.max_rejects), rejects)
+        plateau = plateau_count(stopping, lin.cost, lin_next.cost,
+                                state["plateau"]).astype(jnp.int32)
+        _, status = check(stopping, Trial(
+            step=k + 1, last=lin.cost, cost=lin_next.cost, accepted=accept, finite=finite,
+            step_norm=jnp.linalg.norm(step), predicted=predicted, initial=lin0.cost,
+            grad_inf=jnp.max(jnp.abs(g_next), initial=0.0), rejects=rejects,
+            plateau_count=plateau,
+        ))
         if verbose:
             jax.debug.print(
                 "iter {k:4d}  cost {c:.6e}  gain {r:+.2e}  lambda {l:.1e}  |step| {s:.2e}  "
                 "accepted {a}  cg {i}",
-                k=k,
-                c=lin_next.cost,
-                r=rho,
-                l=lam,
-                s=jnp.linalg.norm(step),
-                a=accept,
-                i=its,
+                k=k, c=lin_next.cost, r=rho, l=strategy.damping(sstate),
+                s=jnp.linalg.norm(step), a=accept, i=solver.iterations,
             )
-        hist = state["history"].at[k].set(lin_next.cost)
-        return dict(
-            x=x_next,
-            lin=lin_next,
-            g=g_next,
-            lam=new_lam,
-            nu=new_nu,
-            k=k + 1,
-            status=status,
-            history=hist,
-            cg=state["cg"] + its,
-        )
+        hist = state["history"]
+        if hist.shape[0]:
+            hist = hist.at[jnp.minimum(k, hist.shape[0] - 1)].set(lin_next.cost)
+        return dict(x=x_next, lin=lin_next, g=g_next, s=new_s, k=k + 1, status=status,
+                    history=hist, cg=state["cg"] + jnp.asarray(solver.iterations, jnp.int32),
+                    rejects=rejects,
+                    plateau=plateau)
 
+    status0 = jnp.where(
+        jnp.max(jnp.abs(g0), initial=0.0) <= stopping.gtol, CONVERGED,
+        jnp.where(stopping.budget <= 0, MAX_STEPS, int(Status.RUNNING)),
+    ).astype(jnp.int32)
     init = dict(
-        x=x0,
-        lin=lin0,
-        g=gradient(graph, lin0),
-        lam=jnp.asarray(lambda_init, dtype),
-        nu=jnp.asarray(2.0, dtype),
-        k=jnp.asarray(0),
-        status=jnp.asarray(-1),
-        history=jnp.full((max_steps,), jnp.nan, dtype),
-        cg=jnp.asarray(0),
+        x=x0, lin=lin0, g=g0, s=strategy.init(dtype), k=jnp.asarray(0, jnp.int32),
+        status=status0, history=jnp.full((stopping.budget,), jnp.nan, dtype),
+        cg=jnp.asarray(0, jnp.int32), rejects=jnp.asarray(0, jnp.int32),
+        plateau=jnp.asarray(0, jnp.int32),
     )
-    init["status"] = jnp.where(
-        (jnp.max(jnp.abs(init["g"])) <= gtol) | (max_steps == 0), CONVERGED, -1
-    )
-    out = jax.lax.while_loop(cond, body, init)
+    out = jax.lax.while_loop(lambda s: s["status"] < 0, body, init)
     return GraphSolution(
         variables=out["x"],
         cost=out["lin"].cost,

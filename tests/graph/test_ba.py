@@ -1,0 +1,240 @@
+"""Bundle adjustment: the BAL reprojection factor, Schur elimination vs the full system,
+convergence to the noise floor on a synthetic problem and to SciPy's minimum on the BAL
+files.
+
+References independent of the code under test: the camera model in numpy with SciPy's
+rotation (``_project``), a dense numpy solve of the damped normal equations assembled from
+``jax.jacfwd`` of the whole graph's residual (``conftest.dense_residual_fn``), and
+``scipy.optimize.least_squares`` on BAL's own parametrisation (Rodrigues vectors).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from jaxpose.datasets import synthetic_bal
+from jaxpose.graph import Factor, FactorGraph, linear, prior_residual, vector_prior_residual
+from jaxpose.graph import ba as bal_graph
+from jaxpose.graph.problem import gradient, hessian_diagonal, linearize
+from jaxpose.graph.schur import schur_step
+from jaxpose.io import BALProblem, read_bal
+from jaxpose.lie import SE3
+
+from .conftest import DATA, FAST_COMPILE, assemble_jacobian, dense_residual_fn, jit_solve
+
+BA_OPTIONS = dict(damping="diagonal", lambda_init=1e-4, lambda_factor=None, max_steps=60)
+
+
+def _project(cameras: np.ndarray, points: np.ndarray, cam: np.ndarray, pt: np.ndarray):
+    c = cameras[cam]
+    P = Rotation.from_rotvec(c[:, :3]).apply(points[pt]) + c[:, 3:6]
+    p = -P[:, :2] / P[:, 2:]
+    r2 = np.sum(p * p, 1, keepdims=True)
+    return c[:, 6:7] * (1 + c[:, 7:8] * r2 + c[:, 8:9] * r2 * r2) * p
+
+
+def _bal_file(name: str) -> BALProblem:
+    path = DATA / "bal" / name
+    if not path.is_file():
+        pytest.skip(f"reference data {path} not present")
+    return read_bal(path)
+
+
+def _small_problem(seed: int = 0):
+    return synthetic_bal(n_cameras=6, n_points=40, obs_per_point=3, seed=seed)
+
+
+def test_reprojection_factor_model_and_jacobians():
+    """Residuals equal the numpy camera model; analytic Jacobian blocks equal jacfwd through
+    the retraction (pose: right perturbation) at random cameras, in float64 and float32."""
+    prob, _ = _small_problem(1)
+    graph = bal_graph.bundle_adjustment_problem(prob)
+    auto = FactorGraph([Factor(bal_graph.reprojection_residual, [
+        ("pose", prob.camera_index), ("intrinsics", prob.camera_index),
+        ("point", prob.point_index)], data=graph.factors[0].data)], graph.variables)
+
+    @jax.jit(compiler_options=FAST_COMPILE)
+    def run(graph, auto):
+        return linearize(graph, graph.variables), linearize(auto, auto.variables)
+
+    analytic, ref = run(graph, auto)
+    want = _project(prob.cameras, prob.points, prob.camera_index, prob.point_index)
+    np.testing.assert_allclose(analytic.residuals[0], want - prob.observations, rtol=0,
+                               atol=1e-9 * np.abs(want).max())
+    for got, exp, name in zip(analytic.jacobians[0], ref.jacobians[0],
+                              ("pose", "intrinsics", "point"), strict=True):
+        exp = np.asarray(exp)
+        np.testing.assert_allclose(got, exp, rtol=0, atol=1e-10 * np.abs(exp).max(),
+                                   err_msg=name)
+    np.testing.assert_allclose(float(analytic.cost),
+                               0.5 * np.sum((want - prob.observations) ** 2), rtol=1e-12)
+    # round trip of the BAL camera parametrisation
+    cams, pts = bal_graph.variables_to_bal(graph.variables)
+    np.testing.assert_allclose(cams, prob.cameras, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(pts, prob.points)
+    # float32: same model to float32 precision
+    g32 = bal_graph.bundle_adjustment_problem(prob, dtype=jnp.float32)
+    lin32, _ = run(g32, auto)
+    assert lin32.residuals[0].dtype == jnp.float32
+    np.testing.assert_allclose(lin32.residuals[0], want - prob.observations, rtol=0,
+                               atol=1e-4 * np.abs(want).max())
+
+
+def _schur_graph():
+    """A small BA graph plus factors that touch only kept variables (a pose prior) or only
+    an eliminated one (a point prior), with fixed variables of every type."""
+    prob, _ = _small_problem(2)
+    base = bal_graph.bundle_adjustment_problem(prob)
+    rng = np.random.default_rng(3)
+    prior_pose = SE3(base.variables["pose"].data[:2]).retract(
+        jnp.asarray(0.01 * rng.normal(size=(2, 6))))
+    factors = [
+        base.factors[0],
+        Factor(prior_residual, [("pose", np.array([1, 3]))], data=prior_pose,
+               information=np.diag([4.0, 4, 4, 100, 100, 100])),
+        Factor(vector_prior_residual, [("point", np.array([0, 5]))],
+               data=jnp.asarray(prob.points[[0, 5]] + 0.1), information=np.eye(3) * 2.0),
+    ]
+    fixed = {"pose": [0], "intrinsics": [0, 2], "point": [7]}
+    graph = FactorGraph(factors, base.variables, fixed=fixed, eliminate="point")
+    info = [None, np.diag([4.0, 4, 4, 100, 100, 100]), np.eye(3) * 2.0]
+    return graph, info
+
+
+def test_schur_step_equals_the_dense_solve_of_the_full_system():
+    graph, info = _schur_graph()
+    st = graph.structure
+    assert st.schur is not None and st.names == ("intrinsics", "point", "pose")
+
+    @jax.jit(compiler_options=FAST_COMPILE)
+    def run(graph):
+        lin = linearize(graph, graph.variables)
+        g = gradient(graph, lin)
+        free = jnp.concatenate([jnp.repeat(f, d) for f, d in zip(st.free, st.dims,
+                                                                  strict=True)])
+        add = 1e-3 * jnp.clip(hessian_diagonal(graph, lin), 1e-6, 1e32) + (1.0 - free)
+        ref = dense_residual_fn(graph, graph.variables, info)
+        zero = jnp.zeros(graph.size)
+        return dict(
+            lin=lin, g=g, add=add, free=free, J_ref=jax.jacfwd(ref)(zero), r_ref=ref(zero),
+            dense=schur_step(graph, lin, g, add, linear.solve_dense),
+            sparse=schur_step(graph, lin, g, add, linear.solve_sparse_direct),
+        )
+
+    out = run(graph)
+    free = np.asarray(out["free"])
+    J = np.asarray(out["J_ref"]) * free[None, :]
+    np.testing.assert_allclose(assemble_jacobian(graph, out["lin"].jacobians), J, rtol=0,
+                               atol=1e-9 * np.abs(J).max())
+    H = J.T @ J
+    np.testing.assert_allclose(out["add"], 1e-3 * np.clip(np.diag(H), 1e-6, 1e32) + 1 - free,
+                               rtol=1e-9, atol=0)
+    x = np.linalg.solve(H + np.diag(np.asarray(out["add"])), -(J.T @ np.asarray(out["r_ref"])))
+    for key in ("dense", "sparse"):
+        np.testing.assert_allclose(out[key], x, rtol=0, atol=1e-9 * np.abs(x).max(), err_msg=key)
+        assert np.all(np.asarray(out[key])[free == 0] == 0), key
+
+
+def test_schur_and_plain_solves_agree_and_reach_the_noise_floor():
+    """LM with Schur elimination and with the full sparse system take the same steps; the
+    result fits the data as well as the truth does and its RMSE is the noise floor
+    σ·√((M − P + 7)/M) (M residuals, P parameters, 7 gauge freedoms)."""
+    prob, truth = synthetic_bal(n_cameras=8, n_points=120, obs_per_point=4, seed=5)
+    sols = {}
+    for solver in ("schur", "sparse"):
+        graph = bal_graph.bundle_adjustment_problem(prob, eliminate=solver == "schur")
+        sols[solver] = jit_solve(linear_solver=solver, **BA_OPTIONS)(graph)
+    a, b = sols["schur"], sols["sparse"]
+    assert a.status_name == b.status_name == "converged"
+    assert int(a.iterations) == int(b.iterations)
+    np.testing.assert_allclose(float(a.cost), float(b.cost), rtol=1e-10)
+    np.testing.assert_allclose(a.variables["point"], b.variables["point"], rtol=0, atol=1e-7)
+    rmse = bal_graph.reprojection_rmse(prob, a.variables)
+    m = 2 * prob.n_observations
+    n_params = 9 * prob.n_cameras + 3 * prob.n_points
+    floor = np.sqrt((m - n_params + 7) / m)  # σ = 1 pixel
+    assert abs(rmse / floor - 1) < 0.15, (rmse, floor)
+    assert float(a.cost) < 0.5 * m * bal_graph.reprojection_rmse(truth) ** 2
+    assert bal_graph.reprojection_rmse(prob) > 10 * rmse  # it really moved
+
+
+def _scipy_minimum(prob: BALProblem) -> float:
+    """Minimum of 0.5·Σ‖r‖² over poses and points (intrinsics fixed), BAL parametrisation."""
+    nc = prob.n_cameras
+
+    def res(x):
+        cams = prob.cameras.copy()
+        cams[:, :6] = x[: 6 * nc].reshape(nc, 6)
+        pts = x[6 * nc :].reshape(-1, 3)
+        return (_project(cams, pts, prob.camera_index, prob.point_index)
+                - prob.observations).ravel()
+
+    x0 = np.concatenate([prob.cameras[:, :6].ravel(), prob.points.ravel()])
+    r = least_squares(res, x0, method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    return 0.5 * float(np.sum(r.fun**2))
+
+
+def test_bal_file_fixed_intrinsics_reaches_scipy_minimum():
+    prob = _bal_file("dubrovnik-3-7-pre.txt")
+    graph = bal_graph.bundle_adjustment_problem(prob, fix_intrinsics=True)
+    sol = jit_solve(linear_solver="schur", **BA_OPTIONS)(graph)
+    assert sol.status_name == "converged"
+    cams, pts = bal_graph.variables_to_bal(sol.variables)
+    out = BALProblem(cams, pts, prob.camera_index, prob.point_index, prob.observations)
+    np.testing.assert_allclose(float(sol.cost), _scipy_minimum(prob), rtol=1e-8)
+    np.testing.assert_array_equal(out.cameras[:, 6:], prob.cameras[:, 6:])
+    rmse = bal_graph.reprojection_rmse(out)
+    np.testing.assert_allclose(0.5 * 2 * prob.n_observations * rmse**2, float(sol.cost),
+                               rtol=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["dubrovnik-1-1-pre.txt", "dubrovnik-3-7-18-pre.txt",
+                                  "dubrovnik-3-7-pre.txt"])
+def test_bal_files_converge(name):
+    """All nine camera parameters free: the small files have fewer residuals than
+    parameters, so the noise floor is zero; with intrinsics fixed, SciPy's minimum."""
+    prob = _bal_file(name)
+    out, sol = bal_graph.optimize_bal(prob, max_steps=300)
+    assert sol.status_name == "converged"
+    assert bal_graph.reprojection_rmse(out) < 1e-9 < bal_graph.reprojection_rmse(prob)
+    _, fixed = bal_graph.optimize_bal(prob, fix_intrinsics=True, max_steps=100)
+    np.testing.assert_allclose(float(fixed.cost), _scipy_minimum(prob), rtol=1e-8, atol=1e-20)
+
+
+@pytest.mark.slow
+def test_float32_schur_solve():
+    prob, _ = synthetic_bal(n_cameras=8, n_points=120, obs_per_point=4, seed=5)
+    g64 = bal_graph.bundle_adjustment_problem(prob)
+    g32 = bal_graph.bundle_adjustment_problem(prob, dtype=jnp.float32)
+    s64 = jit_solve(linear_solver="schur", **BA_OPTIONS)(g64)
+    s32 = jax.jit(lambda g: bal_graph.solve(g, linear_solver="schur", **BA_OPTIONS),
+                  compiler_options=FAST_COMPILE)(g32)
+    assert s32.cost.dtype == jnp.float32 and s32.status_name in ("converged", "stalled")
+    np.testing.assert_allclose(float(s32.cost), float(s64.cost), rtol=1e-4)
+
+
+def test_bad_bundle_adjustment_input():
+    prob, _ = _small_problem(0)
+    with pytest.raises(TypeError, match=r"expected a BALProblem"):
+        bal_graph.bundle_adjustment_problem(prob.cameras)
+    with pytest.raises(ValueError, match=r"bal_to_variables\(cameras\).*\(n, 9\)"):
+        bal_graph.bal_to_variables(prob.cameras[:, :7], prob.points)
+    empty = BALProblem(prob.cameras, prob.points, np.zeros(0, np.int64), np.zeros(0, np.int64),
+                       np.zeros((0, 2)))
+    with pytest.raises(ValueError, match="no observations"):
+        bal_graph.bundle_adjustment_problem(empty)
+    graph = bal_graph.bundle_adjustment_problem(prob, eliminate=False)
+    with pytest.raises(ValueError, match="eliminates no variable type"):
+        bal_graph.solve(graph, linear_solver="schur")
+    with pytest.raises(KeyError, match=r"eliminate='landmark'.*not a variable type"):
+        FactorGraph(graph.factors, graph.variables, eliminate="landmark")
+    link = Factor(lambda a, b, z: a - b, [("point", np.array([0])), ("point", np.array([1]))],
+                  data=jnp.zeros((1, 3)))
+    with pytest.raises(ValueError, match="links two 'point' variables"):
+        FactorGraph([graph.factors[0], link], graph.variables, eliminate="point")
