@@ -1,11 +1,21 @@
 """Build the tutorial notebooks from the example scripts, so the two never diverge.
 
-Each notebook is: a title and the script's docstring (markdown), the install cell (Colab:
-from GitHub; inside a checkout: the checkout), the script's code verbatim (without its
-``sys.path`` set-up and ``__main__`` block), and a cell that runs it at notebook size and
-plots. ``tests/control/test_examples.py`` checks that the committed notebooks equal what
-this builder produces. Run ``python notebooks/_examples/build_notebooks.py`` after editing
-an example.
+Two kinds of scripts:
+
+* module scripts (functions plus a ``main``): the notebook is the install cell, a title and
+  the script's docstring (markdown), the script's code verbatim (without its ``sys.path``
+  set-up and ``__main__`` block), and a cell that runs it at notebook size and plots;
+* tutorial scripts in the "percent" format (``"format": "percent"`` below): after the
+  header (docstring, ``sys.path`` set-up), ``# %%`` starts a code cell and
+  ``# %% [markdown]`` a markdown cell whose lines are ``#`` comments. The script runs
+  top to bottom as the notebook does.
+
+The install cell installs jaxpose only when it is not importable (from this checkout
+when the notebook runs from ``notebooks/``, else from GitHub, e.g. on Colab). Every
+notebook honours ``JAXPOSE_NOTEBOOK_SMOKE=1`` (tiny sizes), which ``tests/test_notebooks.py``
+sets to execute all of them with nbclient. ``tests/control/test_examples.py`` and
+``tests/test_notebooks.py`` check that the committed notebooks equal what this builder
+produces. Run ``python notebooks/_examples/build_notebooks.py`` after editing an example.
 """
 
 from __future__ import annotations
@@ -19,14 +29,31 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 NOTEBOOKS = os.path.dirname(HERE)
 REPO_URL = "https://github.com/jaxpose/jaxpose"
 
-INSTALL = f"""# Install jaxpose: from GitHub on Colab, or this checkout when run from notebooks/.
-!pip install -q "git+{REPO_URL}" || pip install -q -e .."""
+INSTALL = f"""# Install jaxpose (with matplotlib) unless it is importable: from this checkout
+# (`pip install -e ..`) when the notebook runs from notebooks/, else from GitHub (Colab).
+import importlib.util
+import os
+import subprocess
+import sys
+
+if importlib.util.find_spec("jaxpose") is None:
+    in_checkout = os.path.exists(os.path.join("..", "pyproject.toml"))
+    source = ["-e", "..[plot]"] if in_checkout else ["jaxpose[plot] @ git+{REPO_URL}"]
+    subprocess.check_call([sys.executable, "-m", "pip", "install", "-q", *source])"""
+
+SMOKE = """import os
+
+SMOKE = os.environ.get("JAXPOSE_NOTEBOOK_SMOKE") == "1"  # tiny sizes (CI runs every notebook)"""
 
 SPECS: dict[str, dict[str, Any]] = {
+    "lie_groups": {"title": "Lie groups and manifold calculus", "format": "percent"},
+    "least_squares": {"title": "Least squares and robust kernels", "format": "percent"},
+    "pose_graph": {"title": "Pose-graph optimisation", "format": "percent"},
     "mpc_imitation": {
         "title": "Differentiable MPC: imitation learning of linear dynamics",
-        "run": """jax.config.update("jax_enable_x64", True)
-hist = train(steps=3000)  # ~20 s on a CPU, compilation included
+        "run": SMOKE + """
+jax.config.update("jax_enable_x64", True)
+hist = train(steps=40 if SMOKE else 3000)  # ~20 s on a CPU, compilation included
 ml = hist.model_loss
 print(f"model loss {float(ml[0]):.2e} -> {float(ml[-1]):.2e}, {float(ml[0] / ml[-1]):.1e}x lower")
 print("learned A:\\n", hist.A, "\\nexpert A:\\n", hist.expert.A)
@@ -34,17 +61,20 @@ plot(hist)""",
     },
     "cartpole_ilqr": {
         "title": "Cart-pole swing-up with iLQR and force limits",
-        "run": """jax.config.update("jax_enable_x64", True)
-sol, model = solve(horizon=80, u_max=5.0)
+        "run": SMOKE + """
+jax.config.update("jax_enable_x64", True)
+sol, model = solve(horizon=80, u_max=5.0, max_iter=3 if SMOKE else 400)
 print(STATUS_NAMES[int(sol.status)], int(sol.iterations), "iterations; cost", float(sol.cost))
 print("final state", sol.x[-1], "| force range", float(sol.u.min()), float(sol.u.max()))
 plot(sol, dt=0.05)""",
     },
     "bicycle_filters": {
         "title": "EKF, UKF and particle filter on a kinematic bicycle",
-        "run": """jax.config.update("jax_enable_x64", True)
-mc = monte_carlo(runs=100, steps=80, num_particles=500)
-print(format_summary(summary(mc), runs=100))
+        "run": SMOKE + """
+jax.config.update("jax_enable_x64", True)
+runs = 4 if SMOKE else 100
+mc = monte_carlo(runs=runs, steps=10 if SMOKE else 80, num_particles=50 if SMOKE else 500)
+print(format_summary(summary(mc), runs=runs))
 plot(mc)""",
     },
 }
@@ -78,14 +108,33 @@ def _cell(kind: str, text: str) -> dict[str, Any]:
     return cell
 
 
+def percent_cells(name: str) -> list[tuple[str, str]]:
+    """``(kind, text)`` of every cell of a percent-format script (header dropped)."""
+    with open(os.path.join(HERE, f"{name}.py"), encoding="utf-8") as fh:
+        src = fh.read()
+    cells: list[tuple[str, str]] = []
+    for block in re.split(r"^# %%", src, flags=re.M)[1:]:
+        head, _, body = block.partition("\n")
+        if head.strip() == "[markdown]":
+            lines = [re.sub(r"^# ?", "", line) for line in body.strip("\n").splitlines()]
+            cells.append(("markdown", "\n".join(lines)))
+        else:
+            cells.append(("code", body.strip("\n")))
+    if not cells:
+        raise ValueError(f"{name}.py: no '# %%' cells (percent format expected)")
+    return cells
+
+
 def notebook(name: str) -> dict[str, Any]:
     spec = SPECS[name]
     cells = [
         _cell("code", INSTALL),
         _cell("markdown", f"# {spec['title']}\n\n{docstring(name)}"),
-        _cell("code", script_code(name)),
-        _cell("code", spec["run"]),
     ]
+    if spec.get("format") == "percent":
+        cells += [_cell(kind, text) for kind, text in percent_cells(name)]
+    else:
+        cells += [_cell("code", script_code(name)), _cell("code", spec["run"])]
     return {
         "cells": cells,
         "metadata": {
