@@ -1,5 +1,16 @@
-"""Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM."""
+"""Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM.
 
+Pose graphs: :mod:`jaxpose.graph.pgo`; bundle adjustment (BAL camera model, Schur
+elimination of the points): :mod:`jaxpose.graph.ba`.
+"""
+
+from . import ba, pgo
+from .ba import (
+    bundle_adjustment_problem,
+    optimize_bal,
+    reprojection_jacobian,
+    reprojection_residual,
+)
 from .factor import (
     Factor,
     between_jacobian,
@@ -9,6 +20,7 @@ from .factor import (
 )
 from .problem import FactorGraph, Linearization, cost, linearize
 from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STALLED, GraphSolution, solve, summary
+from .strategies import LambdaFactor, Nielsen
 
 __all__ = [
     "CONVERGED",
@@ -18,11 +30,20 @@ __all__ = [
     "Factor",
     "FactorGraph",
     "GraphSolution",
+    "LambdaFactor",
     "Linearization",
+    "Nielsen",
+    "ba",
+    "between_jacobian",
     "between_residual",
+    "bundle_adjustment_problem",
     "cost",
     "linearize",
+    "optimize_bal",
+    "pgo",
     "prior_residual",
+    "reprojection_jacobian",
+    "reprojection_residual",
     "solve",
     "summary",
     "vector_prior_residual",
