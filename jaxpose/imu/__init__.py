@@ -1,0 +1,46 @@
+"""Inertial navigation: on-manifold IMU preintegration (Forster et al.) with covariance
+and bias Jacobians, dead reckoning, IMU and GPS factors for the sparse least-squares
+path, and a reader for GTSAM's IMU+GPS example stream. Conventions: ``docs/imu.md``."""
+
+from .data import ImuGpsData, read_imu_gps
+from .factors import (
+    ImuFactorData,
+    bias_walk_factor,
+    bias_walk_residual,
+    gps_factor,
+    gps_residual,
+    imu_factor,
+    imu_residual,
+)
+from .fusion import FusionResult, fuse_imu_gps, preintegrate_windows
+from .preintegration import (
+    SCHEMES,
+    ImuPreintegrator,
+    Preintegrated,
+    integrate,
+    predict,
+    preintegrate,
+)
+from .state import NavState
+
+__all__ = [
+    "SCHEMES",
+    "FusionResult",
+    "ImuFactorData",
+    "ImuGpsData",
+    "ImuPreintegrator",
+    "NavState",
+    "Preintegrated",
+    "bias_walk_factor",
+    "bias_walk_residual",
+    "fuse_imu_gps",
+    "gps_factor",
+    "gps_residual",
+    "imu_factor",
+    "imu_residual",
+    "integrate",
+    "predict",
+    "preintegrate",
+    "preintegrate_windows",
+    "read_imu_gps",
+]

@@ -1,0 +1,123 @@
+"""Input validation for the IMU functions (internal): trace-time shape and type checks
+with messages naming the function and argument, and run-time value checks through
+:func:`equinox.error_if`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Array = jax.Array
+
+
+def as_float(x: Any, name: str) -> Array:
+    if x is None or isinstance(x, (str, bytes, dict, set)):
+        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}")
+    try:
+        arr = jnp.asarray(x)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}") from err
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+            raise TypeError(f"{name}: expected a real floating array, got {arr.dtype}")
+        arr = arr.astype(jnp.result_type(float))
+    return arr
+
+
+def scalar_var(x: Any, name: str, dtype: Any) -> Array:
+    """A scalar σ → σ²."""
+    arr = as_float(x, name).astype(dtype)
+    if arr.ndim != 0:
+        raise ValueError(f"{name}: expected a scalar σ, got shape {tuple(arr.shape)}")
+    return arr * arr
+
+
+def noise_sigma(x: Any, name: str, dtype: Any) -> Array:
+    """σ (scalar or (3,)) → (3,)."""
+    arr = as_float(x, name).astype(dtype)
+    if arr.shape not in ((), (3,)):
+        raise ValueError(f"{name}: expected a scalar σ or shape (3,), got {tuple(arr.shape)}")
+    return jnp.broadcast_to(arr, (3,))
+
+
+def check_samples(
+    gyro: Any, acc: Any, dt: Any, fn: str
+) -> tuple[Array, Array, Array, tuple[int, ...], Any]:
+    """Validate shapes (trace time): gyro, acc (…, N, 3) with equal N; dt scalar, (N,) or
+    (…, N). Returns the float arrays (not yet broadcast), the broadcast batch shape and
+    the common dtype."""
+    g = as_float(gyro, f"{fn}(gyro)")
+    a = as_float(acc, f"{fn}(acc)")
+    for arr, name in ((g, "gyro"), (a, "acc")):
+        if arr.ndim < 2 or arr.shape[-1] != 3:
+            raise ValueError(f"{fn}({name}): expected samples of shape (..., N, 3), got "
+                             f"{tuple(arr.shape)}")
+    if g.shape[-2] != a.shape[-2]:
+        raise ValueError(f"{fn}: gyro has {g.shape[-2]} samples but acc has "
+                         f"{a.shape[-2]} (shapes {tuple(g.shape)} and {tuple(a.shape)})")
+    if g.shape[-2] == 0:
+        raise ValueError(f"{fn}(gyro, acc): expected at least one sample, got 0")
+    n = g.shape[-2]
+    d = as_float(dt, f"{fn}(dt)")
+    if d.ndim >= 1 and d.shape[-1] != n:
+        raise ValueError(f"{fn}(dt): expected a scalar or {n} time steps (one per sample) "
+                         f"in the last axis, got shape {tuple(d.shape)}")
+    dtype = jnp.result_type(g.dtype, a.dtype, d.dtype)
+    try:
+        batch = tuple(np.broadcast_shapes(g.shape[:-2], a.shape[:-2], d.shape[:-1]))
+    except ValueError as err:
+        raise ValueError(f"{fn}: batch shapes of gyro {tuple(g.shape[:-2])}, acc "
+                         f"{tuple(a.shape[:-2])} and dt {tuple(d.shape[:-1])} do not "
+                         f"broadcast") from err
+    return g, a, d, batch, dtype
+
+
+def broadcast_samples(
+    g: Array, a: Array, d: Array, batch: tuple[int, ...], dtype: Any
+) -> tuple[Array, Array, Array]:
+    """Cast to ``dtype`` and broadcast to (*batch, N, 3), (*batch, N)."""
+    n = g.shape[-2]
+    return (
+        jnp.broadcast_to(g.astype(dtype), (*batch, n, 3)),
+        jnp.broadcast_to(a.astype(dtype), (*batch, n, 3)),
+        jnp.broadcast_to(d.astype(dtype), (*batch, n)),
+    )
+
+
+def check_values(g: Array, a: Array, d: Array, fn: str) -> tuple[Array, Array, Array]:
+    """Run-time value checks with :func:`equinox.error_if` (also under jit/vmap)."""
+    g = eqx.error_if(g, ~jnp.all(jnp.isfinite(g)),
+                     f"{fn}(gyro): samples contain NaN or inf")
+    a = eqx.error_if(a, ~jnp.all(jnp.isfinite(a)),
+                     f"{fn}(acc): samples contain NaN or inf")
+    d = eqx.error_if(d, ~jnp.all(d > 0), f"{fn}(dt): every time step must be positive and "
+                     f"finite (found dt <= 0 or NaN)")
+    return g, a, d
+
+
+def biases(gyro_bias: Any, acc_bias: Any, batch: tuple[int, ...],
+           fn: str) -> tuple[Array | None, Array | None, tuple[int, ...]]:
+    """Validate the bias shapes ((3,) or (…, 3), None = zero); returns them unbroadcast
+    and the batch shape broadcast with theirs."""
+    out: list[Array | None] = []
+    shapes = [batch]
+    for b, name in ((gyro_bias, "gyro_bias"), (acc_bias, "acc_bias")):
+        if b is None:
+            out.append(None)
+            continue
+        arr = as_float(b, f"{fn}({name})")
+        if arr.ndim == 0 or arr.shape[-1] != 3:
+            raise ValueError(f"{fn}({name}): expected shape (3,) or (..., 3), got "
+                             f"{tuple(arr.shape)}")
+        out.append(arr)
+        shapes.append(arr.shape[:-1])
+    try:
+        batch = tuple(np.broadcast_shapes(*shapes))
+    except ValueError as err:
+        raise ValueError(f"{fn}: bias batch shapes {[tuple(s) for s in shapes[1:]]} do not "
+                         f"broadcast with the samples' batch shape {batch}") from err
+    return out[0], out[1], batch
