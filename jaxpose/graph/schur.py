@@ -29,7 +29,7 @@ import numpy as np
 from .pattern import BlockPattern, build_pattern, scatter_blocks
 
 Array = jax.Array
-CHUNK = 16384  # entry pairs per accumulation step
+CHUNK = 4096  # entry pairs per accumulation step (products stay in cache)
 
 
 class SchurStructure(eqx.Module):
@@ -51,7 +51,7 @@ class SchurStructure(eqx.Module):
     w_counts: tuple[int, ...] = eqx.field(static=True)  # entries per kept type
     w_point: tuple[Array, ...]  # per kept type: (n_k,) eliminated variable of each entry
     w_var: tuple[Array, ...]  # per kept type: (n_k,) kept variable of each entry
-    # upper pair classes (k1 <= k2): (k1, k2, reduced class); index arrays (chunks, CHUNK)
+    # upper pair classes (k1 <= k2): (k1, k2, reduced class); index arrays (chunks, size)
     # of the entries a, b and the target block (padding: block index n_blocks, dropped)
     pair_classes: tuple[tuple[int, int, int], ...] = eqx.field(static=True)
     pair_a: tuple[Array, ...]
@@ -183,9 +183,11 @@ def build_schur(
 
 
 def _chunked(x: np.ndarray, fill: int) -> Array:
-    """(chunks, CHUNK) int32, padded with ``fill``."""
-    pad = (-x.size) % CHUNK
-    return jnp.asarray(np.pad(x, (0, pad), constant_values=fill).reshape(-1, CHUNK), jnp.int32)
+    """(chunks, size) int32 padded with ``fill``; size = CHUNK, or the next power of two
+    of x.size when that is smaller (small problems do not pay for a whole chunk)."""
+    size = min(CHUNK, 1 << max(int(x.size) - 1, 0).bit_length())
+    pad = (-x.size) % size
+    return jnp.asarray(np.pad(x, (0, pad), constant_values=fill).reshape(-1, size), jnp.int32)
 
 
 def _block_coords(pattern: BlockPattern, c: int) -> tuple[np.ndarray, np.ndarray]:
@@ -251,7 +253,10 @@ def schur_step(
             prod = jnp.einsum("pie,pje->pij", y[k1][ia], w[k2][ib])
             return acc.at[ic].add(-prod, mode="drop", indices_are_sorted=True), None
 
-        s_blocks[c], _ = jax.lax.scan(body, s_blocks[c], (pa, pb, blk))
+        if pa.shape[0] == 1:  # one chunk: no loop
+            s_blocks[c], _ = body(s_blocks[c], (pa[0], pb[0], blk[0]))
+        else:
+            s_blocks[c], _ = jax.lax.scan(body, s_blocks[c], (pa, pb, blk))
     for (c, m, same), mask, idx in zip(sc.mirror_classes, sc.mirror_mask, sc.mirror_index,
                                        strict=True):
         mirrored = s_blocks[m][idx].mT
