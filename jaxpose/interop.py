@@ -7,14 +7,12 @@ Layouts (``docs/conventions.md``). jaxpose stores PyPose's layouts, so PyPose ar
 unchanged; jaxlie stores quaternions scalar-first and puts the rotation before the
 translation, so the conversion reorders the storage explicitly:
 
-=========  ==================================  =====================================
-group      jaxpose ``.data``                   jaxlie ``.parameters()``
-=========  ==================================  =====================================
-SO3        ``[qx, qy, qz, qw]``                ``wxyz = [qw, qx, qy, qz]``
-SE3        ``[tx, ty, tz, qx, qy, qz, qw]``    ``wxyz_xyz = [qw, qx, qy, qz, tx, ty, tz]``
-SO2        ``[cos θ, sin θ]``                  ``unit_complex = [cos θ, sin θ]``
-SE2        ``[tx, ty, cos θ, sin θ]``          ``unit_complex_xy = [cos θ, sin θ, tx, ty]``
-=========  ==================================  =====================================
+| group | jaxpose ``.data`` | jaxlie ``.parameters()`` |
+|---|---|---|
+| SO3 | ``[qx, qy, qz, qw]`` | ``wxyz = [qw, qx, qy, qz]`` |
+| SE3 | ``[tx, ty, tz, qx, qy, qz, qw]`` | ``wxyz_xyz = [qw, qx, qy, qz, tx, ty, tz]`` |
+| SO2 | ``[cos θ, sin θ]`` | ``unit_complex = [cos θ, sin θ]`` |
+| SE2 | ``[tx, ty, cos θ, sin θ]`` | ``unit_complex_xy = [cos θ, sin θ, tx, ty]`` |
 
 Tangent vectors need no conversion: both libraries order twists translation first
 (se3 ``[ρ(3), φ(3)]``, se2 ``[ρx, ρy, θ]``) and use the same ``Exp``, so

@@ -110,9 +110,10 @@ def least_squares(
         :class:`Solution` with the best ``params``, ``status``, ``num_steps``, costs.
 
     Raises:
-        ValueError / TypeError at trace time for malformed weights, kernels or options;
-        an ``eqx.error_if`` runtime error if ``residual_fn`` (or its Jacobian) is NaN/Inf
-        at the initial ``params``.
+        ValueError: at trace time for malformed weights, kernels or options (shapes).
+        TypeError: at trace time for arguments of the wrong type (solver, adjoint, ...).
+        RuntimeError: (``eqx.EquinoxRuntimeError``, from ``eqx.error_if``) if
+            ``residual_fn`` (or its Jacobian) is NaN/Inf at the initial ``params``.
     """
     solver = LevenbergMarquardt() if solver is None else solver
     if not isinstance(solver, AbstractSolver):
