@@ -3,6 +3,12 @@
 Residual of an edge (i, j) with measurement Z: ``Log(Z⁻¹ · Xi⁻¹ · Xj)`` (translation
 first), weighted by its information matrix Ω; cost ``0.5 · Σ ρ(rᵀΩr)``. The gauge is
 fixed by holding the first pose (or the graph's FIX vertices) constant.
+
+Disconnected graphs (documented behaviour): every connected piece has its own gauge
+freedom, so with ``fix="first"`` (or ``"file"``) the first pose of each piece that has
+no fixed pose is held constant as well; the pieces are then solved jointly but
+independently (their cost is the sum of the pieces' costs). ``fix="none"`` leaves every
+gauge free (LM's damping keeps the steps finite).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from ..io.g2o import connected_components
 from ..lie import SE2, SE3
 from .factor import Factor, between_jacobian, between_residual
 from .problem import FactorGraph
@@ -36,7 +43,9 @@ def pose_graph_problem(
         kernel: optional robust kernel ρ(s) applied to every edge.
         fix: ``"first"`` holds pose 0 constant; ``"file"`` holds the graph's FIX vertices
             (falling back to pose 0 when there are none); ``"none"`` fixes nothing (the
-            problem is then gauge-free: use damping or a prior).
+            problem is then gauge-free: use damping or a prior). With ``"first"`` and
+            ``"file"``, each further disconnected piece without a fixed pose has its first
+            pose held constant too (module docstring).
         dtype: float dtype of the variables (default: JAX's default float).
     """
     if graph.kind not in _GROUPS:
@@ -58,12 +67,23 @@ def pose_graph_problem(
         jacobian=between_jacobian,
     )
     fixed: dict[str, Any] = {}
-    if fix == "first":
-        fixed = {"pose": [0]}
-    elif fix == "file":
+    if fix != "none":
         file_fixed = np.asarray(getattr(graph, "fixed", []), dtype=np.int64)
-        fixed = {"pose": file_fixed if file_fixed.size else [0]}
+        held = file_fixed if (fix == "file" and file_fixed.size) else np.zeros(1, np.int64)
+        fixed = {"pose": gauge_anchors(graph, held)}
     return FactorGraph([factor], {"pose": poses}, fixed=fixed)
+
+
+def gauge_anchors(graph: Any, held: Any) -> np.ndarray:
+    """Sorted indices to hold constant: ``held`` plus the first pose of every connected
+    piece of ``graph`` that contains none of them."""
+    held = np.unique(np.asarray(held, np.int64).reshape(-1))
+    if graph.n_poses == 0:
+        return held
+    labels = connected_components(graph)
+    firsts = np.unique(labels, return_index=True)[1]
+    free_pieces = np.setdiff1d(np.arange(firsts.size), labels[held])
+    return np.union1d(held, firsts[free_pieces])
 
 
 def optimize_pose_graph(
