@@ -4,7 +4,7 @@ Public API: ``jaxpose.lie`` (groups, algebras, manifold calculus), re-exported h
 ``jp.SO3``, ``jp.SE3``, ... and the functional ops ``jp.exp``, ``jp.log``, ...
 """
 
-from . import datasets, graph, imu, io, lie, optim
+from . import datasets, graph, imu, io, lie, optim, sharding
 from .datasets import synthetic_bal, synthetic_pose_graph
 from .io import BALProblem, FormatError, PoseGraph, read_bal, read_g2o, write_bal, write_g2o
 from .lie import (
