@@ -391,7 +391,15 @@ class LieGroup(eqx.Module):
         broadcast_batch(self.shape, data.shape[:-1], what=f"{type(self).__name__}.adjT(a)")
         return self.algebra(matvec(jnp.swapaxes(self.adj_matrix(), -1, -2), data))
 
-    AdjT = adjT
+    def AdjT(self, a: Any) -> LieAlgebra:  # noqa: N802 - PyPose name and semantics
+        """PyPose's ``AdjT``: ``Adj(X⁻¹)·a``, defined by ``Exp(a)·X = X·Exp(AdjT a)``.
+
+        Equal to :meth:`adjT` (the transpose ``Adj(X)ᵀ·a``) where Adj(X) is orthogonal
+        (SO3, SO2, RxSO3), different on SE3, Sim3 and SE2; kept under PyPose's name with
+        PyPose's values so ported code gives the same numbers."""
+        data = _tangent_data(a, self.algebra, f"{type(self).__name__}.AdjT(a)")
+        broadcast_batch(self.shape, data.shape[:-1], what=f"{type(self).__name__}.AdjT(a)")
+        return self.algebra(matvec(self._adj_matrix(self._inv(self.data)), data))
 
     def jinvp(self, a: Any) -> LieAlgebra:
         """``Jl⁻¹(Log X) · a`` (PyPose's ``Jinvp``)."""

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaxpose as jp
-from jaxpose.lie import SE2, SE3, SO2, SO3, RxSO3, Sim3, se3, so3
+from jaxpose.lie import SE2, SE3, SO2, SO3, se3, so3
 
 from .conftest import ALGEBRAS, GROUPS, fast_jit, random_group_data
 

