@@ -52,23 +52,29 @@ from .conftest import (
 
 
 def _solve(problem, **options):
-    return jax.jit(lambda g: graph_solve(g, linear_solver="dense", **options),
-                   compiler_options=FAST_COMPILE)(problem)
+    options = {"linear_solver": "dense", **options}
+    return jax.jit(lambda g: graph_solve(g, **options), compiler_options=FAST_COMPILE)(problem)
 
 
-def test_dogleg_with_plateau_stopping_reaches_gtsam_minimum():
+def test_dogleg_inexact_pcg_with_plateau_stopping_reaches_gtsam_minimum():
+    """Dogleg steps from inexact-Newton CG (lineax, forcing η = min(0.1, √(‖g‖/‖g₀‖)))
+    and PyPose's StopOnPlateau rule."""
     problem = pgo.pose_graph_problem(read_g2o(data_file("pose2example.txt")))
     stop = Stopping(max_steps=80, cost_rtol=0.0, gtol=0.0, xtol=0.0,
-                    plateau=StopOnPlateau(steps=80, patience=3, decreasing=1e-12))
-    sol = _solve(problem, strategy=Dogleg(radius=0.1), stopping=stop, verbose=True)
+                    plateau=StopOnPlateau(steps=80, patience=2, decreasing=1e-6))
+    sol = _solve(problem, strategy=Dogleg(radius=0.1), stopping=stop, verbose=True,
+                 linear_solver="pcg", cg_rtol="inexact")
+    assert int(sol.linear_iterations) > 0
     assert int(sol.status) == Status.CONVERGED and sol.status_name == "converged"
     np.testing.assert_allclose(float(sol.cost), GTSAM_COST["pose2example.txt"], rtol=1e-9)
     k = int(sol.iterations)
     hist = np.asarray(sol.history)
     assert 3 < k < 80 and sol.history.shape == (80,)
     assert np.all(np.diff(hist[:k]) <= 0) and np.all(np.isnan(hist[k:]))
-    # the plateau rule ended it: the last three iterations decreased by < 1e-12
-    assert hist[k - 4] - hist[k - 1] < 3e-12
+    # the plateau rule ended it: the last two iterations decreased by < 1e-6, the one
+    # before did not
+    dec = -np.diff(hist[:k])
+    assert np.all(dec[-2:] < 1e-6) and dec[-3] >= 1e-6, dec
 
 
 @pytest.mark.slow
@@ -159,6 +165,8 @@ def test_kernels_and_correctors_on_the_sparse_path():
         graph_solve(problem, stopping={"max_steps": 3})
     with pytest.raises(ValueError, match=r"LambdaFactor\(factor\)"):
         LambdaFactor(1e-3, factor=1.0)
+    with pytest.raises(ValueError, match=r"cg_rtol='exact'"):
+        graph_solve(problem, linear_solver="pcg", cg_rtol="exact")
 
 
 @pytest.mark.parametrize("names", [("SE3", "SE2"), pytest.param(("Sim3",), marks=pytest.mark.slow)])
