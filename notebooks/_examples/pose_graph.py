@@ -53,7 +53,7 @@ SMOKE = os.environ.get("JAXPOSE_NOTEBOOK_SMOKE") == "1"  # tiny sizes (CI runs e
 # odometry, so it drifts. It returns the same `PoseGraph` container as `jp.read_g2o`.
 
 # %%
-n_poses = 100 if SMOKE else 900
+n_poses = 60 if SMOKE else 900
 graph, truth = jp.synthetic_pose_graph("SE3", n_poses=n_poses, noise=(0.02, 0.05), seed=0)
 print(f"{graph.kind}: {len(graph.poses)} poses, {len(graph.edges)} edges "
       f"({len(graph.edges) - (n_poses - 1)} loop closures)")
