@@ -12,10 +12,12 @@ Two kinds of scripts:
 
 The install cell installs jaxpose only when it is not importable (from this checkout
 when the notebook runs from ``notebooks/``, else from GitHub, e.g. on Colab). Every
-notebook honours ``JAXPOSE_NOTEBOOK_SMOKE=1`` (tiny sizes), which ``tests/test_notebooks.py``
-sets to execute all of them with nbclient. ``tests/control/test_examples.py`` and
-``tests/test_notebooks.py`` check that the committed notebooks equal what this builder
-produces. Run ``python notebooks/_examples/build_notebooks.py`` after editing an example.
+notebook honours ``JAXPOSE_NOTEBOOK_SMOKE=1`` (tiny sizes; module scripts' run cells
+start with ``SMOKE`` below), which ``tests/test_notebooks.py`` sets to execute all of them
+with nbclient; a spec's ``"requires": ["mujoco"]`` lists optional packages, without which
+that test skips the notebook. ``tests/control/test_examples.py`` checks that the committed
+notebooks equal what this builder produces. Run
+``python notebooks/_examples/build_notebooks.py`` after editing an example.
 """
 
 from __future__ import annotations
@@ -135,13 +137,16 @@ def notebook(name: str) -> dict[str, Any]:
         cells += [_cell(kind, text) for kind, text in percent_cells(name)]
     else:
         cells += [_cell("code", script_code(name)), _cell("code", spec["run"])]
+    metadata: dict[str, Any] = {
+        "colab": {"provenance": []},
+        "kernelspec": {"display_name": "Python 3", "language": "python", "name": "python3"},
+        "language_info": {"name": "python"},
+    }
+    if spec.get("requires"):  # optional packages: tests/test_notebooks.py skips without them
+        metadata["jaxpose"] = {"requires": list(spec["requires"])}
     return {
         "cells": cells,
-        "metadata": {
-            "colab": {"provenance": []},
-            "kernelspec": {"display_name": "Python 3", "language": "python", "name": "python3"},
-            "language_info": {"name": "python"},
-        },
+        "metadata": metadata,
         "nbformat": 4,
         "nbformat_minor": 4,
     }
