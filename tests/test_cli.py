@@ -9,7 +9,7 @@ from jaxpose.cli import main
 
 def test_demo_small_runs_and_reports_accurate_identities(capsys):
     code = main(["demo", "--batch", "16", "--throughput-batch", "1000", "--poses", "50",
-                 "--steps", "60"])
+                 "--steps", "60", "--pgo-poses", "40"])
     out = capsys.readouterr().out
     assert code == 0
     # one row per group, every error column small in float64
@@ -21,6 +21,10 @@ def test_demo_small_runs_and_reports_accurate_identities(capsys):
         assert len(errors) == 4 and max(errors) < 1e-10, row
     distance = float(re.search(r"distance to the true pose ([0-9.e+-]+)", out).group(1))
     assert distance < 0.15  # noise σ = 0.2 over 50 samples: ≈ 0.07 expected
+    # the pose graph: 40 poses, solved (lower cost, converged) with the per-iteration table
+    assert "synthetic sphere, 40 poses" in out and "iter    0" in out
+    m = re.search(r"initial cost (\S+)\s+final cost (\S+)\s+iterations \d+\s+status (\w+)", out)
+    assert m and m.group(3) == "converged" and float(m.group(2)) < 0.5 * float(m.group(1))
 
 
 def test_cli_without_command_prints_help():

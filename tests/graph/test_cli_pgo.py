@@ -1,4 +1,5 @@
-"""Smoke test of `jaxpose pgo`: optimise tinyGrid3D, write the result, read it back."""
+"""`jaxpose pgo`: optimise tinyGrid3D, write the result and a plot, read it back;
+`jaxpose ba`: bundle-adjust a BAL file, write it, check the minimum against SciPy."""
 
 from __future__ import annotations
 
@@ -14,9 +15,11 @@ from .conftest import GTSAM_COST, data_file, numpy_pose_graph_cost
 
 def test_cli_pgo_tinygrid3d_writes_a_lower_cost_graph(tmp_path, capsys):
     src = data_file("tinyGrid3D.g2o")
-    out = tmp_path / "o.g2o"
-    assert main(["pgo", str(src), "--out", str(out), "--quiet"]) == 0
+    out, png = tmp_path / "o.g2o", tmp_path / "o.png"
+    assert main(["pgo", str(src), "--out", str(out), "--plot", str(png), "--quiet"]) == 0
     text = capsys.readouterr().out
+    assert f"wrote {png}" in text
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     assert "iter " not in text  # --quiet: no per-iteration table
     m = re.search(r"initial cost (\S+)\s+final cost (\S+)\s+iterations (\d+)\s+status (\w+)", text)
     assert m, text
@@ -33,3 +36,31 @@ def test_cli_pgo_tinygrid3d_writes_a_lower_cost_graph(tmp_path, capsys):
     np.testing.assert_allclose(c1, GTSAM_COST["tinyGrid3D.g2o"], rtol=1e-5)
     np.testing.assert_allclose(float(m.group(2)), c1, rtol=1e-6)  # printed with 7 digits
     np.testing.assert_allclose(float(m.group(1)), c0, rtol=1e-6)
+
+
+def test_cli_ba_fixed_intrinsics_reaches_scipy_minimum(tmp_path, capsys):
+    from jaxpose.io import read_bal
+
+    from .conftest import DATA
+    from .test_ba import _project, _scipy_minimum
+
+    src = DATA / "bal" / "dubrovnik-3-7-pre.txt"
+    if not src.is_file():
+        import pytest
+
+        pytest.skip(f"reference data {src} not present")
+    out = tmp_path / "o.txt"
+    assert main(["ba", str(src), "--fix-intrinsics", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "iter    0" in text and "status converged" in text
+    before, after = read_bal(src), read_bal(out)
+    np.testing.assert_array_equal(after.cameras[:, 6:], before.cameras[:, 6:])
+    np.testing.assert_array_equal(after.observations, before.observations)
+    cost = 0.5 * np.sum((_project(after.cameras, after.points, after.camera_index,
+                                  after.point_index) - after.observations) ** 2)
+    np.testing.assert_allclose(cost, _scipy_minimum(before), rtol=1e-8)
+    m = re.search(r"reprojection RMSE (\S+) -> (\S+) px", text)
+    np.testing.assert_allclose(float(m.group(2)), np.sqrt(cost / before.n_observations),
+                               rtol=1e-3)
+    assert main(["ba", str(tmp_path / "missing.txt")]) == 1
+    assert "jaxpose ba:" in capsys.readouterr().err
