@@ -1,10 +1,26 @@
 """jaxpose: JAX-native Lie groups, least squares and differentiable robotics modules.
 
 Public API: ``jaxpose.lie`` (groups, algebras, manifold calculus), re-exported here as
-``jp.SO3``, ``jp.SE3``, ... and the functional ops ``jp.exp``, ``jp.log``, ...
+``jp.SO3``, ``jp.SE3``, ... and the functional ops ``jp.exp``, ``jp.log``, ...; the
+subpackages ``optim`` (dense least squares), ``graph`` (sparse factor graphs, PGO, BA),
+``io`` (g2o, BAL), ``dynamics``, ``filters``, ``control``, ``imu``, ``geometry``,
+``sharding`` and ``interop``.
 """
 
-from . import datasets, graph, imu, io, lie, optim, sharding
+from . import (
+    control,
+    datasets,
+    dynamics,
+    filters,
+    geometry,
+    graph,
+    imu,
+    interop,
+    io,
+    lie,
+    optim,
+    sharding,
+)
 from .datasets import synthetic_bal, synthetic_pose_graph
 from .io import BALProblem, FormatError, PoseGraph, read_bal, read_g2o, write_bal, write_g2o
 from .lie import (
@@ -22,11 +38,13 @@ from .lie import (
     adj,
     adjT,
     compose,
+    convert,
     cumprod,
     euler,
     exp,
     from_euler,
     from_matrix,
+    hat,
     identity,
     interpolate,
     inv,
@@ -45,6 +63,7 @@ from .lie import (
     scale,
     se2,
     se3,
+    series,
     sim3,
     so2,
     so3,
@@ -54,7 +73,8 @@ from .lie import (
 __version__ = "0.1.0"
 
 __all__ = [
-    "BALProblem", "FormatError", "PoseGraph", "__version__", "datasets", "graph", "imu", "io",
-    "lie", "optim", "read_bal", "read_g2o", "synthetic_bal", "synthetic_pose_graph", "write_bal",
-    "write_g2o", *lie.__all__,
+    "BALProblem", "FormatError", "PoseGraph", "__version__", "control", "datasets", "dynamics",
+    "filters", "geometry", "graph", "imu", "interop", "io", "lie", "optim", "read_bal",
+    "read_g2o", "sharding", "synthetic_bal", "synthetic_pose_graph", "write_bal", "write_g2o",
+    *lie.__all__,
 ]
