@@ -206,6 +206,7 @@ class History(NamedTuple):
     model: Corrector
     table: dict[str, tuple[float, float]]  # method → (rotation error [deg], position [m])
     seconds: float
+    test: Windows  # the held-out windows
 
 
 def train(steps: int = 1500, num_train: int = 32, num_test: int = 8,
@@ -243,7 +244,7 @@ def train(steps: int = 1500, num_train: int = 32, num_test: int = 8,
     seconds = time.perf_counter() - t0
     model = eqx.combine(params, static)
     table = evaluate(model, sensor, test_w)
-    return History(losses, model, table, seconds)
+    return History(losses, model, table, seconds, test_w)
 
 
 def evaluate(model: Corrector, sensor: SensorModel, w: Windows) -> dict[str, tuple[float, float]]:

@@ -155,13 +155,16 @@ def test_fusion_corrects_dead_reckoning_drift(stream):
 
 def test_preintegrate_windows_equals_separate_calls():
     gyro, acc, dt = ref.random_window(3, 50)
-    bounds = [0, 1, 21, 41, 50]
-    pre = preintegrate_windows(gyro, acc, dt, bounds, gyro_noise=1e-3, acc_noise=1e-2)
-    assert pre.vel.shape == (4, 3)
-    for w in range(4):
-        s, e = bounds[w], bounds[w + 1]
-        one = preintegrate(gyro[s:e], acc[s:e], dt[s:e], gyro_noise=1e-3, acc_noise=1e-2)
-        np.testing.assert_allclose(pre.pos[w], one.pos, atol=1e-15)
-        np.testing.assert_allclose(pre.cov[w], one.cov, rtol=1e-12, atol=1e-20)
+    bounds = [0, 20, 40, 50]  # two windows of 20 samples (one batched call), one of 10
+    kw = dict(gyro_noise=1e-3, acc_noise=1e-2)
+    pre = preintegrate_windows(gyro, acc, dt, bounds, **kw)
+    assert pre.vel.shape == (3, 3)
+    first = preintegrate(gyro[:40].reshape(2, 20, 3), acc[:40].reshape(2, 20, 3),
+                         dt[:40].reshape(2, 20), **kw)
+    last = preintegrate(gyro[None, 40:], acc[None, 40:], dt[None, 40:], **kw)
+    for w, (one, k) in enumerate(((first, 0), (first, 1), (last, 0))):
+        np.testing.assert_allclose(pre.pos[w], one.pos[k], atol=1e-15)
+        np.testing.assert_allclose(pre.cov[w], one.cov[k], rtol=1e-12, atol=1e-20)
+        np.testing.assert_allclose(pre.jac[w], one.jac[k], rtol=1e-12, atol=1e-15)
     with pytest.raises(ValueError, match="increasing sample indices"):
         preintegrate_windows(gyro, acc, dt, [0, 30, 20])
