@@ -228,9 +228,10 @@ def workload(
     if name == "lsq":
         fn = lambda m, i: loop_solve(m, i, linear_solver)
         return loop_inputs(batch, dtype), fn, "partition"
-    if name == "pgo":
+    if name == "pgo":  # the PCG path uses lineax too
         base, inputs = graph_inputs(batch, dtype)
-        return inputs, graph_solver(base, linear_solver), "shard_map"
+        how = "partition" if linear_solver == "cg" else "shard_map"
+        return inputs, graph_solver(base, linear_solver), how
     if name == "ekf":
         return ekf_inputs(batch, dtype), ekf_fn, "shard_map"
     raise ValueError(f"workload: expected one of {WORKLOADS}, got {name!r}")
@@ -293,12 +294,16 @@ def _worker(args: argparse.Namespace) -> None:
     out: dict[str, Any] = {"devices": len(jax.devices()), "platform": jax.default_backend()}
     for name in args.workloads.split(","):
         batch = sizes[name]
-        case = sharded_and_plain(name, batch, args.real_devices,
-                                 linear_solver=args.linear_solver)
-        t_plain, r_plain = time_jax(lambda *a: case["plain"](*a), *case["plain_in"],
-                                    **timing_kw)
-        t_shard, r_shard = time_jax(lambda *a: case["sharded"](*a), *case["sharded_in"],
-                                    **timing_kw)
+        try:
+            case = sharded_and_plain(name, batch, args.real_devices,
+                                     linear_solver=args.linear_solver)
+            t_plain, r_plain = time_jax(lambda *a: case["plain"](*a), *case["plain_in"],
+                                        **timing_kw)
+            t_shard, r_shard = time_jax(lambda *a: case["sharded"](*a), *case["sharded_in"],
+                                        **timing_kw)
+        except Exception as err:  # noqa: BLE001 - reported in the table, never hidden
+            out[name] = {"error": f"{type(err).__name__}: {str(err)[:300]}"}
+            continue
         leaf = jax.tree.leaves(r_shard)[0]
         diff, int_diff = compare(r_shard, r_plain)
         out[name] = dict(
@@ -342,14 +347,14 @@ def report(results: dict[int, dict[str, Any]], args: argparse.Namespace,
         f"{args.linear_solver}" + (" (quick sizes)" if args.quick else ""),
         "",
     ]
-    base = {n: results.get(1, {}).get(n, {}).get("sharded_s") for n in names}
+    base = {n: (results.get(1, {}).get(n) or {}).get("sharded_s") for n in names}
     rows = []
     for d, res in sorted(results.items()):
         for n in names:
             r = res.get(n)
-            if r is None:
+            if r is None or "error" in r:
                 rows.append([n, d, "—", "—", "—", "—", "—", "—",
-                             res.get("error", "missing")])
+                             (r or res).get("error", "missing")])
                 continue
             speed_1 = (f"{base[n] / r['sharded_s']:.2f}x" if base[n] else "—")
             rows.append([

@@ -193,8 +193,9 @@ def shard_vmap(
       slice with no communication (a device's loop stops when its own problems are done).
       Functions that call ``lineax`` (``jaxpose.optim.least_squares``) fail inside
       ``shard_map`` (and ``pmap``) with JAX 0.10 ("Vector and operator structures do not
-      match", lineax issue #185); use ``"partition"`` for them. ``jaxpose.graph.solve``,
-      filters, Lie ops and control work with both.
+      match", lineax issue #185); use ``"partition"`` for them (and for
+      ``graph.solve(..., linear_solver="pcg")``). ``graph.solve`` with its other linear
+      solvers, filters, Lie ops and control work with both.
 
     The returned function is jitted; ``.lower(*args).compile()`` gives the compiled
     program (e.g. to inspect its collectives).
