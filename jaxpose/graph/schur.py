@@ -11,9 +11,11 @@ variable and its eliminated variable. S gets ``−Y_a B_bᵀ`` (Y = B V⁻¹) fo
 pair (a, b) of entries that share an eliminated variable; those pairs, their target blocks
 in the reduced pattern and the reduced pattern itself are computed once on the host.
 
-Only the upper triangle of S is accumulated (pairs sorted by target block, in chunks of
-``CHUNK`` pairs under ``lax.scan`` so memory stays bounded); the lower blocks are
-transposed copies.
+Only the upper triangle of S is accumulated: U's upper blocks first, then the pairs
+(sorted by target block, in chunks of ``CHUNK`` pairs under ``lax.scan``, so memory stays
+bounded and the products stay in cache); the lower blocks are transposed copies. On XLA:CPU
+this makes one damped step about 1.5x cheaper than assembling the full H and factorising
+it with CHOLMOD at 50 cameras × 10 000 points (see ``bench/ba.py``).
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ class SchurStructure(eqx.Module):
     pair_a: tuple[Array, ...]
     pair_b: tuple[Array, ...]
     pair_block: tuple[Array, ...]
-    # lower blocks: (class, mirror class, lower-block mask (n,) or None, mirror index (n,))
+    # lower classes: (class, mirror class, same type); lower-block mask (n,) (used when the
+    # class is its own mirror) and the mirror block of every block (n,)
     mirror_classes: tuple[tuple[int, int, bool], ...] = eqx.field(static=True)
     mirror_mask: tuple[Array, ...]
     mirror_index: tuple[Array, ...]
