@@ -60,7 +60,8 @@ class Stopping(eqx.Module):
 
     * ``max_steps``: iteration budget (→ MAX_STEPS);
     * ``cost_atol``/``cost_rtol``: an accepted step with decrease
-      ``last − cost ≤ cost_atol + cost_rtol·last`` → CONVERGED;
+      ``0 ≤ last − cost ≤ cost_atol + cost_rtol·last`` → CONVERGED (an accepted increase,
+      possible with Gauss-Newton, is not);
     * ``gtol``: ``‖g‖_∞ ≤ gtol`` at the current estimate (g = tangent gradient) →
       CONVERGED;
     * ``xtol``: a finite trial step with ``‖δ‖₂ ≤ xtol`` (no meaningful step left) →
@@ -135,7 +136,9 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     """(done, status) after one iteration; precedence NON_FINITE > CONVERGED > DIVERGED
     > MAX_STEPS."""
     decrease = t.last - t.cost
-    conv = t.accepted & (decrease <= stopping.cost_atol + stopping.cost_rtol * t.last)
+    # a cost increase (Gauss-Newton takes every finite step) is not convergence
+    conv = t.accepted & (decrease >= 0)
+    conv = conv & (decrease <= stopping.cost_atol + stopping.cost_rtol * t.last)
     conv = conv | (t.grad_inf <= stopping.gtol)
     conv = conv | (t.finite & (t.step_norm <= stopping.xtol))
     eps = jnp.finfo(t.last.dtype).eps

@@ -303,3 +303,25 @@ def test_robust_line_fit_with_outliers():
         np.testing.assert_allclose(sol.params, [0.7, -0.3], atol=0.02)
         assert float(jnp.max(jnp.abs(jax.grad(robust_cost)(sol.params)))) < 1e-6
     assert float(jnp.abs(plain.params[1] + 0.3)) > 0.3  # the plain fit is pulled away
+
+
+def test_gauss_newton_cost_increase_is_not_convergence():
+    """GN takes every finite step; a step that raises the cost must not end the solve as
+    CONVERGED (the decrease test once accepted negative decreases). From a far start on
+    the exponential-decay fit GN blows up: it must report a failure status and keep the
+    initial (best) estimate, while LM reaches the optimum."""
+    t = jnp.linspace(0.0, 2.0, 40)
+    y = 2.0 * jnp.exp(-1.3 * t)
+
+    def res(p, args):
+        tt, yy = args
+        return p[0] * jnp.exp(-p[1] * tt) - yy
+
+    x0 = jnp.array([0.5, 3.0])
+    gn = run_steps(jo.GN(), res, x0, (t, y))
+    assert int(gn.status) != jo.Status.CONVERGED
+    assert int(gn.num_steps) > 1
+    np.testing.assert_array_equal(np.asarray(gn.best_params), np.asarray(x0))
+    lm = run_steps(jo.LM(), res, x0, (t, y))
+    assert int(lm.status) == jo.Status.CONVERGED
+    np.testing.assert_allclose(np.asarray(lm.best_params), [2.0, 1.3], rtol=1e-6)
