@@ -17,6 +17,8 @@ trial. Any positive damping (LM) makes every solver well posed.
 
 from __future__ import annotations
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -28,6 +30,7 @@ Array = jax.Array
 class LinearSolver(eqx.Module):
     """Base class for the step's linear solve."""
 
+    @abc.abstractmethod
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         """Solve (H + diag(a)) δ = −g for the step δ (n,).
 
@@ -41,7 +44,6 @@ class LinearSolver(eqx.Module):
         Returns:
             δ (n,); non-finite when the system is singular (the optimiser rejects the trial).
         """
-        raise NotImplementedError
 
     def _normal(self, hess: Array, diag_add: Array, tags: object = ()) -> lx.MatrixLinearOperator:
         a = hess + jnp.diag(diag_add)
@@ -77,7 +79,7 @@ class SVD(LinearSolver):
     """Pseudo-inverse via SVD of the damped normal matrix: the minimum-norm step for
     rank-deficient systems (singular values below ``rcond·σ_max`` are dropped)."""
 
-    rcond: float | None = None
+    rcond: float | None = eqx.field(default=None, static=True)
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         op = self._normal(hess, diag_add)
@@ -87,10 +89,11 @@ class SVD(LinearSolver):
 class CG(LinearSolver):
     """Conjugate gradients on the damped normal matrix (matrix-free in lineax).
 
-    ``rtol``/``atol`` are CG's residual tolerances; ``max_steps`` defaults to 10·n."""
+    ``rtol``/``atol`` are CG's residual tolerances (static: a solver passed through
+    ``jax.jit`` keeps them as Python floats); ``max_steps`` defaults to 10·n."""
 
-    rtol: float = 1e-10
-    atol: float = 1e-12
+    rtol: float = eqx.field(default=1e-10, static=True)
+    atol: float = eqx.field(default=1e-12, static=True)
     max_steps: int | None = eqx.field(default=None, static=True)
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:

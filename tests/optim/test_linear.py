@@ -57,3 +57,16 @@ def test_rank_deficient_systems():
         damped = solver.solve(*args, jnp.full(5, 1e-3))
         np.testing.assert_allclose(damped, np.linalg.solve(h + 1e-3 * np.eye(5), -g),
                                    rtol=1e-7)
+
+
+def test_solvers_pass_through_jit_as_arguments():
+    """A solver object is a jit argument like any pytree: its tolerances are static, so
+    lineax sees Python floats (CG's rtol/atol once came in as tracers and failed)."""
+    import jax
+
+    from .problems import EXP_ARGS, EXP_OPT, exp_residual
+
+    run = jax.jit(lambda s, x: jo.least_squares(exp_residual, x, EXP_ARGS, solver=s).params)
+    for ls in (jo.CG(rtol=1e-12), jo.SVD(rcond=1e-12)):
+        got = run(jo.LM(linear_solver=ls), jnp.array([1.0, 1.0]))
+        np.testing.assert_allclose(np.asarray(got), EXP_OPT, rtol=1e-6)
