@@ -8,6 +8,7 @@ MPC has none). Any other cost: subclass :class:`Cost` or wrap functions with
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Callable
 from typing import Any
 
@@ -24,9 +25,9 @@ class Cost(eqx.Module):
     """Base cost. Implement :meth:`stage` (scalar for one step) and optionally
     :meth:`terminal`. Array fields are differentiable parameters."""
 
+    @abc.abstractmethod
     def stage(self, x: Array, u: Array, t: Any) -> Array:
         """Scalar stage cost ℓ(x, u, t) for one state (n,) and input (m,) at step ``t``."""
-        raise NotImplementedError(f"{type(self).__name__} must implement stage")
 
     def terminal(self, x: Array) -> Array:
         """Scalar terminal cost ℓ_T(x) of the final state (n,) (default 0)."""

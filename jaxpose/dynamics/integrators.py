@@ -7,6 +7,7 @@ starts at continuous time ``τ = t · dt``.
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Callable
 from typing import Any
 
@@ -62,9 +63,9 @@ class ContinuousSystem(System):
 
     dt: eqx.AbstractVar[Any]
 
+    @abc.abstractmethod
     def derivative(self, x: Array, u: Array, tau: Any) -> Array:
         """``ẋ = f(x, u, τ)`` at continuous time ``τ``."""
-        raise NotImplementedError(f"{type(self).__name__} must implement derivative")
 
     @property
     def _method(self) -> str:

@@ -16,6 +16,7 @@ Conventions
 
 from __future__ import annotations
 
+import abc
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -48,9 +49,9 @@ class System(eqx.Module):
 
     is_linear: ClassVar[bool] = False
 
+    @abc.abstractmethod
     def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:
         """Next state ``f(x, u, t)`` for one element: (n,), (m,) → (n,)."""
-        raise NotImplementedError(f"{type(self).__name__} must implement state_transition")
 
     def observation(self, x: Array, u: Array, t: Any = 0) -> Array:
         """Observation ``h(x, u, t)`` of the current state (default: the state)."""

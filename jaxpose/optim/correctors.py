@@ -14,6 +14,8 @@ trust-region model work unchanged. The predicted decrease of a step δ is always
 
 from __future__ import annotations
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -31,6 +33,7 @@ def _safe_sqrt(x: Array) -> Array:
 class Corrector(eqx.Module):
     """Base class. ``__call__(kernel, e (b, d), J (b, d, n)) -> (ẽ, J̃)`` per block b."""
 
+    @abc.abstractmethod
     def __call__(self, kernel: Kernel, e: Array, jac: Array) -> tuple[Array, Array]:
         """Corrected block residuals and Jacobians.
 
@@ -42,7 +45,6 @@ class Corrector(eqx.Module):
         Returns:
             ``(ẽ, J̃)`` of shapes (b, d) and (b, d, n).
         """
-        raise NotImplementedError
 
 
 class FastTriggs(Corrector):

@@ -15,6 +15,8 @@ mode (double-``where`` for square roots and piecewise branches).
 
 from __future__ import annotations
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -37,17 +39,17 @@ def _safe_sqrt(s: Array) -> Array:
 class Kernel(eqx.Module):
     """Base class: ρ(s) with analytic first and second derivatives."""
 
+    @abc.abstractmethod
     def __call__(self, s: Array) -> Array:
         """ρ(s), elementwise on s = rᵀWr ≥ 0 of any shape."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def derivative(self, s: Array) -> Array:
         """ρ'(s), elementwise (the IRLS weight used by every corrector)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def second_derivative(self, s: Array) -> Array:
         """ρ''(s), elementwise (used by :class:`~jaxpose.optim.Triggs`)."""
-        raise NotImplementedError
 
 
 class Trivial(Kernel):

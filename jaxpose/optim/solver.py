@@ -17,6 +17,7 @@ Example (driving iterations by hand, like PyPose's ``optimizer.step``)::
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Callable
 from typing import Any
 
@@ -77,14 +78,16 @@ class AbstractSolver(eqx.Module):
     def _damping(self, sstate: Any) -> Array:
         return jnp.zeros((), jnp.result_type(sstate))
 
+    @abc.abstractmethod
     def _propose(self, state: SolverState) -> Array:
-        raise NotImplementedError
+        """Implemented by subclasses."""
 
     def _strategy_update(self, sstate: Any, ratio: Array, step_norm: Array) -> Any:
         return sstate
 
+    @abc.abstractmethod
     def _accept(self, finite: Array, actual: Array, ratio: Array) -> Array:
-        raise NotImplementedError
+        """Implemented by subclasses."""
 
     def _on_failure_rejects(self, rejects: Array, finite: Array, stopping: Stopping) -> Array:
         return rejects

@@ -15,6 +15,7 @@ a ``vmap`` keeps its own) and two rules:
 
 from __future__ import annotations
 
+import abc
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -49,20 +50,20 @@ def _check(name: str, cond: bool, msg: str) -> None:
 class Strategy(eqx.Module):
     """Base class: Levenberg-Marquardt damping with a state-dependent λ."""
 
+    @abc.abstractmethod
     def init(self, dtype: Any) -> Any:
         """Initial strategy state (a pytree of scalars of ``dtype``, one per problem)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def damping(self, state: Any) -> Array:
         """Current damping λ (for trust-region strategies, 1/radius)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def update(self, state: Any, ratio: Array, step_norm: Array) -> Any:
         """New state from the gain ratio ρ (scalar, −∞ for a non-finite trial) and ‖δ‖.
 
         Called after every trial, accepted or rejected.
         """
-        raise NotImplementedError
 
     def step(self, state: Any, system: System, linear_solver: LinearSolver) -> Array:
         """Trial step δ (n,): solves (H + diag(c) + λ·diag(D)) δ = −g with ``linear_solver``.
