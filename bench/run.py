@@ -1,0 +1,252 @@
+"""Run every benchmark in bench/ side by side with the installed peers and collect the
+tables into one markdown report (``bench/RESULTS.md``).
+
+Each benchmark script runs in its own subprocess (``python bench/NAME.py ARGS --out
+TMP.md``), so JIT caches, thread pools and peak memory never leak between them; its
+markdown report (tables of times and ratios against PyPose / jaxlie / GTSAM, with
+compile time and steady-state time separate) is copied into the report under its own
+heading, after a summary of what ran. Missing peers are reported as skipped by the
+scripts themselves; a script that fails or times out is listed with the tail of its
+output, never dropped silently.
+
+Scripts: the known ones below with full and ``--quick`` settings, plus any other
+``bench/*.py`` that appears later (run with ``--quick`` in quick mode when its ``--help``
+offers it, and ``--out`` when offered — otherwise its stdout is the report).
+
+Usage::
+
+    python -m bench [--quick] [--only lie_ops,optim] [--skip pgo] [--out bench/RESULTS.md]
+                    [--readme README.md] [--timeout 3600] [--list]
+
+``--readme FILE`` also rewrites the block between ``<!-- bench-results:start -->`` and
+``<!-- bench-results:end -->`` in FILE with the summary table (the README's results
+section is generated, not hand-written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+NOT_BENCHMARKS = {"__init__", "__main__", "_common", "run"}
+README_START = "<!-- bench-results:start -->"
+README_END = "<!-- bench-results:end -->"
+
+
+@dataclass(frozen=True)
+class Spec:
+    """How to run one script: full and quick argument lists (``--out`` is added); ``None``
+    quick settings: not read yet, ask the script's ``--help``."""
+
+    title: str
+    full: tuple[str, ...] = ()
+    quick: tuple[str, ...] | None = None
+
+
+# Read from each script's argparse (see their docstrings); quick = a smoke run of minutes.
+KNOWN: dict[str, Spec] = {
+    "lie_ops": Spec("Lie-group ops: jaxpose vs PyPose vs jaxlie",
+                    quick=("--quick", "--batches", "1000,10000")),
+    "optim": Spec("Least squares (InvNet): jaxpose vs PyPose LM",
+                  quick=("--quick", "--batches", "10,100")),
+    "pgo": Spec("Pose-graph optimisation: jaxpose vs GTSAM",
+                quick=("--files", "tinyGrid3D,smallGrid3D", "--repeats", "1",
+                       "--max-steps", "50")),
+    "control": Spec("MPC (imitation problem): jaxpose vs PyPose",
+                    quick=("--quick", "--sizes", "4,16", "--batches", "1,16")),
+    "sharding": Spec("Sharding: throughput vs device count", quick=("--quick",)),
+    "geometry": Spec("Geometry"),
+    "imu": Spec("IMU preintegration"),
+    "ba": Spec("Bundle adjustment"),
+}
+
+
+@dataclass
+class Outcome:
+    """What one script produced."""
+
+    name: str
+    command: list[str]
+    status: str  # "ok", "failed (rc N)", "timeout after S s"
+    seconds: float
+    report: str = ""
+    tail: list[str] = field(default_factory=list)
+
+
+def discover() -> list[str]:
+    """Benchmark scripts present in bench/: the known ones in their order, then others."""
+    present = {p.stem for p in HERE.glob("*.py")} - NOT_BENCHMARKS
+    known = [n for n in KNOWN if n in present]
+    return known + sorted(present - set(known))
+
+
+def _help(name: str) -> str:
+    proc = subprocess.run([sys.executable, str(HERE / f"{name}.py"), "--help"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+    return proc.stdout
+
+
+def command(name: str, quick: bool, out: Path) -> list[str]:
+    """The subprocess command for ``name``: its settings plus ``--out`` where offered."""
+    spec = KNOWN.get(name)
+    if spec is not None and spec.quick is not None:
+        args, has_out = list(spec.quick if quick else spec.full), True
+    else:  # a script this runner does not know yet: ask its --help
+        text = _help(name)
+        args = ["--quick"] if quick and "--quick" in text else []
+        has_out = "--out" in text
+    return [sys.executable, str(HERE / f"{name}.py"), *args] + (
+        ["--out", str(out)] if has_out else []
+    )
+
+
+def run_one(name: str, quick: bool, timeout: float, log=None) -> Outcome:
+    """Run one script in a subprocess and collect its markdown report."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / f"{name}.md"
+        cmd = command(name, quick, out)
+        if log:
+            log(f"[{time.strftime('%H:%M:%S')}] {name}: {' '.join(cmd[1:])}")
+        t0 = time.perf_counter()
+        try:
+            proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
+                                  timeout=timeout)
+        except subprocess.TimeoutExpired as err:
+            tail = ((err.stderr or b"").decode(errors="replace")
+                    if isinstance(err.stderr, bytes) else (err.stderr or ""))
+            return Outcome(name, cmd, f"timeout after {timeout:.0f} s",
+                           time.perf_counter() - t0, tail=tail.splitlines()[-8:])
+        seconds = time.perf_counter() - t0
+        report = out.read_text(encoding="utf-8") if out.is_file() else proc.stdout
+    status = "ok" if proc.returncode == 0 else f"failed (rc {proc.returncode})"
+    tail = [] if proc.returncode == 0 else (proc.stderr or proc.stdout).splitlines()[-8:]
+    return Outcome(name, cmd, status, seconds, report.strip(), tail)
+
+
+def demote(markdown: str, levels: int = 1) -> str:
+    """Shift every ATX heading down ``levels`` levels (so a script's ``#`` title nests
+    under the report's ``##`` section); text inside code fences is left alone."""
+    lines, fenced = [], False
+    for line in markdown.splitlines():
+        if line.lstrip().startswith("```"):
+            fenced = not fenced
+        if not fenced and re.match(r"#{1,6} ", line):
+            line = "#" * levels + line
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def summary_table(outcomes: Sequence[Outcome]) -> str:
+    from bench._common import markdown_table
+
+    rows = []
+    for o in outcomes:
+        title = KNOWN[o.name].title if o.name in KNOWN else o.name
+        args = " ".join(a for a in o.command[2:] if not a.endswith(".md") and a != "--out")
+        rows.append([f"[{o.name}](#{o.name})", title, o.status, f"{o.seconds:.0f} s",
+                     f"`python bench/{o.name}.py {args}`".replace(" `", "`")])
+    return markdown_table(["benchmark", "what", "status", "wall time", "command"], rows)
+
+
+def render(outcomes: Sequence[Outcome], quick: bool, load: tuple[float, float]) -> str:
+    """The whole RESULTS.md text."""
+    from bench._common import environment
+
+    stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    lines = [
+        "# Benchmark results",
+        "",
+        f"Generated by `python -m bench{' --quick' if quick else ''}` on {stamp}; "
+        f"{environment()}; load average {load[0]:.1f} → {load[1]:.1f}."
+        + (" **Quick settings** (smoke sizes, few repeats): ratios are indicative only."
+           if quick else ""),
+        "",
+        "Each script runs in its own process, side by side with the installed peers on the "
+        "same inputs; compile time and steady-state time are reported separately, ratios "
+        "are peer time / jaxpose time unless a table says otherwise. Absolute times on a "
+        "shared machine are noisy; ratios from one run are what count.",
+        "",
+        "## Summary",
+        "",
+        summary_table(outcomes),
+        "",
+    ]
+    for o in outcomes:
+        lines += [f'<a id="{o.name}"></a>', "", f"## {o.name}", ""]
+        if o.report:
+            lines += [demote(o.report), ""]
+        if o.tail:
+            lines += ["Last lines of output:", "", "```", *o.tail, "```", ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def update_readme(path: Path, outcomes: Sequence[Outcome], results: Path, quick: bool) -> bool:
+    """Replace the marked block in ``path`` with the summary; False if no markers."""
+    text = path.read_text(encoding="utf-8")
+    if README_START not in text or README_END not in text:
+        return False
+    rel = os.path.relpath(results, path.parent)
+    block = "\n".join([
+        README_START,
+        f"Generated by `python -m bench{' --quick' if quick else ''}`; full tables in "
+        f"[{rel}]({rel}).",
+        "",
+        summary_table(outcomes).replace("](#", f"]({rel}#"),
+        README_END,
+    ])
+    head, rest = text.split(README_START, 1)
+    _, tail = rest.split(README_END, 1)
+    path.write_text(head + block + tail, encoding="utf-8")
+    return True
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="smoke-run settings of every script")
+    ap.add_argument("--only", default="", help="comma list of scripts to run")
+    ap.add_argument("--skip", default="", help="comma list of scripts not to run")
+    ap.add_argument("--out", default=str(HERE / "RESULTS.md"), help="report path")
+    ap.add_argument("--readme", default=None, help="also update the marked block here")
+    ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per script")
+    ap.add_argument("--list", action="store_true", help="print the commands and exit")
+    args = ap.parse_args(argv)
+    names = discover()
+    only = [n for n in args.only.split(",") if n]
+    unknown = set(only) - set(names)
+    if unknown:
+        raise SystemExit(f"--only: no such benchmark(s) {sorted(unknown)}; present: {names}")
+    names = [n for n in (only or names) if n not in set(args.skip.split(","))]
+    if args.list:
+        for n in names:
+            print(" ".join(command(n, args.quick, Path(f"{n}.md"))[1:]))
+        return 0
+    log = lambda s: print(s, file=sys.stderr, flush=True)
+    load0 = os.getloadavg()[0]
+    outcomes = []
+    for n in names:
+        o = run_one(n, args.quick, args.timeout, log)
+        log(f"    -> {o.status} in {o.seconds:.0f} s")
+        outcomes.append(o)
+    out = Path(args.out)
+    out.write_text(render(outcomes, args.quick, (load0, os.getloadavg()[0])), encoding="utf-8")
+    log(f"wrote {out}")
+    if args.readme and not update_readme(Path(args.readme), outcomes, out, args.quick):
+        log(f"{args.readme}: no {README_START} / {README_END} markers; not updated")
+    return 0 if all(o.status == "ok" for o in outcomes) else 1
+
+
+if __name__ == "__main__":
+    if __package__ in (None, ""):
+        sys.path.insert(0, str(ROOT))
+    sys.exit(main())
