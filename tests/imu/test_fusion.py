@@ -168,3 +168,27 @@ def test_preintegrate_windows_equals_separate_calls():
         np.testing.assert_allclose(pre.jac[w], one.jac[k], rtol=1e-12, atol=1e-15)
     with pytest.raises(ValueError, match="increasing sample indices"):
         preintegrate_windows(gyro, acc, dt, [0, 30, 20])
+
+
+@needs_data
+@pytest.mark.slow
+def test_fusion_full_stream(stream):
+    """All 100 fixes (100 s): dead reckoning drifts by over 100 m (½·b_a·t²), the fused
+    positions stay at the GPS noise level; pitch and yaw errors are at most half the dead
+    reckoning's, and roll (about the direction of travel, unobservable on this stream)
+    only follows the gyro-bias drift."""
+    d = stream
+    n = int(d.gps_index[-1])
+    init = NavState(SO3(jnp.asarray(d.init_rotation)), d.init_velocity, d.init_position)
+    gyro, acc, z, bg, ba = _corrupt(d, n)
+    res = fuse_imu_gps(gyro, acc, 0.005, d.gps_index, z, init, gps_sigma=0.5)
+    assert res.solution.status_name == "converged"
+    kf = np.searchsorted(res.keyframes, d.gps_index)
+    truth = d.gps_position
+    fused = np.linalg.norm(np.asarray(res.pose.data[kf, :3]) - truth, axis=1)
+    drift = np.linalg.norm(np.asarray(res.dead_reckoning.pos[kf]) - truth, axis=1)
+    assert drift[-1] > 100.0 and np.sqrt(np.mean(fused**2)) < 0.4 and fused.max() < 1.0
+    rot = np.abs(np.asarray(SO3(res.pose.data[kf, 3:7]).log().data)).max(0)
+    dr_rot = np.abs(np.asarray(res.dead_reckoning.rot.log().data[kf])).max(0)
+    assert np.all(rot[1:] < 0.5 * dr_rot[1:]), (rot, dr_rot)
+    assert rot[0] < 1.5 * abs(bg[0]) * 100  # roll: the bias drift only
