@@ -216,11 +216,12 @@ def test_first_order_bias_correction():
     np.testing.assert_allclose(pos, again.pos, atol=1e-13)
 
 
-def test_module_equals_function_under_jit():
+def test_module_equals_function():
+    """(The module under ``jit`` and ``grad``: test_autodiff.py.)"""
     g, a, d, bg, ba = BATCH
     imu = ImuPreintegrator(gyro_noise=SIGMA_G, acc_noise=SIGMA_A, integration_noise=SIGMA_I,
                            gravity=(0.0, 0.0, -9.81))
-    out = jax.jit(lambda m, *x: m(*x))(imu, g, a, d, bg, ba)
+    out = imu(g, a, d, bg, ba)
     expect = run(g, a, d, bg, ba)
     np.testing.assert_allclose(out.cov, expect.cov, rtol=1e-12, atol=1e-20)
     np.testing.assert_allclose(out.jac, expect.jac, rtol=1e-12, atol=1e-15)
