@@ -39,6 +39,8 @@ from .system import System
 Array = jax.Array
 
 OBSERVE = ("state", "qpos", "sensordata")
+"""What :class:`MJXSystem` observes: the full state ``[qpos, qvel, act]``, ``qpos`` only,
+or the model's sensor readings (``mjData.sensordata``)."""
 
 
 def _mjx() -> Any:

@@ -59,6 +59,8 @@ from .state import NavState
 Array = jax.Array
 
 SCHEMES = ("manifold", "tangent")
+"""Preintegration schemes: ``"manifold"`` (Forster, associative scan) and ``"tangent"``
+(GTSAM's default first-order scheme, sequential scan)."""
 
 
 class Preintegrated(eqx.Module):
@@ -90,18 +92,22 @@ class Preintegrated(eqx.Module):
 
     @property
     def d_vel_d_gyro_bias(self) -> Array:
+        """∂Δv/∂b_g (*b, 3, 3): Δv(b̂ + δ) ≈ Δv + J δ."""
         return self._jac()[..., 3:6, 0:3]
 
     @property
     def d_vel_d_acc_bias(self) -> Array:
+        """∂Δv/∂b_a (*b, 3, 3)."""
         return self._jac()[..., 3:6, 3:6]
 
     @property
     def d_pos_d_gyro_bias(self) -> Array:
+        """∂Δp/∂b_g (*b, 3, 3): Δp(b̂ + δ) ≈ Δp + J δ."""
         return self._jac()[..., 6:9, 0:3]
 
     @property
     def d_pos_d_acc_bias(self) -> Array:
+        """∂Δp/∂b_a (*b, 3, 3)."""
         return self._jac()[..., 6:9, 3:6]
 
     def _jac(self) -> Array:
@@ -383,6 +389,8 @@ class ImuPreintegrator(eqx.Module):
 
     def predict(self, state: NavState, pre: Preintegrated, gyro_bias: Any = None,
                 acc_bias: Any = None) -> NavState:
+        """State at the window end from ``state`` at its start, with this module's gravity
+        (see :func:`predict`)."""
         return predict(state, pre, self.gravity, gyro_bias, acc_bias)
 
     def integrate(self, gyro: Any, acc: Any, dt: Any, init: NavState | None = None,

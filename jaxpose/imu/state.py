@@ -41,6 +41,7 @@ class NavState(eqx.Module):
 
     @property
     def shape(self) -> tuple[int, ...]:
+        """Batch shape of the state."""
         return self.rot.shape
 
     def __getitem__(self, idx: Any) -> NavState:
@@ -52,6 +53,7 @@ class NavState(eqx.Module):
 
     @classmethod
     def from_pose(cls, pose: SE3, vel: Any) -> NavState:
+        """From an :class:`~jaxpose.lie.SE3` pose ``[p, q]`` (*b) and velocity (*b, 3)."""
         if not isinstance(pose, SE3):
             raise TypeError(f"NavState.from_pose(pose): expected SE3, got {type(pose).__name__}")
         return cls(SO3(pose.data[..., 3:7]), vel, pose.data[..., 0:3])
