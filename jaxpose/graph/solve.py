@@ -126,8 +126,12 @@ class _SparseLinear:
             self.iterations = self.iterations + its
             return x
         if self.kind == "schur":
-            reduced = st.schur.pattern.size
-            direct = linear.solve_dense if reduced <= DENSE_MAX else linear.solve_sparse_direct
+            # the reduced system: CHOLMOD on CPU (single-threaded reference BLAS: the
+            # dense LAPACK Cholesky goes through a multi-threaded OpenBLAS whose spinning
+            # threads cost up to 100x on a loaded machine); dense Cholesky on
+            # accelerators when it is small
+            small = st.schur.pattern.size <= DENSE_MAX and jax.default_backend() != "cpu"
+            direct = linear.solve_dense if small else linear.solve_sparse_direct
             return schur_step(graph, lin, grad, add, direct)
         data = csr_values(graph, lin).at[st.diag_pos].add(add)
         direct = linear.solve_sparse_direct if self.kind == "sparse" else linear.solve_dense
@@ -173,7 +177,8 @@ def solve(
             callback; its symbolic analysis is reused across iterations), ``"pcg"``
             (block-Jacobi preconditioned CG, any backend), ``"dense"`` (Cholesky, small
             problems), ``"schur"`` (eliminate the graph's ``eliminate`` variable type, then
-            a dense or sparse Cholesky of the reduced system) or ``"auto"`` (schur when the
+            a sparse Cholesky of the reduced system; dense on accelerators when it has at
+            most 600 dimensions) or ``"auto"`` (schur when the
             graph eliminates a type, else dense up to 600 tangent dimensions, else sparse).
         max_steps: maximum LM iterations (linear solves, accepted or rejected).
         rtol, atol: stop when an accepted step lowers the cost by at most
