@@ -50,9 +50,13 @@ from .strategies import LambdaFactor, Nielsen
 Array = jax.Array
 
 CONVERGED = int(Status.CONVERGED)
+"""Status code: a stopping tolerance was met."""
 MAX_STEPS = int(Status.MAX_STEPS)
-STALLED = int(Status.DIVERGED)  # no trial lowers the cost at the largest damping
+"""Status code: the iteration budget ran out."""
+STALLED = int(Status.DIVERGED)
+"""Status code: no trial lowers the cost at the largest damping (best estimate kept)."""
 NON_FINITE = int(Status.NON_FINITE)
+"""Status code: a non-finite cost or step appeared (best estimate kept)."""
 STATUS_NAMES = {
     CONVERGED: "converged",
     MAX_STEPS: "max_steps",
@@ -83,6 +87,7 @@ class GraphSolution(eqx.Module):
 
     @property
     def status_name(self) -> str:
+        """``status`` as text: converged, max_steps, stalled or non_finite."""
         return STATUS_NAMES[int(self.status)]
 
 

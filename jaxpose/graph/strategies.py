@@ -52,6 +52,8 @@ class LambdaFactor(Strategy):
 
 
 class NielsenState(NamedTuple):
+    """State of :class:`Nielsen`: damping λ and its growth factor ν (scalars)."""
+
     damping: Array
     nu: Array
 

@@ -65,14 +65,17 @@ class BALProblem:
 
     @property
     def n_cameras(self) -> int:
+        """Number of cameras."""
         return int(self.cameras.shape[0])
 
     @property
     def n_points(self) -> int:
+        """Number of 3-D points."""
         return int(self.points.shape[0])
 
     @property
     def n_observations(self) -> int:
+        """Number of 2-D observations."""
         return int(self.observations.shape[0])
 
     def __repr__(self) -> str:
