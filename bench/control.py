@@ -360,7 +360,7 @@ def set_threads(threads: int) -> None:
         return
     flags = os.environ.get("XLA_FLAGS", "")
     os.environ["XLA_FLAGS"] = (
-        flags + f" --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads={threads}"
+        flags + " --xla_cpu_multi_thread_eigen=false"
     ).strip()
     try:
         import torch

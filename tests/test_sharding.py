@@ -122,9 +122,9 @@ def _worker() -> dict:
 @pytest.fixture(scope="module")
 def four_devices() -> dict:
     env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
-    ).strip()
+    # only our flag: flags inherited from the session (another test's settings) could
+    # make XLA ignore or reject it
+    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
     env["JAX_PLATFORMS"] = "cpu"
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     proc = subprocess.run(

@@ -12,7 +12,7 @@ imu_bench = pytest.importorskip("bench.imu")
 def test_bench_imu_runs_and_agrees(tmp_path):
     out = tmp_path / "imu.md"
     text = imu_bench.main(["--quick", "--windows", "4", "--samples", "20", "--tasks", "1",
-                           "--workloads", "windows", "--out", str(out)])
+                           "--workloads", "windows", "--threads", "0", "--out", str(out)])
     assert out.read_text().strip() == text.strip()
     assert text.count(f"| {imu_bench.TASKS[0]} |") == 1
     assert "## Agreement" in text
