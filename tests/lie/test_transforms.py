@@ -207,10 +207,13 @@ def _ops(cls: type[LieGroup]) -> list[Op]:
     return ops
 
 
-# Compilation dominates the cost of this file, so derivatives are spread as follows (autodiff
-# is compositional, so the composite ops inherit correct derivatives from their parts):
-# every op of SE3 under every transform; for the other groups every op under jit and vmap,
-# grad / jacfwd / jacrev for the ops below, and the Hessian for the core ones.
+# Compilation dominates the cost of this file, so derivatives are spread over two tiers
+# (autodiff is compositional, so the composite ops inherit correct derivatives from their
+# parts; test_properties and test_numerics also check Jacobians of every group):
+# * default: every op of every group under jit and vmap; SE3 (the most composite group)
+#   under grad / jacfwd / jacrev for DERIV_OPS and the Hessian for HESSIAN_OPS;
+# * slow (``-m slow``): every op of SE3 under every transform, and for the other groups
+#   grad / jacfwd / jacrev for DERIV_OPS and the Hessian for HESSIAN_OPS.
 FULL_GROUP = SE3
 DERIV_OPS = {
     "exp",
@@ -236,9 +239,15 @@ HESSIAN_OPS = {"exp", "log", "compose", "act", "jr", "interpolate", "euler", "fr
 NO_DERIV = {"from_matrix_checked"}
 
 
-def _kinds(cls, name):
+def _kinds(cls, name, full=True):
     kinds = {"jit", "vmap"}
     if name in NO_DERIV:
+        return kinds
+    if not full:
+        if cls is FULL_GROUP and name in DERIV_OPS:
+            kinds |= {"grad", "jac"}
+        if cls is FULL_GROUP and name in HESSIAN_OPS:
+            kinds |= {"hessian"}
         return kinds
     if cls is FULL_GROUP or name in DERIV_OPS:
         kinds |= {"grad", "jac"}
@@ -251,11 +260,18 @@ OPS = {(cls, op.name): op for cls in GROUPS for op in _ops(cls)}
 
 
 def _cases(kind):
-    return [
-        pytest.param(cls, name, id=f"{cls.__name__}-{name}")
-        for (cls, name) in OPS
-        if kind in _kinds(cls, name)
-    ]
+    """(cls, name, full) parameters: in the default tier when ``kind`` is among the
+    default kinds of the op, else in the slow tier (computed with the full bundle)."""
+    out = []
+    for cls, name in OPS:
+        if kind not in _kinds(cls, name):
+            continue
+        pid = f"{cls.__name__}-{name}"
+        if kind in _kinds(cls, name, full=False):
+            out.append(pytest.param(cls, name, False, id=pid))
+        else:
+            out.append(pytest.param(cls, name, True, id=pid, marks=pytest.mark.slow))
+    return out
 
 
 def _raw(out: object) -> jax.Array:
@@ -303,10 +319,11 @@ def _fd_from(values: np.ndarray) -> np.ndarray:
 
 
 @functools.cache
-def _results(cls, name):
-    """Everything a test needs for one op, transformed results computed in one compilation."""
+def _results(cls, name, full=False):
+    """Everything a test needs for one op, transformed results computed in one compilation
+    (``full``: every transform of the slow tier)."""
     op = OPS[cls, name]
-    kinds = _kinds(cls, name)
+    kinds = _kinds(cls, name, full)
     args = _args(op)
     rows = [_args(op, seed) for seed in range(3)]
     batched = [np.stack(col) for col in zip(*rows)]
@@ -340,24 +357,24 @@ def _results(cls, name):
 # ------------------------------------------------------------------------------------
 # values: method == functional, jit == eager, vmap == loop
 # ------------------------------------------------------------------------------------
-@pytest.mark.parametrize("cls,name", _cases("jit"))
-def test_method_equals_functional(cls, name):
-    r = _results(cls, name)
+@pytest.mark.parametrize("cls,name,full", _cases("jit"))
+def test_method_equals_functional(cls, name, full):
+    r = _results(cls, name, full)
     a, b = r["method"], r["eager"]
     assert type(a) is type(b)
     np.testing.assert_allclose(np.asarray(_raw(a)), np.asarray(_raw(b)), rtol=1e-15, atol=1e-15)
 
 
-@pytest.mark.parametrize("cls,name", _cases("jit"))
-def test_jit_equals_eager(cls, name):
-    r = _results(cls, name)
+@pytest.mark.parametrize("cls,name,full", _cases("jit"))
+def test_jit_equals_eager(cls, name, full):
+    r = _results(cls, name, full)
     assert type(r["jit"]) is type(r["eager"]), "group / algebra type lost through jit"
     assert_close(_raw(r["jit"]), _raw(r["eager"]), np.float64, f64=1e-12)
 
 
-@pytest.mark.parametrize("cls,name", _cases("vmap"))
-def test_vmap_equals_loop(cls, name):
-    r = _results(cls, name)
+@pytest.mark.parametrize("cls,name,full", _cases("vmap"))
+def test_vmap_equals_loop(cls, name, full):
+    r = _results(cls, name, full)
     out, loop = r["vmap"], r["loop"]
     assert type(out) is type(loop[0]), "group / algebra type lost through vmap"
     if isinstance(out, (LieGroup, LieAlgebra)):
@@ -369,18 +386,18 @@ def test_vmap_equals_loop(cls, name):
 # ------------------------------------------------------------------------------------
 # derivatives (float64) against central finite differences
 # ------------------------------------------------------------------------------------
-@pytest.mark.parametrize("cls,name", _cases("grad"))
-def test_grad_matches_finite_differences(cls, name):
-    r = _results(cls, name)
+@pytest.mark.parametrize("cls,name,full", _cases("grad"))
+def test_grad_matches_finite_differences(cls, name, full):
+    r = _results(cls, name, full)
     gr = np.asarray(r["grad"])
     assert np.all(np.isfinite(gr))
     fd = _fd_from(np.asarray(r["fd_values"]) @ r["w"])
     assert_close(gr, fd, np.float64, f64=1e-6, err_msg="grad of Σ w·f vs finite differences")
 
 
-@pytest.mark.parametrize("cls,name", _cases("jac"))
-def test_jacfwd_jacrev_match_finite_differences(cls, name):
-    r = _results(cls, name)
+@pytest.mark.parametrize("cls,name,full", _cases("jac"))
+def test_jacfwd_jacrev_match_finite_differences(cls, name, full):
+    r = _results(cls, name, full)
     jf, jr = np.asarray(r["jacfwd"]), np.asarray(r["jacrev"])
     assert jf.shape == jr.shape == (r["w"].size, r["grad"].size)
     assert_close(jf, jr, np.float64, f64=1e-12, err_msg="jacfwd vs jacrev")
@@ -388,9 +405,9 @@ def test_jacfwd_jacrev_match_finite_differences(cls, name):
     assert_close(jf.T @ r["w"], r["grad"], np.float64, f64=1e-12, err_msg="Jᵀw = grad")
 
 
-@pytest.mark.parametrize("cls,name", _cases("hessian"))
-def test_hessian_matches_finite_differences_of_grad(cls, name):
-    r = _results(cls, name)
+@pytest.mark.parametrize("cls,name,full", _cases("hessian"))
+def test_hessian_matches_finite_differences_of_grad(cls, name, full):
+    r = _results(cls, name, full)
     h = np.asarray(r["hessian"])
     n = r["grad"].size
     assert h.shape == (n, n) and np.all(np.isfinite(h))
