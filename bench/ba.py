@@ -278,6 +278,16 @@ def report(results: list[dict], args: argparse.Namespace, load: tuple, version: 
                          + f"; jaxpose schur {gt['steady_s'] / jp['steady_s']:.2f}x GTSAM's speed")
         checks.append([res["name"], "; ".join(items)])
     lines += ["", "## Checks", "", markdown_table(["problem", "checks"], checks)]
+    speedups = []
+    for res in results:
+        rs = res.get("rows", {})
+        if "steady_s" in rs.get("schur", {}) and "steady_s" in rs.get("sparse", {}):
+            ratio = rs["sparse"]["steady_s"] / rs["schur"]["steady_s"]
+            gt = rs.get("gtsam", {})
+            vs = (f", {gt['steady_s'] / rs['schur']['steady_s']:.2f}x GTSAM's speed"
+                  if "steady_s" in gt else "")
+            speedups.append(f"{res['name']}: Schur {ratio:.2f}x the plain path{vs}")
+    lines += ["", "Result: " + ("; ".join(speedups[-1:]) or "no timings")]
     lines += ["", "Iterations: jaxpose counts every LM trial (accepted or rejected), GTSAM its "
               "outer iterations. Steady-state = one whole solve after compilation (GTSAM: "
               "optimizer construction + optimize). The BAL files have fewer residuals than "

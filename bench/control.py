@@ -334,7 +334,7 @@ def report(rows: list[dict[str, Any]], peer: Peer, cfg: Config) -> str:
             lines.append("PyPose failed (reported, not timed): " + "; ".join(errors))
         if worst is not None:
             verdict = "meets" if worst >= BAR else "misses"
-            lines.append(f"Smallest ratio: {worst:.1f}x — {verdict} the {BAR:.0f}x bar.")
+            lines.append(f"Result: smallest ratio {worst:.1f}x — {verdict} the {BAR:.0f}x bar.")
         elif not peer.available:
             lines.append("PyPose skipped: no ratios.")
         lines.append("")

@@ -493,6 +493,21 @@ def report(cells: Sequence[Cell], peers: Sequence[Peer], names: Sequence[str],
             row += [fmt_rate(r), fmt_ratio(r, pp), fmt_ratio(r, jl)]
         rows.append(row + [verdict(c)])
     lines += ["## Throughput", "", markdown_table(header, rows), ""]
+    verdicts = [verdict(c) for c in cells]
+    judged = [v for v in verdicts if v != "n/a"]
+    worst = {}
+    for c in cells:
+        jp, pp = _rate(c, "jaxpose"), _rate(c, "PyPose")
+        if pp is not None:
+            key = f"{c.kind} B={fmt_batch(c.batch)}"
+            worst[key] = min(worst.get(key, float("inf")), jp / pp)
+    lowest = ", ".join(f"{k} {v:.1f}x" for k, v in worst.items())
+    lines += [
+        f"Result: bar {'met' if judged and 'FAIL' not in judged else 'NOT met'} in "
+        f"{judged.count('pass')}/{len(judged)} cells; lowest jaxpose/PyPose: "
+        f"{lowest or 'PyPose skipped'}",
+        "",
+    ]
 
     jit_names = [n for n in names if n != "PyPose"]
     header = ["f", "kind", "B"] + [f"{n} compile" for n in jit_names]

@@ -296,6 +296,12 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
                           + ("pass" if rel <= 1e-5 else "FAIL"))
         bar_rows.append([name, "; ".join(checks)])
     lines.append(markdown_table(["file", "checks"], bar_rows))
+    failed = sum(row[1].count("FAIL") for row in bar_rows)
+    ratios = [f"{n} {r['jaxpose']['steady_s'] / r['gtsam']['steady_s']:.1f}x"
+              for n, r in results.items()
+              if "steady_s" in r["jaxpose"] and "steady_s" in r.get("gtsam", {})]
+    lines += ["", f"Result: bar {'met' if not failed else f'NOT met ({failed} checks fail)'}; "
+              f"steady-state time / GTSAM's: {', '.join(ratios) or 'GTSAM skipped'}"]
     lines += ["", "jaxpose iterations count every LM trial (accepted or rejected); GTSAM's "
               "count outer iterations. Steady-state = one whole solve after compilation."]
     return "\n".join(lines)

@@ -147,6 +147,16 @@ def demote(markdown: str, levels: int = 1) -> str:
     return "\n".join(lines)
 
 
+def headline(report: str) -> str:
+    """The script's one-line result: its first line starting with ``Result:`` or ``Bar``
+    (ratios against the peers and whether the issue's bar is met), '—' if none."""
+    for line in report.splitlines():
+        m = re.match(r"\s*(?:Result:|Bar\b:?)\s*(.*)", line)
+        if m:
+            return m.group(1).strip().replace("|", "/")
+    return "—"
+
+
 def summary_table(outcomes: Sequence[Outcome]) -> str:
     from bench._common import markdown_table
 
@@ -154,9 +164,11 @@ def summary_table(outcomes: Sequence[Outcome]) -> str:
     for o in outcomes:
         title = KNOWN[o.name].title if o.name in KNOWN else o.name
         args = " ".join(a for a in o.command[2:] if not a.endswith(".md") and a != "--out")
-        rows.append([f"[{o.name}](#{o.name})", title, o.status, f"{o.seconds:.0f} s",
+        rows.append([f"[{o.name}](#{o.name})", title, headline(o.report), o.status,
+                     f"{o.seconds:.0f} s",
                      f"`python bench/{o.name}.py {args}`".replace(" `", "`")])
-    return markdown_table(["benchmark", "what", "status", "wall time", "command"], rows)
+    return markdown_table(["benchmark", "what", "result", "status", "wall time", "command"],
+                          rows)
 
 
 def render(outcomes: Sequence[Outcome], quick: bool, load: tuple[float, float]) -> str:

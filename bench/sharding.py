@@ -368,6 +368,11 @@ def report(results: dict[int, dict[str, Any]], args: argparse.Namespace,
     lines.append(markdown_table(
         ["workload", "devices", "batch", "items/s", "vs 1 device", "vs unsharded (same run)",
          "compile", "max |sharded − unsharded|", "placement"], rows))
+    top = max(results) if results else 0
+    best = [f"{n} {base[n] / results[top][n]['sharded_s']:.2f}x"
+            for n in names
+            if base[n] and results.get(top, {}).get(n) and "sharded_s" in results[top][n]]
+    lines += ["", f"Result: throughput at {top} devices vs 1: {', '.join(best) or '—'}"]
     lines += [
         "",
         "items/s: steady-state throughput of the sharded run (best of repeats). "

@@ -61,6 +61,21 @@ def _params(groups: tuple[type[LieGroup], ...]) -> list:
 
 
 group_dtype = pytest.mark.parametrize("cls,dtype", _params(GROUPS))
+
+
+def _params_f32_slow(groups: tuple[type[LieGroup], ...]) -> list:
+    """Like :func:`_params`, but float32 only for SO3/SE3 by default (the others under
+    ``-m slow``): for derivative-heavy properties, whose float32 accuracy test_numerics
+    also checks against mpmath for every group."""
+    return [
+        pytest.param(g, dt, id=f"{g.__name__}-{np.dtype(dt).name}",
+                     marks=(pytest.mark.slow,)
+                     if dt == np.float32 and g.__name__ not in ("SO3", "SE3") else ())
+        for g in groups for dt in DTYPES
+    ]
+
+
+group_dtype_heavy = pytest.mark.parametrize("cls,dtype", _params_f32_slow(GROUPS))
 group_dtype_3d = pytest.mark.parametrize("cls,dtype", _params(GROUPS_3D))
 groups_only = pytest.mark.parametrize("cls", GROUPS, ids=lambda g: g.__name__)
 
@@ -252,7 +267,7 @@ def test_from_matrix_matrix_round_trip(cls, dtype, data):
 # ------------------------------------------------------------------------------------
 # Jacobians
 # ------------------------------------------------------------------------------------
-@group_dtype
+@group_dtype_heavy
 @given(data=st.data())
 def test_jacobian_inverses(cls, dtype, data):
     c = data.draw(cases(cls, dtype))
@@ -284,7 +299,7 @@ def _jr_jl_by_autodiff(cls, a):
     return jax.vmap(one)(a)
 
 
-@group_dtype
+@group_dtype_heavy
 @given(data=st.data())
 def test_jr_jl_equal_autodiff_of_exp(cls, dtype, data):
     c = data.draw(cases(cls, dtype))
@@ -303,7 +318,7 @@ def _dlog_left(cls, x, a):
     return jax.jvp(lambda d: (cls.exp(d) @ x).log().data, (jnp.zeros_like(a),), (a,))[1]
 
 
-@group_dtype
+@group_dtype_heavy
 @given(data=st.data())
 def test_jinvp(cls, dtype, data):
     c = data.draw(cases(cls, dtype))
@@ -350,7 +365,9 @@ def _jr_map(cls, a, ds):
 def test_jacobians_fwd_rev_finite_differences(cls, data):
     """jacfwd == jacrev ≈ central finite differences (float64) for exp, log∘compose, act, adj,
     matrix; and Jr ≈ finite differences of Log(Exp(a)⁻¹Exp(a+δ))."""
-    c = data.draw(cases(cls, np.float64))
+    # unbatched and a small batch: the (3, 1, 2) batch only multiplies the size of the
+    # block-diagonal Jacobian (and its compile time) without testing anything new
+    c = data.draw(cases(cls, np.float64, shapes=((), (2,))))
     d = cls.tangent_dim
     z = np.concatenate(
         [c.tangent(max_angle=1.0), c.tangent(max_angle=1.0), c.points()], -1
@@ -371,7 +388,7 @@ def test_jacobians_fwd_rev_finite_differences(cls, data):
 # ------------------------------------------------------------------------------------
 # interpolation, cumulative products, normalisation
 # ------------------------------------------------------------------------------------
-@group_dtype
+@group_dtype_heavy
 @given(data=st.data())
 def test_interpolate(cls, dtype, data):
     c = data.draw(cases(cls, dtype))

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import jaxpose as jp
-from jaxpose.lie import SE3, SO3, LieAlgebra, LieGroup, manifold
+from jaxpose.lie import SE2, SE3, SO3, LieAlgebra, LieGroup, manifold
 
 from .conftest import GROUPS, GROUPS_3D, assert_close, fast_jit, random_tangent
 
@@ -210,10 +210,11 @@ def _ops(cls: type[LieGroup]) -> list[Op]:
 # Compilation dominates the cost of this file, so derivatives are spread over two tiers
 # (autodiff is compositional, so the composite ops inherit correct derivatives from their
 # parts; test_properties and test_numerics also check Jacobians of every group):
-# * default: every op of every group under jit and vmap; SE3 (the most composite group)
-#   under grad / jacfwd / jacrev for DERIV_OPS and the Hessian for HESSIAN_OPS;
-# * slow (``-m slow``): every op of SE3 under every transform, and for the other groups
-#   grad / jacfwd / jacrev for DERIV_OPS and the Hessian for HESSIAN_OPS.
+# * default: every op of SO3, SE3 and SE2 under jit and vmap; SE3 (the most composite
+#   group) under grad / jacfwd / jacrev for DERIV_OPS and the Hessian for HESSIAN_OPS;
+# * slow (``-m slow``): every op of every group under jit and vmap, every op of SE3 under
+#   every transform, and for the other groups grad / jacfwd / jacrev for DERIV_OPS and
+#   the Hessian for HESSIAN_OPS.
 FULL_GROUP = SE3
 DERIV_OPS = {
     "exp",
@@ -259,6 +260,11 @@ def _kinds(cls, name, full=True):
 OPS = {(cls, op.name): op for cls in GROUPS for op in _ops(cls)}
 
 
+# groups whose ops run under jit / vmap in the default tier (the others, whose ops the
+# property tests also run jitted, only in the slow tier)
+DEFAULT_GROUPS = (SO3, SE3, SE2)
+
+
 def _cases(kind):
     """(cls, name, full) parameters: in the default tier when ``kind`` is among the
     default kinds of the op, else in the slow tier (computed with the full bundle)."""
@@ -267,7 +273,7 @@ def _cases(kind):
         if kind not in _kinds(cls, name):
             continue
         pid = f"{cls.__name__}-{name}"
-        if kind in _kinds(cls, name, full=False):
+        if cls in DEFAULT_GROUPS and kind in _kinds(cls, name, full=False):
             out.append(pytest.param(cls, name, False, id=pid))
         else:
             out.append(pytest.param(cls, name, True, id=pid, marks=pytest.mark.slow))
