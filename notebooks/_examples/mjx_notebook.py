@@ -32,7 +32,11 @@ import sys
 if importlib.util.find_spec("jaxpose") is None or importlib.util.find_spec("mujoco") is None:
     in_checkout = os.path.exists(os.path.join("..", "pyproject.toml"))
     source = ["-e", "..[mjx,plot]"] if in_checkout else ["jaxpose[mjx,plot] @ git+{REPO_URL}"]
-    subprocess.check_call([sys.executable, "-m", "pip", "install", "-q", *source])"""
+    subprocess.check_call([sys.executable, "-m", "pip", "install", "-q", *source])
+    import site  # this kernel started before the install: read the new .pth files now
+
+    site.main()
+    importlib.invalidate_caches()"""
 
 RUN = SMOKE + """
 jax.config.update("jax_enable_x64", True)
