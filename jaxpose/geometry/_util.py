@@ -125,3 +125,24 @@ def exp_act2(delta: Array, p: Array) -> Array:
     rho, phi = delta[..., :3], delta[..., 3:]
     first = rho + jnp.cross(phi, p)
     return p + first + 0.5 * jnp.cross(phi, first)
+
+
+def spd_solve(a: Array, b: Array) -> Array:
+    """x = a⁻¹ b for a small symmetric positive-definite ``a`` (n, n) and ``b`` (n,), by a
+    Cholesky factorisation unrolled over the static size n (elementwise code, so a vmap
+    over many small systems vectorises instead of calling LAPACK once per system).
+    Meant for n ≲ 8; a non-positive pivot gives NaN (callers damp ``a``)."""
+    n = a.shape[-1]
+    low = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = a[j, j] - sum(low[j][k] * low[j][k] for k in range(j))
+        low[j][j] = jnp.sqrt(d)
+        for i in range(j + 1, n):
+            low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
+    y = [None] * n
+    for i in range(n):  # L y = b
+        y[i] = (b[i] - sum(low[i][k] * y[k] for k in range(i))) / low[i][i]
+    x = [None] * n
+    for i in reversed(range(n)):  # Lᵀ x = y
+        x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) / low[i][i]
+    return jnp.stack(x)

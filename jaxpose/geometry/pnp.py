@@ -56,6 +56,7 @@ from ._util import (
     safe_div,
     safe_norm,
     safe_sqrt,
+    spd_solve,
 )
 from .camera import point2pixel
 from .registration import svdtf
@@ -92,30 +93,40 @@ def _l_matrix(null: Array, pairs: tuple[tuple[int, int], ...]) -> Array:
     return jnp.stack(cols, -1)
 
 
-def _product_jacobian(beta: Array) -> Array:
-    """d products(β) / dβ, (n(n+1)/2, n)."""
-    n = beta.shape[-1]
-    a_idx = jnp.array([a for b in range(n) for a in range(b + 1)])
-    b_idx = jnp.array([b for b in range(n) for a in range(b + 1)])
-    cols = jnp.arange(n)
-    return ((a_idx[:, None] == cols) * beta[b_idx][:, None]
-            + (b_idx[:, None] == cols) * beta[a_idx][:, None])
-
-
 def _gauss_newton_betas(l_mat: Array, rho: Array, beta: Array, mask: Array, steps: int = 5
                         ) -> Array:
     """Polish β on L·products(β) = ρ (small damped Gauss–Newton, monotone); β entries
-    where ``mask`` is 0 stay fixed."""
+    where ``mask`` is 0 stay fixed.
 
-    def step(_: int, b: Array) -> Array:
-        r = l_mat @ _products(b) - rho
-        j = (l_mat @ _product_jacobian(b)) * mask
-        h = j.T @ j
-        damp = 1e-12 * (jnp.trace(h) + jnp.finfo(b.dtype).tiny)
-        nb = b - jnp.linalg.solve(h + damp * jnp.eye(b.shape[0], dtype=b.dtype), j.T @ r)
-        r_new = l_mat @ _products(nb) - rho
-        better = jnp.all(jnp.isfinite(nb)) & (jnp.sum(r_new ** 2) <= jnp.sum(r ** 2))
-        return jnp.where(better, nb, b)
+    Written on scalar components (lists of batch-shaped arrays, static indices): under a
+    vmap over many problems every operation is elementwise over the batch, which XLA:CPU
+    vectorises; tiny per-problem matmuls and minor-axis reductions it runs as scalar code."""
+    n, n_rows = beta.shape[-1], l_mat.shape[-2]
+    pairs = [(a, b) for b in range(n) for a in range(b + 1)]  # the order of _products
+    lm = [[l_mat[i, c] for c in range(len(pairs))] for i in range(n_rows)]
+    rh = [rho[i] for i in range(n_rows)]
+    mk = [mask[k] for k in range(n)]
+
+    def residual(b: list[Array]) -> list[Array]:
+        prods = [b[x] * b[y] for x, y in pairs]
+        return [sum(lm[i][c] * prods[c] for c in range(len(pairs))) - rh[i]
+                for i in range(n_rows)]
+
+    def step(_: int, b_arr: Array) -> Array:
+        b = [b_arr[k] for k in range(n)]
+        r = residual(b)
+        # d products_c / d β_k: β_y for k = x, β_x for k = y (pair c = (x, y))
+        jac = [[mk[k] * sum(lm[i][c] * ((b[y] if x == k else 0.0) + (b[x] if y == k else 0.0))
+                            for c, (x, y) in enumerate(pairs) if k in (x, y))
+                for k in range(n)] for i in range(n_rows)]
+        h = jnp.stack([jnp.stack([sum(jac[i][k] * jac[i][m] for i in range(n_rows))
+                                  for m in range(n)]) for k in range(n)])
+        g = jnp.stack([sum(jac[i][k] * r[i] for i in range(n_rows)) for k in range(n)])
+        damp = 1e-12 * (jnp.trace(h) + jnp.finfo(b_arr.dtype).tiny)
+        nb = b_arr - spd_solve(h + damp * jnp.eye(n, dtype=b_arr.dtype), g)
+        r_new = residual([nb[k] for k in range(n)])
+        better = jnp.all(jnp.isfinite(nb)) & (sum(x * x for x in r_new) <= sum(x * x for x in r))
+        return jnp.where(better, nb, b_arr)
 
     return jax.lax.fori_loop(0, steps, step, beta)
 
@@ -124,7 +135,7 @@ def _lstsq(a: Array, b: Array) -> Array:
     """Least squares a x ≈ b through the (damped) normal equations (small, smooth)."""
     h = a.T @ a
     damp = 1e-12 * (jnp.trace(h) + jnp.finfo(a.dtype).tiny)
-    return jnp.linalg.solve(h + damp * jnp.eye(h.shape[0], dtype=a.dtype), a.T @ b)
+    return spd_solve(h + damp * jnp.eye(h.shape[0], dtype=a.dtype), a.T @ b)
 
 
 _COL = {(a, b): i for i, (a, b) in enumerate((a, b) for b in range(4) for a in range(b + 1))}
@@ -268,26 +279,38 @@ def _refine(t: Array, pw: Array, uv: Array, k: Array, steps: int) -> Array:
     return sol.params.data
 
 
+@jax.custom_jvp
 def _implicit_tangent(t: Array, pw: Array, uv: Array, k: Array) -> Array:
-    """T ⊕ (δ − sg(δ)) with δ = −H⁻¹ g the Newton step of the reprojection cost in the
-    chart δ ↦ T·Exp(δ): the value is T; the derivative is the implicit-function one,
-    dT = −H⁻¹ d g, exact when T is a least-squares optimum (H is the exact Hessian, held
-    constant; g = Jᵀ r carries the derivatives)."""
-    ts = SE3(jax.lax.stop_gradient(t))
-    data = (pw, uv, k)
-    pw_sg, uv_sg, k_sg = jax.lax.stop_gradient(data)
+    """``t`` itself; its derivative w.r.t. the data (pw, uv, k) is the implicit-function
+    one of the reprojection least-squares optimum: dT = T·Exp(δ̇) with δ̇ = −H⁻¹ ġ, where
+    g = Jᵀr is the gradient of the cost in the chart δ ↦ T·Exp(δ) and H its exact Hessian
+    at δ = 0 (exact when T is an optimum). No derivative flows to ``t`` (an EPnP/LM
+    estimate); the forward pass costs nothing."""
+    return t
+
+
+@_implicit_tangent.defjvp
+def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
+                          ) -> tuple[Array, Array]:
+    t, pw, uv, k = primals
+    _, dpw, duv, dk = tangents
+    ts = SE3(t)
 
     def cost(delta: Array) -> Array:  # T·Exp(δ)·p to second order (exact Hessian at 0)
-        h = ts.act(exp_act2(delta, pw_sg)) @ k_sg.T
-        return 0.5 * jnp.sum(jnp.square(h[:, :2] / h[:, 2:] - uv_sg))
+        h = ts.act(exp_act2(delta, pw)) @ k.T
+        return 0.5 * jnp.sum(jnp.square(h[:, :2] / h[:, 2:] - uv))
+
+    def grad(pw: Array, uv: Array, k: Array) -> Array:
+        r = _residual(ts, (pw, uv, k)).reshape(-1)
+        return _jacobian(ts, (pw, uv, k)).T @ r
 
     zero = jnp.zeros((6,), t.dtype)
     h = jax.hessian(cost)(zero)
-    r = _residual(ts, data).reshape(-1)
-    g = _jacobian(ts, data).T @ r
+    dg = jax.jvp(grad, (pw, uv, k), (dpw, duv, dk))[1]
     damp = jnp.finfo(t.dtype).eps * (jnp.trace(jnp.abs(h)) + 1.0)
-    delta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), g)
-    return ts.retract(delta - jax.lax.stop_gradient(delta)).data
+    ddelta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), dg)
+    dt = jax.jvp(lambda d: ts.retract(d).data, (zero,), (ddelta,))[1]
+    return t, dt
 
 
 @functools.partial(jax.jit, static_argnames=("refine", "refine_steps"))

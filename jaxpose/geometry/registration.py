@@ -31,11 +31,19 @@ from ..lie.base import as_float_array, skew, vee
 from ._util import Array, batch_shape, points_array, safe_div, same_count
 
 
+def _det3(m: Array) -> Array:
+    """Determinant of (..., 3, 3) matrices by cofactors (elementwise code; jnp.linalg.det
+    runs one LU factorisation per matrix)."""
+    return (m[..., 0, 0] * (m[..., 1, 1] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 1])
+            - m[..., 0, 1] * (m[..., 1, 0] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 0])
+            + m[..., 0, 2] * (m[..., 1, 0] * m[..., 2, 1] - m[..., 1, 1] * m[..., 2, 0]))
+
+
 @jax.custom_jvp
 def optimal_rotation(h: Array) -> Array:
     """argmax over R ∈ SO(3) of tr(Rᵀ H) for H (..., 3, 3) → R (..., 3, 3)."""
     u, _, vh = jnp.linalg.svd(h)
-    d = jnp.linalg.det(u) * jnp.linalg.det(vh)
+    d = _det3(u) * _det3(vh)
     d = jnp.where(d < 0, -1.0, 1.0).astype(h.dtype)
     fix = jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d], -1)
     return (u * fix[..., None, :]) @ vh
