@@ -9,7 +9,8 @@ Methods, batch B ∈ {1e1, 1e2, 1e3, 1e4}:
 
 * jaxpose LM: ``jax.vmap`` of ``jaxpose.optim.least_squares`` (default LM: TrustRegion,
   Cholesky) over the B independent 6-dof problems, each with its own damping and
-  stopping; one jitted call from the initial X to the end;
+  stopping; one jitted call from the initial X to the end; stopped by PyPose's rule
+  below (``StopOnPlateau``, per problem, no other tolerance);
 * jaxpose SGD / Adam: ``optax.sgd`` / ``optax.adam`` through
   ``jaxpose.lie.manifold.optax_on_manifold`` on the joint cost, a fixed number of steps in
   a jitted ``lax.fori_loop``;
@@ -125,9 +126,19 @@ class Run:
     own: float | None = None
 
 
+# The stopping rule of PyPose's run below, per problem: StopOnPlateau(steps=10, patience=3,
+# decreasing=1e-3) in PyPose's loss units (Σ‖r‖², twice this library's 0.5·Σ‖r‖² cost), and
+# no other tolerance, so both libraries decide when to stop the same way.
+LM_STOP: dict[str, Any] = {
+    "stop": jo.StopOnPlateau(steps=10, patience=3, decreasing=0.5e-3),
+    "gtol": 0.0, "xtol": 0.0, "cost_rtol": 0.0,
+}
+
+
 def jaxpose_lm(prob: dict[str, np.ndarray], timing_kw: dict[str, Any]) -> Run:
     def solve(x0: jax.Array, inp: jax.Array) -> tuple[jax.Array, ...]:
-        sol = jax.vmap(lambda x, a: jo.least_squares(residual, SE3(x), SE3(a)))(x0, inp)
+        sol = jax.vmap(lambda x, a: jo.least_squares(residual, SE3(x), SE3(a), **LM_STOP))(
+            x0, inp)
         return sol.params.data, sol.num_steps, sol.status, 2 * jnp.sum(sol.cost)
 
     x0, inp = jnp.asarray(prob["x0"]), jnp.asarray(prob["input"])
