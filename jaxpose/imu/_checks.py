@@ -11,21 +11,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._checks import as_array
+
 Array = jax.Array
 
 
 def as_float(x: Any, name: str) -> Array:
-    if x is None or isinstance(x, (str, bytes, dict, set)):
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}")
-    try:
-        arr = jnp.asarray(x)
-    except (TypeError, ValueError) as err:
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}") from err
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        if jnp.issubdtype(arr.dtype, jnp.complexfloating):
-            raise TypeError(f"{name}: expected a real floating array, got {arr.dtype}")
-        arr = arr.astype(jnp.result_type(float))
-    return arr
+    """Real floating array (integers promoted); errors name ``name``. The IMU wording for
+    None ("an array of numbers"), then the shared dynamics check."""
+    if x is None:
+        raise TypeError(f"{name}: expected an array of numbers, got NoneType")
+    return as_array(x, name)
 
 
 def scalar_var(x: Any, name: str, dtype: Any) -> Array:
