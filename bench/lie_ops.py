@@ -8,9 +8,16 @@ the same inputs. jaxpose and jaxlie: ``jit`` (+ ``vmap(jacfwd)`` for Jacobians);
 on torch CPU, Jacobians the way PyPose users write them: one backward pass per output
 row (``torch.autograd.grad`` with a one-hot ``grad_outputs``).
 
+JAX runs with synchronous CPU dispatch (``jax_cpu_enable_async_dispatch=False``, set
+before the CPU client exists; it applies to jaxpose and jaxlie alike). At B = 1e3 one
+blocking call is a few microseconds of work, and the default asynchronous dispatch adds
+a fixed thread hand-off of about 25-50 µs per call on a 2-core machine, more than the
+work itself; users timing or calling small ops one at a time should set it the same
+way. ``--async-dispatch`` measures JAX's default instead.
+
 Usage::
 
-    python bench/lie_ops.py [--quick] [--dtype float32|float64]
+    python bench/lie_ops.py [--quick] [--dtype float32|float64] [--async-dispatch]
                             [--batches 1000,100000,1000000] [--out FILE.md]
 """
 
@@ -78,7 +85,7 @@ def second_arg(fname: str) -> str | None:
 
 
 # ----------------------------------------------------------------------------------
-# Contestants: JAX-based (jaxpose, jaxlie, prototypes)
+# Contestants: JAX-based (jaxpose, jaxlie)
 # ----------------------------------------------------------------------------------
 def _jaxpose_funcs() -> dict[str, Callable[..., Any]]:
     from jaxpose.lie.so3 import SO3
@@ -122,180 +129,6 @@ class JaxContestant:
         timing, out = time_jax(self.programs[(fname, kind)], *args, **cfg.timing_kw)
         return timing, np.asarray(out)
 
-
-# ----------------------------------------------------------------------------------
-# PROTOTYPE — NOT jaxpose. A suggested rewrite of jaxpose/lie/quaternion.py's exp, log,
-# multiply and rotate, timed with --prototype to prove the suggestion (see the closing
-# report of bench/lie_ops.py). Three changes:
-#  1. No libm transcendentals: XLA:CPU lowers sin/cos/atan2 to scalar libm calls
-#     (~20-50 ns per element) while + * / sqrt round vectorise (~1 ns). exp uses Taylor
-#     polynomials in t = (θ/2)² below θ/2 = π/4 and Cody-Waite range reduction above;
-#     log is branch-free: three half-angle steps bring atan's argument into s < 0.04
-#     where the atan(x)/x series converges, all from n² (smooth at n = 0).
-#  2. Structure of arrays: work on (…,) components and stack once at the end, instead
-#     of slicing (…, 3)/(…, 4) arrays, summing over the last axis and concatenating.
-#  3. custom_jvp rules whose scalar coefficients (and their t-derivatives, by an
-#     elementwise jvp) are computed from the primal only; without them XLA:CPU fuses the
-#     whole primal polynomial chain into the tangent columns of vmap(jacfwd) and into
-#     the (B, 3, 3) output fusion, which it emits as scalar code. (The
-#     optimization_barrier calls are inert on XLA:CPU today: it is expanded before
-#     fusion; the gain comes from the custom_jvp rules.)
-# Polynomials are truncated per dtype (float32 needs about half the terms of float64).
-# Higher derivatives still work: the rules are themselves differentiable.
-# ----------------------------------------------------------------------------------
-def _proto_poly(kind: str, dtype: Any) -> tuple[float, ...]:
-    """Taylor coefficients in u² on the reduced range, truncated for ``dtype``."""
-    import math
-
-    rel = 1e-9 if np.dtype(dtype) == np.float32 else 1e-18
-    if kind == "sin":  # sin(r)/r in r², |r| ≤ π/4
-        c, x0 = [(-1) ** k / math.factorial(2 * k + 1) for k in range(30)], (math.pi / 4) ** 2
-    elif kind == "cos":  # cos(r) in r², |r| ≤ π/4
-        c, x0 = [(-1) ** k / math.factorial(2 * k) for k in range(30)], (math.pi / 4) ** 2
-    else:  # atan(x)/x in x², x² < 0.04
-        c, x0 = [(-1) ** k / (2 * k + 1) for k in range(60)], 0.04
-    n = next(k for k in range(len(c)) if abs(c[k]) * x0**k < rel)
-    return tuple(c[: n + 1])
-
-
-def _proto_horner(coeffs: tuple[float, ...], t: Any) -> Any:
-    out = coeffs[-1]
-    for c in coeffs[-2::-1]:
-        out = out * t + c
-    return out
-
-
-# π/2 split so that k·part is exact in the working precision (fdlibm / Cephes constants)
-_PROTO_PIO2 = {
-    "float64": (1.5707963267341256, 6.077100506303966e-11, 2.0222662487959506e-21),
-    "float32": (1.5703125, 4.837512969970703125e-4, 7.54978995489188216e-8),
-}
-
-
-def _proto_exp_coeffs(t: Any) -> tuple[Any, Any]:
-    """(sin(h)/(2h), cos h) from t = h², without sin/cos calls."""
-    import jax.numpy as jnp
-
-    S, C = _proto_poly("sin", t.dtype), _proto_poly("cos", t.dtype)
-    t0 = (np.pi / 4) ** 2
-    small = t < t0
-    ts = jnp.where(small, t, 0.0)  # series branch: polynomials in t (smooth at 0)
-    s_small, w_small = 0.5 * _proto_horner(S, ts), _proto_horner(C, ts)
-    h = jnp.sqrt(jnp.where(small, t0, t))  # reduced branch: h ≥ π/4
-    k = jnp.round(h * (2 / np.pi))
-    r = h
-    for part in _PROTO_PIO2[np.dtype(t.dtype).name]:  # Cody-Waite: r = h − k·π/2
-        r = r - k * part
-    r2 = r * r
-    sr, cr = r * _proto_horner(S, r2), _proto_horner(C, r2)
-    q = k - 4.0 * jnp.floor(0.25 * k)  # quadrant 0..3
-    sin_h = jnp.where(q == 0, sr, jnp.where(q == 1, cr, jnp.where(q == 2, -sr, -cr)))
-    cos_h = jnp.where(q == 0, cr, jnp.where(q == 1, -sr, jnp.where(q == 2, -cr, sr)))
-    return jnp.where(small, s_small, sin_h / (2.0 * h)), jnp.where(small, w_small, cos_h)
-
-
-def _proto_log_coeff(n2: Any, w: Any) -> Any:
-    """2·atan2(n, w)/n for w ≥ 0 from n² (branch-free, no atan2)."""
-    import jax.numpy as jnp
-
-    A = _proto_poly("atan", n2.dtype)
-    d = jnp.sqrt(n2 + w * w) + w  # α = 2·atan(n/d)
-    s0 = n2 / (d * d)
-    g1 = 1.0 / (1.0 + jnp.sqrt(1.0 + s0))  # tan(x/2) = tan x / (1 + sec x)
-    s1 = s0 * g1 * g1
-    g2 = 1.0 / (1.0 + jnp.sqrt(1.0 + s1))
-    return 16.0 * g1 * g2 * _proto_horner(A, s1 * g2 * g2) / d
-
-
-def _proto_barrier(*xs: Any) -> Any:
-    return jax.lax.optimization_barrier(xs)
-
-
-@jax.custom_jvp
-def _proto_exp(x: Any, y: Any, z: Any) -> tuple[Any, Any, Any, Any]:
-    """Quaternion components of Exp([x, y, z])."""
-    s, w = _proto_barrier(*_proto_exp_coeffs(0.25 * (x * x + y * y + z * z)))
-    return x * s, y * s, z * s, w
-
-
-@_proto_exp.defjvp
-def _proto_exp_jvp(primals: Any, tangents: Any) -> Any:
-    import jax.numpy as jnp
-
-    x, y, z = primals
-    dx, dy, dz = tangents
-    t = 0.25 * (x * x + y * y + z * z)
-    (s, w), (s_t, w_t) = jax.jvp(_proto_exp_coeffs, (t,), (jnp.ones_like(t),))
-    s, w, s_t, w_t = _proto_barrier(s, w, s_t, w_t)
-    dt = 0.5 * (x * dx + y * dy + z * dz)
-    ds = s_t * dt
-    return (x * s, y * s, z * s, w), (dx * s + x * ds, dy * s + y * ds, dz * s + z * ds, w_t * dt)
-
-
-@jax.custom_jvp
-def _proto_log(qx: Any, qy: Any, qz: Any, qw: Any) -> tuple[Any, Any, Any]:
-    """Log of a quaternion (angle in [0, π])."""
-    import jax.numpy as jnp
-
-    sign = jnp.where(qw < 0, -1.0, 1.0).astype(qx.dtype)
-    (f,) = _proto_barrier(sign * _proto_log_coeff(qx * qx + qy * qy + qz * qz, qw * sign))
-    return qx * f, qy * f, qz * f
-
-
-@_proto_log.defjvp
-def _proto_log_jvp(primals: Any, tangents: Any) -> Any:
-    import jax.numpy as jnp
-
-    qx, qy, qz, qw = primals
-    dqx, dqy, dqz, dqw = tangents
-    sign = jnp.where(qw < 0, -1.0, 1.0).astype(qx.dtype)
-    n2, w = qx * qx + qy * qy + qz * qz, qw * sign
-    one, zero = jnp.ones_like(n2), jnp.zeros_like(n2)
-    f, f_n2 = jax.jvp(_proto_log_coeff, (n2, w), (one, zero))
-    f_w = jax.jvp(_proto_log_coeff, (n2, w), (zero, one))[1]
-    f, f_n2, f_w = _proto_barrier(sign * f, sign * f_n2, f_w)  # f is odd in the sign
-    df = f_n2 * 2.0 * (qx * dqx + qy * dqy + qz * dqz) + f_w * dqw
-    return (qx * f, qy * f, qz * f), (dqx * f + qx * df, dqy * f + qy * df, dqz * f + qz * df)
-
-
-def _proto_mul(a: tuple[Any, ...], b: tuple[Any, ...]) -> tuple[Any, Any, Any, Any]:
-    x1, y1, z1, w1 = a
-    x2, y2, z2, w2 = b
-    return (
-        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-    )
-
-
-def _proto_rotate(q: tuple[Any, ...], p: tuple[Any, ...]) -> tuple[Any, Any, Any]:
-    x, y, z, w = q
-    px, py, pz = p
-    tx, ty, tz = 2 * (y * pz - z * py), 2 * (z * px - x * pz), 2 * (x * py - y * px)
-    return (
-        px + w * tx + y * tz - z * ty,
-        py + w * ty + z * tx - x * tz,
-        pz + w * tz + x * ty - y * tx,
-    )
-
-
-def _proto_funcs() -> dict[str, Callable[..., Any]]:
-    import jax.numpy as jnp
-
-    def split(a: Any) -> tuple[Any, ...]:
-        return tuple(a[..., i] for i in range(a.shape[-1]))
-
-    def stack(c: tuple[Any, ...]) -> Any:
-        return jnp.stack(c, -1)
-
-    return {
-        "f1": lambda x: stack(_proto_log(*_proto_exp(*split(x)))),
-        "f2": lambda x, y: stack(
-            _proto_log(*_proto_mul(_proto_exp(*split(x)), _proto_exp(*split(y))))
-        ),
-        "f3": lambda x, p: stack(_proto_rotate(_proto_exp(*split(x)), split(p))),
-    }
 
 # ----------------------------------------------------------------------------------
 # Contestant: PyPose (torch CPU)
@@ -353,7 +186,7 @@ class Config:
     dtype: str = "float32"
     batches: tuple[int, ...] = (1_000, 100_000, 1_000_000)
     timing_kw: dict[str, Any] = field(default_factory=dict)
-    prototype: bool = False
+    async_dispatch: bool = False
     funcs: tuple[str, ...] = FUNCS
     kinds: tuple[str, ...] = KINDS
 
@@ -390,8 +223,6 @@ def build_contestants(cfg: Config, skip: Sequence[str] = ()) -> tuple[list[Any],
     peers.append(jl)
     if jl.available:
         contestants.append(JaxContestant("jaxlie", _jax_programs(_jaxlie_funcs(jl.module), True)))
-    if cfg.prototype:
-        contestants.append(JaxContestant("proto", _jax_programs(_proto_funcs(), False)))
     return contestants, peers
 
 
@@ -464,6 +295,11 @@ def report(cells: Sequence[Cell], peers: Sequence[Peer], names: Sequence[str],
         f"- clock: {clock} ({'process CPU seconds' if clock == 'cpu' else 'wall seconds'}), "
         f"{len(os.sched_getaffinity(0))} cores usable",
         "- peers: " + "; ".join(p.label() for p in peers),
+        "- JAX CPU dispatch: " + (
+            "asynchronous (JAX's default)" if cfg.async_dispatch else
+            "synchronous (`jax_cpu_enable_async_dispatch=False`, for jaxpose and jaxlie "
+            "alike: a blocking call at B = 1e3 is latency-bound, and asynchronous dispatch "
+            "adds a fixed hand-off per call; `--async-dispatch` measures the default)"),
     ]
     if any(p.name == "pypose" and p.available for p in peers):
         import torch
@@ -503,8 +339,8 @@ def report(cells: Sequence[Cell], peers: Sequence[Peer], names: Sequence[str],
             worst[key] = min(worst.get(key, float("inf")), jp / pp)
     lowest = ", ".join(f"{k} {v:.1f}x" for k, v in worst.items())
     lines += [
-        f"Result: bar {'met' if judged and 'FAIL' not in judged else 'NOT met'} in "
-        f"{judged.count('pass')}/{len(judged)} cells; lowest jaxpose/PyPose: "
+        f"Result: bar {'met' if judged and 'FAIL' not in judged else 'NOT met'} "
+        f"({judged.count('pass')}/{len(judged)} cells pass); lowest jaxpose/PyPose: "
         f"{lowest or 'PyPose skipped'}",
         "",
     ]
@@ -540,8 +376,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--skip", type=str, default="", help="peers to skip, e.g. pypose,jaxlie")
     ap.add_argument("--funcs", type=str, default=",".join(FUNCS), help="subset of f1,f2,f3")
     ap.add_argument("--kinds", type=str, default=",".join(KINDS), help="subset of value,jac")
-    ap.add_argument("--prototype", action="store_true",
-                    help="also time the PROTOTYPE rewrite below (not jaxpose)")
+    ap.add_argument("--async-dispatch", action="store_true",
+                    help="keep JAX's default asynchronous CPU dispatch (adds a fixed "
+                         "~25-50 µs per call on a 2-core machine; see the module docstring)")
     ap.add_argument("--threads", type=int, default=None,
                     help="pin to this many cores (XLA and torch threads alike)")
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
@@ -568,7 +405,9 @@ def main(argv: Sequence[str] | None = None) -> str:
     kinds = tuple(k for k in args.kinds.split(",") if k)
     if not set(funcs) <= set(FUNCS) or not set(kinds) <= set(KINDS):
         raise SystemExit(f"--funcs must be among {FUNCS}, --kinds among {KINDS}")
-    cfg = Config(args.dtype, batches, timing_kw, args.prototype, funcs, kinds)
+    cfg = Config(args.dtype, batches, timing_kw, args.async_dispatch, funcs, kinds)
+    # read when the CPU client is created, so before anything touches a device
+    jax.config.update("jax_cpu_enable_async_dispatch", cfg.async_dispatch)
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if args.verbose else None
     cells, peers, names = run(cfg, [s for s in args.skip.split(",") if s], log)
     text = report(cells, peers, names, cfg, args.clock)

@@ -7,6 +7,10 @@ rotation vectors and points (..., 3), matrices (..., 3, 3).
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
+import jax
 import jax.numpy as jnp
 
 from . import series
@@ -26,14 +30,18 @@ def _stack(parts: list[Array]) -> Array:
 
 
 def multiply(q1: Array, q2: Array) -> Array:
-    """Hamilton product q1 ⊗ q2 (rotation q1 after q2)."""
+    """Hamilton product q1 ⊗ q2 (rotation q1 after q2).
+
+    Summed as (w1·v2 + w2·v1) + v1 × v2 and w1·w2 − v1·v2, each cross/dot product
+    rounded on its own before the larger terms are added (less round-off than a flat
+    left-to-right sum when the product is near the identity)."""
     x1, y1, z1, w1 = _parts(q1)
     x2, y2, z2, w2 = _parts(q2)
     return _stack([
-        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        (w1 * x2 + x1 * w2) + (y1 * z2 - z1 * y2),
+        (w1 * y2 + y1 * w2) + (z1 * x2 - x1 * z2),
+        (w1 * z2 + z1 * w2) + (x1 * y2 - y1 * x2),
+        w1 * w2 - (x1 * x2 + y1 * y2 + z1 * z2),
     ])
 
 
@@ -43,19 +51,21 @@ def conjugate(q: Array) -> Array:
 
 
 def rotate(q: Array, p: Array) -> Array:
-    """R(q) p for points p (..., 3): p + w·t + v × t with t = 2 v × p."""
+    """R(q) p for points p (..., 3): (p + w·t) + v × t with t = 2 v × p (the small v × t
+    term is rounded on its own before it is added)."""
     x, y, z, w = _parts(q)
     px, py, pz = _parts(p)
     tx, ty, tz = 2.0 * (y * pz - z * py), 2.0 * (z * px - x * pz), 2.0 * (x * py - y * px)
     return _stack([
-        px + w * tx + y * tz - z * ty,
-        py + w * ty + z * tx - x * tz,
-        pz + w * tz + x * ty - y * tx,
+        (px + w * tx) + (y * tz - z * ty),
+        (py + w * ty) + (z * tx - x * tz),
+        (pz + w * tz) + (x * ty - y * tx),
     ])
 
 
-def exp(phi: Array) -> Array:
-    """SO(3) exponential of a rotation vector (..., 3) → unit quaternion (..., 4)."""
+def _exp_smooth(phi: Array) -> Array:
+    """The exponential written for derivatives: series switches in t = (θ/2)² make every
+    derivative order NaN-free and accurate at θ = 0 (see :mod:`series`)."""
     x, y, z = _parts(phi)
     t4 = 0.25 * (x * x + y * y + z * z)  # (θ/2)²
     s = 0.5 * series.sinc(t4)  # sin(θ/2)/θ
@@ -65,15 +75,66 @@ def exp(phi: Array) -> Array:
     return jnp.concatenate([phi * s[..., None], w[..., None]], -1)
 
 
-def log(q: Array) -> Array:
-    """SO(3) logarithm (..., 4) → rotation vector (..., 3) with angle in [0, π].
+def _exp_value(phi: Array) -> Array:
+    """The exponential written for values: sin(h)/h and cos(h) at h = θ/2 are accurate
+    to the dtype for every h > 0 (h = 0 gives the limit), so no series is needed."""
+    x, y, z = _parts(phi)
+    h = jnp.sqrt(0.25 * (x * x + y * y + z * z))
+    positive = h > 0
+    h_safe = jnp.where(positive, h, 1.0)
+    s = jnp.where(positive, 0.5 * jnp.sin(h_safe) / h_safe, 0.5)
+    return jnp.concatenate([phi * s[..., None], jnp.cos(h)[..., None]], -1)
 
-    θ = 2·atan2(|v|, |w|) by :func:`series.quat_log_coeff` (accurate near 0 and π,
-    branch-free, no atan2 call); q and −q give the same result."""
+
+def _log_smooth(q: Array) -> Array:
+    """The logarithm written for derivatives (branch-free, see :func:`series.quat_log_coeff`)."""
     x, y, z, w = _parts(q)
     sign = jnp.where(w < 0, -1.0, 1.0).astype(q.dtype)
     f = sign * series.quat_log_coeff(x * x + y * y + z * z, w * sign)
     return q[..., :3] * f[..., None]
+
+
+def _log_value(q: Array) -> Array:
+    """The logarithm written for values: 2·atan2(n, |w|)/n, accurate for every n > 0."""
+    x, y, z, w = _parts(q)
+    n = jnp.sqrt(x * x + y * y + z * z)
+    positive = n > 0
+    n_safe = jnp.where(positive, n, 1.0)
+    aw = jnp.abs(w)
+    f = jnp.where(positive, 2.0 * jnp.arctan2(n_safe, aw) / n_safe, 2.0 / aw)
+    return q[..., :3] * jnp.where(w < 0, -f, f)[..., None]
+
+
+def _with_derivatives_of(smooth: Callable[[Array], Array]):
+    """Values from the decorated function, derivatives of every order from ``smooth``.
+
+    Why two formulas: a series switch has to evaluate both branches, and XLA:CPU's cost
+    model splits such polynomial-heavy loops over threads even at 1000 elements, where
+    the hand-off costs more than the work (a 2-3x slower call). The value formulas use
+    sin/cos/atan2 and are exact to the dtype; their derivatives would not be at θ → 0,
+    which the smooth formulas handle. Both agree to a few ulp."""
+
+    def wrap(value: Callable[[Array], Array]) -> Callable[[Array], Array]:
+        f = jax.custom_jvp(value)
+        f.defjvp(lambda primals, tangents: jax.jvp(smooth, primals, tangents))
+        return functools.wraps(value)(f)
+
+    return wrap
+
+
+@_with_derivatives_of(_exp_smooth)
+def exp(phi: Array) -> Array:
+    """SO(3) exponential of a rotation vector (..., 3) → unit quaternion (..., 4)."""
+    return _exp_value(phi)
+
+
+@_with_derivatives_of(_log_smooth)
+def log(q: Array) -> Array:
+    """SO(3) logarithm (..., 4) → rotation vector (..., 3) with angle in [0, π].
+
+    θ = 2·atan2(|v|, |w|) (accurate near 0 and π); q and −q give the same result.
+    Derivatives come from :func:`series.quat_log_coeff` (branch-free, no atan2)."""
+    return _log_value(q)
 
 
 def to_matrix(q: Array) -> Array:

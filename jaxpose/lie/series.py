@@ -14,12 +14,15 @@ Each one switches between a closed form and its Taylor series in ``t``:
 * the switch uses the double-``where`` pattern: each branch only ever sees inputs
   where it is finite, so values and derivatives of any order are NaN-free.
 
-Transcendental functions are evaluated without libm calls: XLA:CPU lowers ``sin``,
-``cos`` and ``atan2`` to scalar calls (10-40 ns per element) while ``+ × ÷ √`` vectorise
-(about 1 ns). :func:`sincos` is a Cody–Waite range reduction plus the same truncated
-Taylor polynomials, with a ``custom_jvp`` (d sin = cos, d cos = −sin, any order);
-:func:`quat_log_coeff` is the quaternion logarithm's ``2·atan2(n, w)/n`` from three
-half-angle steps and a short ``atan(x)/x`` series, branch-free. See ``docs/numerics.md``.
+These are the derivative-safe formulas; ``quaternion.exp`` / ``quaternion.log`` take their
+values from plain sin/cos/atan2 and only their derivatives from here (see
+``docs/numerics.md``). Transcendental functions are evaluated without libm calls:
+XLA:CPU lowers ``sin``, ``cos`` and ``atan2`` to scalar calls (10-40 ns per element)
+while ``+ × ÷ √`` vectorise (about 1 ns). :func:`sincos` is a Cody–Waite range
+reduction plus the same truncated Taylor polynomials, with a ``custom_jvp`` (d sin = cos,
+d cos = −sin, any order); :func:`quat_log_coeff` is the quaternion logarithm's
+``2·atan2(n, w)/n`` from three half-angle steps and a short ``atan(x)/x`` series,
+branch-free.
 """
 
 from __future__ import annotations
