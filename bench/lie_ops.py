@@ -313,21 +313,13 @@ def report(cells: Sequence[Cell], peers: Sequence[Peer], names: Sequence[str],
         "(Jacobians), and ≥ 1x jaxlie everywhere",
         "",
     ]
-    extra = [n for n in names if n not in ("jaxpose", "PyPose", "jaxlie")]
     header = ["f", "kind", "B", "jaxpose op/s", "PyPose op/s", "jaxlie op/s",
-              "jaxpose/PyPose", "jaxpose/jaxlie"]
-    for n in extra:
-        header += [f"{n} op/s", f"{n}/PyPose", f"{n}/jaxlie"]
-    header += ["bar"]
+              "jaxpose/PyPose", "jaxpose/jaxlie", "bar"]
     rows = []
     for c in cells:
         jp, pp, jl = _rate(c, "jaxpose"), _rate(c, "PyPose"), _rate(c, "jaxlie")
-        row = [c.fname, c.kind, fmt_batch(c.batch), fmt_rate(jp), fmt_rate(pp), fmt_rate(jl),
-               fmt_ratio(jp, pp), fmt_ratio(jp, jl)]
-        for n in extra:
-            r = _rate(c, n)
-            row += [fmt_rate(r), fmt_ratio(r, pp), fmt_ratio(r, jl)]
-        rows.append(row + [verdict(c)])
+        rows.append([c.fname, c.kind, fmt_batch(c.batch), fmt_rate(jp), fmt_rate(pp),
+                     fmt_rate(jl), fmt_ratio(jp, pp), fmt_ratio(jp, jl), verdict(c)])
     lines += ["## Throughput", "", markdown_table(header, rows), ""]
     verdicts = [verdict(c) for c in cells]
     judged = [v for v in verdicts if v != "n/a"]
