@@ -397,8 +397,10 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
         spec = _SPECS.get(tag)
         if spec is None and tag.startswith("\ufeff"):
             raise FormatError(
-                path, ln, f"expected a tag, found a byte-order mark U+FEFF before {tag[1:]!r} "
-                "(only the first line may start with one: concatenated files?)"
+                path,
+                ln,
+                f"expected a tag, found a byte-order mark U+FEFF before {tag[1:]!r} "
+                "(only the first line may start with one: concatenated files?)",
             )
         if spec is None:
             if tag == "FIX":
@@ -432,8 +434,9 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
             fields = ["id"] if role == "vertex" else ["i", "j"]
             fields += names
             raise FormatError(
-                path, ln, f"{tag}: expected a number for {fields[min(field, len(fields) - 1)]}, "
-                f"{found}"
+                path,
+                ln,
+                f"{tag}: expected a number for {fields[min(field, len(fields) - 1)]}, {found}",
             )
         rows[role].append(toks[1:])
         row_lines[role].append(ln)
