@@ -214,6 +214,58 @@ def _kernel(name: str | None, delta: float):
     return kernels[name](delta)
 
 
+def _pose_graph_edge_costs(graph):
+    """(m,) float64 ``0.5·rᵀΩr`` per edge at the initial poses, ``r = Log(Z⁻¹·Xi⁻¹·Xj)``
+    (translation first), in numpy: checks the start point before anything is compiled."""
+    import numpy as np
+
+    from .datasets import _rotvec_from_quat
+    from .io.g2o import _compose, _inverse
+
+    kind = graph.kind
+    with np.errstate(all="ignore"):
+        xi, xj = graph.poses[graph.edges[:, 0]], graph.poses[graph.edges[:, 1]]
+        e = _compose(kind, _inverse(kind, xi), xj)
+        e = _compose(kind, _inverse(kind, graph.measurements), e)
+        if kind == "SE3":
+            phi, t = _rotvec_from_quat(e[:, 3:]), e[:, :3]
+            th = np.linalg.norm(phi, axis=1, keepdims=True)
+            small = th < 1e-6
+            safe = np.where(small, 1.0, th)
+            # V⁻¹ = I − K/2 + c·K², c = (1 − (θ/2)·cot(θ/2))/θ² (→ 1/12)
+            c = np.where(small, 1 / 12, (1 - (safe / 2) / np.tan(safe / 2)) / safe**2)
+            k_t = np.cross(phi, t)
+            rho = t - 0.5 * k_t + c * np.cross(phi, k_t)
+            r = np.concatenate([rho, phi], 1)
+        else:
+            th = np.arctan2(e[:, 3], e[:, 2])
+            half = th / 2
+            small = np.abs(half) < 1e-8
+            a = np.where(small, 1.0, half / np.sin(np.where(small, 1.0, half)))  # (θ/2)/sin(θ/2)
+            c, s = np.cos(-half), np.sin(-half)  # V⁻¹ = a·R(−θ/2)
+            rho = a[:, None] * np.stack([c * e[:, 0] - s * e[:, 1], s * e[:, 0] + c * e[:, 1]], 1)
+            r = np.concatenate([rho, th[:, None]], 1)
+        return 0.5 * np.einsum("mi,mij,mj->m", r, graph.information, r)
+
+
+def _check_initial_cost(costs, dtype, what: str, unit: str) -> None:
+    """CLIError if the initial cost (per-item ``costs``) is not finite in ``dtype``."""
+    import numpy as np
+
+    top = float(np.finfo(dtype).max)
+    with np.errstate(all="ignore"):
+        bad = np.flatnonzero(~(np.abs(costs) <= top))
+        total = float(np.sum(costs, dtype=np.float64))
+    name = np.dtype(dtype).name
+    if bad.size:
+        k = int(bad[0])
+        raise CLIError(f"the initial cost of {unit} {what(k)} is not finite in {name} "
+                       f"({costs[k]:.3g}): its values are too large")
+    if not abs(total) <= top:
+        raise CLIError(f"the initial cost ({total:.3g}) is not finite in {name}: values too "
+                       "large")
+
+
 def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype):
     """Solve a PoseGraph, print the table and summary; returns (poses, solution)."""
     import jax
@@ -269,6 +321,9 @@ def pgo_command(args: argparse.Namespace) -> int:
     if args.float32:
         _check_float32_range([graph.poses, graph.measurements, graph.information], args.file)
     dtype = jnp.float32 if args.float32 else jnp.float64
+    ids = graph.vertex_ids[graph.edges]
+    _check_initial_cost(_pose_graph_edge_costs(graph), dtype, lambda e: (
+        f"{e} ({ids[e, 0]} -> {ids[e, 1]})"), "edge")
     poses, _ = _run_pgo(graph, kernel=kernel,
                         solver=args.solver, max_steps=args.max_steps,
                         verbose=not args.quiet, dtype=dtype)
@@ -321,6 +376,11 @@ def ba_command(args: argparse.Namespace) -> int:
     if args.float32:
         _check_float32_range([problem.cameras, problem.points, problem.observations], args.file)
     dtype = jnp.float32 if args.float32 else jnp.float64
+    with np.errstate(all="ignore"):
+        costs = 0.5 * np.sum((pred - problem.observations) ** 2, axis=1)
+    _check_initial_cost(costs, dtype, lambda k: (
+        f"{k} (camera {problem.camera_index[k]}, point {problem.point_index[k]})"),
+        "observation")
     graph = ba.bundle_adjustment_problem(
         problem, kernel=kernel,
         eliminate=args.solver == "schur", fix_intrinsics=args.fix_intrinsics, dtype=dtype)
