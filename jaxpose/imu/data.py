@@ -23,6 +23,7 @@ quaternion has unit norm and ``[p, v, q]`` when only that one does, and records 
 
 from __future__ import annotations
 
+import math
 import os
 from typing import NamedTuple
 
@@ -70,7 +71,7 @@ def _floats(path: str, line: int, fields: list[str], count: int, kind: str) -> l
 
 
 def _unit(q: np.ndarray) -> bool:
-    return abs(float(np.linalg.norm(q)) - 1.0) < 1e-6
+    return abs(math.hypot(*(float(v) for v in q)) - 1.0) < 1e-6  # no overflow warning
 
 
 def read_imu_gps(path: str | os.PathLike[str]) -> ImuGpsData:

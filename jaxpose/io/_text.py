@@ -10,15 +10,17 @@ file does not spell.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 __all__ = ["describe_bad_char", "first_bad_char", "read_text"]
 
 
 def read_text(path: str | os.PathLike[str]) -> str:
     """The file's text: UTF-8, a leading byte-order mark dropped, invalid bytes replaced by
-    U+FFFD (which no number accepts, so the reader reports them with their line)."""
-    return Path(path).read_text(encoding="utf-8-sig", errors="replace")
+    U+FFFD (which no number accepts, so the reader reports them with their line). Line ends
+    are kept as they are: lines are counted at ``\n`` (as editors and ``grep -n`` do), and a
+    ``\r`` is whitespace."""
+    with open(path, encoding="utf-8-sig", errors="replace", newline="") as fh:
+        return fh.read()
 
 
 def first_bad_char(s: str) -> int:
