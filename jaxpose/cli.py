@@ -29,6 +29,7 @@ import re
 import sys
 import time
 import traceback
+import warnings
 from collections.abc import Sequence
 
 EPILOG = (
@@ -500,8 +501,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = callback_log.level
     if not args.debug:
         callback_log.setLevel(logging.CRITICAL)
+
+    def show_warning(message, category, filename, lineno, file=None, line=None):
+        print(f"{prog}: warning: {message}", file=sys.stderr)  # one line, no source excerpt
+
     try:
-        return int(args.func(args))
+        with warnings.catch_warnings():
+            if not args.debug:
+                warnings.showwarning = show_warning
+            return int(args.func(args))
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
