@@ -406,6 +406,11 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
             if tag == "FIX":
                 if len(toks) < 2:
                     raise FormatError(path, ln, "FIX: expected 'FIX id [id ...]', found no id")
+                body = raw.lstrip()[len(tag) :]
+                bad = first_bad_char(body)
+                if bad >= 0:
+                    found = describe_bad_char(body, bad)[1]
+                    raise FormatError(path, ln, f"FIX: expected an integer id, {found}")
                 fix_rows.append((ln, toks[1:]))
             elif tag.startswith(("VERTEX", "EDGE")):
                 first, count = unknown.get(tag, (ln, 0))

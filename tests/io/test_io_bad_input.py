@@ -104,6 +104,7 @@ G2O_TEXT_CASES = {
     "arabic digit id": ([EDGE2.format(i="٣", j=1)], 1, "for i, found '٣'.*U\\+0663"),
     "full-width digit": (["VERTEX_SE2 0 １ 0 0"], 1, "for x, found '１'"),
     "non-ASCII space": (["VERTEX_SE2 0 1\u00a00 0"], 1, "non-ASCII space U\\+00A0"),
+    "FIX id": ([EDGE2.format(i=0, j=10), "FIX 1_0"], 2, "FIX: expected an integer id, found '1_0'"),
     "BOM after line 1": ([EDGE2.format(i=0, j=1), "\ufeff" + EDGE2.format(i=1, j=2)], 2,
                          "byte-order mark"),
 }
@@ -332,7 +333,8 @@ def test_fuzz_read_g2o(tmp_path, data):
     assert (g.edges[:, 0] != g.edges[:, 1]).all()
     for line in data.decode("utf-8-sig", errors="replace").splitlines():
         toks = line.split()
-        if toks and toks[0] in ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "VERTEX_SE2", "EDGE_SE2"):
+        if toks and toks[0] in ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "VERTEX_SE2", "EDGE_SE2",
+                                "FIX"):
             assert_plain_numbers(toks[1:])
     out = tmp_path / "back.g2o"  # what the reader returns, the writer writes and reads back
     write_g2o(out, g)
