@@ -249,8 +249,9 @@ def _pose_graph_edge_costs(graph):
         return 0.5 * np.einsum("mi,mij,mj->m", r, graph.information, r)
 
 
-def _check_initial_cost(costs, dtype, what: str, unit: str) -> None:
-    """CLIError if the initial cost (per-item ``costs``) is not finite in ``dtype``."""
+def _check_initial_cost(costs, dtype, what, unit: str) -> None:
+    """CLIError if the initial cost (per-item ``costs``) is not finite in ``dtype``;
+    ``what(k)`` names item k in the message."""
     import numpy as np
 
     top = float(np.finfo(dtype).max)
