@@ -1,5 +1,6 @@
 """Every Python snippet of the README runs on its own (fresh namespace, its own imports),
-from the repository root so ``../shared/data`` paths resolve."""
+from the repository root so ``../shared/data`` paths resolve; the getting-started page runs
+in order."""
 
 from __future__ import annotations
 
@@ -26,3 +27,12 @@ def test_readme_snippet_runs_alone(index, monkeypatch):
     monkeypatch.chdir(ROOT)
     exec(compile(code, f"README.md snippet {index}", "exec"), {"__name__": "__readme__"})
     assert os.getcwd() == str(ROOT)
+
+
+def test_getting_started_page_runs_in_order():
+    """docs/getting-started.md's snippets build on each other: run them in one namespace."""
+    text = (ROOT / "docs" / "getting-started.md").read_text("utf-8")
+    namespace = {"__name__": "__getting_started__"}
+    for i, code in enumerate(re.findall(r"```python\n(.*?)```", text, re.S)):
+        exec(compile(code, f"getting-started.md snippet {i}", "exec"), namespace)
+    assert namespace["g"].shape == (6,) and namespace["J"].shape == (3, 6)

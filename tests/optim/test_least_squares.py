@@ -74,8 +74,11 @@ def test_constant_damping_stalls_on_rejection():
 def test_compiled_loop_matches_object_api_history_and_verbose(capsys):
     sol = jls(X0, EXP_ARGS, history=True, verbose=True)
     jax.effects_barrier()
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if "least_squares iter" in ln]
-    assert len(lines) == int(sol.num_steps) + 1  # iteration 0 = initial linearisation
+    out = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in out if "least_squares iter" in ln]
+    starts = [ln for ln in out if "least_squares start" in ln]
+    assert len(lines) == int(sol.num_steps) and len(starts) == 1  # + the linearisation
+    assert "|grad|inf" in starts[0] and "ratio" not in starts[0]  # no '-inf … accepted'
     for key in ("cost", "ratio", "damping", "|step|", "accepted"):
         assert key in lines[-1]
     state = run_steps(jo.LM(), exp_residual, X0, EXP_ARGS)
