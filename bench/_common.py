@@ -236,3 +236,13 @@ def _numeric(s: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def emit_report(text: str, out: str | None) -> str:
+    """Print a benchmark's markdown report, also write it to ``out`` (``--out``) when
+    given, and return it."""
+    print(text)
+    if out:
+        with open(out, "w", encoding="utf-8") as fh:
+            fh.write(text + "\n")
+    return text

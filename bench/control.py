@@ -70,6 +70,7 @@ import numpy as np  # noqa: E402
 from bench._common import (  # noqa: E402
     Peer,
     Timing,
+    emit_report,
     environment,
     fmt_ratio,
     fmt_seconds,
@@ -414,11 +415,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if args.verbose else None
     rows, peer = run(cfg, log)
     text = report(rows, peer, cfg)
-    print(text)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            fh.write(text + "\n")
-    return text
+    return emit_report(text, args.out)
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench._common import import_peer, markdown_table  # noqa: E402
+from bench._common import emit_report, import_peer, markdown_table  # noqa: E402
 from jaxpose.dynamics import NLS  # noqa: E402
 from jaxpose.filters import EKF  # noqa: E402
 
@@ -113,9 +113,8 @@ def main(argv: Sequence[str] | None = None) -> str:
     lines = ["# EKF measurement convention (accuracy, float64)", "",
              f"PyPose: {peer.label()}; {seeds} seeds per row; final-state error ‖x_T − x̂_T‖."]
     if not peer.available:
-        text = "\n".join(lines + ["", "Result: skipped (PyPose not installed)"])
-        print(text)
-        return text
+        return emit_report("\n".join(lines + ["", "Result: skipped (PyPose not installed)"]),
+                           args.out)
     import torch
 
     _, run, utp = _filters()
@@ -135,12 +134,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     lines += ["", "Result: the jaxpose filter matching the data's convention is "
               f"{'at least as accurate as' if ok else 'NOT as accurate as'} PyPose's on "
               "every row"]
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(text + "\n")
-    return text
+    return emit_report("\n".join(lines), args.out)
 
 
 if __name__ == "__main__":

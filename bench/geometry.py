@@ -77,6 +77,7 @@ import numpy as np  # noqa: E402
 from bench._common import (  # noqa: E402
     Peer,
     Timing,
+    emit_report,
     environment,
     fmt_batch,
     fmt_ratio,
@@ -538,11 +539,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     text, ok = report(rows, peer, rss, batch)
     bar = f"Result: bar (faster than PyPose on every task and size) {'met' if ok else 'not met'}"
     text += "\n\n" + bar
-    print(text)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(text + "\n")
-    return text
+    return emit_report(text, args.out)
 
 
 if __name__ == "__main__":

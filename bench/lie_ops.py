@@ -40,6 +40,7 @@ import numpy as np
 from bench._common import (
     Peer,
     Timing,
+    emit_report,
     environment,
     fmt_batch,
     fmt_rate,
@@ -403,11 +404,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if args.verbose else None
     cells, peers, names = run(cfg, [s for s in args.skip.split(",") if s], log)
     text = report(cells, peers, names, cfg, args.clock)
-    print(text)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            fh.write(text + "\n")
-    return text
+    return emit_report(text, args.out)
 
 
 if __name__ == "__main__":

@@ -80,6 +80,7 @@ import jaxpose.optim as jo  # noqa: E402
 from bench._common import (  # noqa: E402
     Peer,
     Timing,
+    emit_report,
     environment,
     fmt_batch,
     fmt_ratio,
@@ -419,10 +420,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows, peer = run(batches, args.dtype, sgd, adam, timing_kw, log, draws)
     text, verdict = report(rows, peer, args.dtype, sgd, adam, draws)
     text += f"\n\nResult: {verdict}"
-    print(text)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(text + "\n")
+    emit_report(text, args.out)
     return 0
 
 

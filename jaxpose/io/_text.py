@@ -1,4 +1,5 @@
-"""Text helpers shared by the readers: decoding and the number-token character rule.
+"""Text helpers shared by the readers and writers: decoding, the number-token character
+rule, and the writers' refusal of non-finite rows.
 
 The file formats are plain ASCII: numbers are ASCII digits with an optional sign, point and
 exponent. Python's ``int``/``float`` (and numpy's string conversion) also accept ``1_0`` and
@@ -10,8 +11,23 @@ file does not spell.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
-__all__ = ["describe_bad_char", "first_bad_char", "read_text"]
+import numpy as np
+
+__all__ = ["describe_bad_char", "first_bad_char", "read_text", "refuse_nonfinite_rows"]
+
+
+def refuse_nonfinite_rows(arr: np.ndarray, argname: str, reader: str,
+                          label: Callable[[int], str] | None = None) -> None:
+    """Raise ``ValueError`` naming the first row of ``arr`` (n, k) with a NaN or Inf: a
+    writer refuses what its ``reader`` would reject (``label(k)`` describes row k)."""
+    bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+    if bad.size:
+        k = int(bad[0])
+        where = f" ({label(k)})" if label is not None else ""
+        raise ValueError(f"{argname}: row {k}{where} is not finite: {arr[k].tolist()}; "
+                         f"{reader} would reject the file")
 
 
 def read_text(path: str | os.PathLike[str]) -> str:

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ._text import describe_bad_char, first_bad_char, read_text
+from ._text import describe_bad_char, first_bad_char, read_text, refuse_nonfinite_rows
 from .errors import FormatError
 
 __all__ = ["BALProblem", "project_bal", "read_bal", "write_bal"]
@@ -343,13 +343,7 @@ def write_bal(path: PathLike, problem: BALProblem) -> None:
         ("points", problem.points),
         ("observations", problem.observations),
     ):
-        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
-        if bad.size:
-            k = int(bad[0])
-            raise ValueError(
-                f"write_bal(problem.{name}): row {k} is not finite: {arr[k].tolist()}; "
-                "read_bal would reject the file"
-            )
+        refuse_nonfinite_rows(arr, f"write_bal(problem.{name})", "read_bal")
     out = [f"{problem.n_cameras} {problem.n_points} {problem.n_observations}"]
     out += [
         f"{c} {p} {u!r} {v!r}"

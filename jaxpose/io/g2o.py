@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ._text import describe_bad_char, first_bad_char, read_text
+from ._text import describe_bad_char, first_bad_char, read_text, refuse_nonfinite_rows
 from .errors import FormatError
 
 __all__ = ["PoseGraph", "connected_components", "read_g2o", "write_g2o"]
@@ -665,13 +665,7 @@ def _check_writable_graph(graph: PoseGraph, poses: np.ndarray) -> None:
         ("poses", poses, lambda k: f"vertex id {ids[k]}"),
         ("graph.measurements", graph.measurements, lambda k: f"edge {k}"),
     ):
-        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
-        if bad.size:
-            k = int(bad[0])
-            raise ValueError(
-                f"write_g2o({name}): row {k} ({label(k)}) is not finite: {arr[k].tolist()}; "
-                "read_g2o would reject the file"
-            )
+        refuse_nonfinite_rows(arr, f"write_g2o({name})", "read_g2o", label)
         bad = np.flatnonzero(np.max(np.abs(arr[:, rot]), axis=1) < _TINY)
         if bad.size:
             k = int(bad[0])
