@@ -138,13 +138,13 @@ def _kernel(name: str | None, delta: float):
     return kernels[name](delta)
 
 
-def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype):
+def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, poses=None):
     """Solve a PoseGraph, print the table and summary; returns (poses, solution)."""
     import jax
 
     from .graph import pgo, solve
 
-    problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype)
+    problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, poses=poses)
     run = jax.jit(lambda p: solve(p, linear_solver=solver, max_steps=max_steps,
                                   verbose=verbose))
     t0 = time.perf_counter()
@@ -168,15 +168,21 @@ def pgo_command(args: argparse.Namespace) -> int:
     from .io import FormatError, read_g2o, write_g2o
 
     try:
-        graph = read_g2o(args.file)
+        graph = read_g2o(args.file, information=args.information)
     except (FormatError, OSError) as err:
         print(f"jaxpose pgo: {err}", file=sys.stderr)
         return 1
     print(f"{args.file}: {graph.kind}, {graph.n_poses} poses, {graph.n_edges} edges")
     dtype = jnp.float32 if args.float32 else jnp.float64
+    from .graph.init import initial_poses, pose_graph_cost
+
+    t0 = time.perf_counter()
+    start, method = initial_poses(graph, args.init)
+    init_s = time.perf_counter() - t0
+    print(f"initialisation: {method} ({init_s:.3f} s), cost {pose_graph_cost(graph, start):.6e}")
     poses, _ = _run_pgo(graph, kernel=_kernel(args.kernel, args.kernel_delta),
                         solver=args.solver, max_steps=args.max_steps,
-                        verbose=not args.quiet, dtype=dtype)
+                        verbose=not args.quiet, dtype=dtype, poses=start)
     poses = np.asarray(poses, np.float64)
     if args.out:
         write_g2o(args.out, graph, poses=poses)
@@ -253,6 +259,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--kernel-delta", type=float, default=1.0, help="kernel scale δ")
     q.add_argument("--solver", default="auto", choices=["auto", "sparse", "pcg", "dense"])
     q.add_argument("--max-steps", type=int, default=100)
+    q.add_argument("--init", default="auto", choices=["auto", "chordal", "odometry"],
+                   help="starting poses: chordal relaxation, the file's (odometry) poses, or "
+                        "auto (chordal unless the file's poses have a lower cost)")
+    q.add_argument("--information", default="strict", choices=["strict", "repair", "isotropic"],
+                   help="non-positive-definite information matrices: error (strict), nearest "
+                        "positive-definite (repair), SE-Sync trace weights for all (isotropic)")
     q.add_argument("--float32", action="store_true")
     q.add_argument("--quiet", action="store_true", help="no per-iteration table")
     q.set_defaults(func=pgo_command)
