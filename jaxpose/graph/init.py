@@ -63,12 +63,31 @@ def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
 
 
 def _matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """Unit ``[x, y, z, w]`` quaternions (w ≥ 0) of (..., 3, 3) rotation matrices."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(r.reshape(-1, 3, 3)).as_quat()
-    q = np.where(q[:, 3:] < 0, -q, q)
-    return q.reshape(*r.shape[:-2], 4)
+    """Unit ``[x, y, z, w]`` quaternions (w ≥ 0) of (..., 3, 3) rotation matrices
+    (Shepperd's method: the largest of 1 + tr, 1 + 2·R_kk − tr chooses the formula)."""
+    r = np.asarray(r)
+    tr = np.trace(r, axis1=-2, axis2=-1)
+    d = np.diagonal(r, axis1=-2, axis2=-1)
+    cand = np.concatenate([1 + 2 * d - tr[..., None], (1 + tr)[..., None]], -1)  # 4x², 4w²
+    k = np.argmax(cand, -1)
+    s = np.sqrt(np.maximum(np.take_along_axis(cand, k[..., None], -1)[..., 0], 1e-300))
+    a = r[..., 2, 1] - r[..., 1, 2]
+    b = r[..., 0, 2] - r[..., 2, 0]
+    c = r[..., 1, 0] - r[..., 0, 1]
+    xy = r[..., 0, 1] + r[..., 1, 0]
+    xz = r[..., 0, 2] + r[..., 2, 0]
+    yz = r[..., 1, 2] + r[..., 2, 1]
+    q = np.stack(
+        [
+            np.choose(k, [s * s, xy, xz, a]),
+            np.choose(k, [xy, s * s, yz, b]),
+            np.choose(k, [xz, yz, s * s, c]),
+            np.choose(k, [a, b, c, s * s]),
+        ],
+        -1,
+    )
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:] < 0, -q, q)
 
 
 def _project_so(m: np.ndarray) -> np.ndarray:
@@ -95,9 +114,13 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 
 def _so3_log(r: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(r.reshape(-1, 3, 3)).as_rotvec().reshape(*r.shape[:-2], 3)
+    """Rotation vectors φ (|φ| ≤ π) of (..., 3, 3) rotation matrices, via the quaternion."""
+    q = _matrix_to_quat(r)
+    v, w = q[..., :3], q[..., 3]
+    n = np.linalg.norm(v, axis=-1)
+    th = 2.0 * np.arctan2(n, w)
+    scale = np.where(n > 1e-12, th / np.where(n > 1e-12, n, 1.0), 2.0 / np.maximum(w, 1e-300))
+    return v * scale[..., None]
 
 
 def _v_inverse(phi: np.ndarray) -> np.ndarray:
