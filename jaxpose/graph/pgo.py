@@ -20,7 +20,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..io.g2o import apply_information_policy, connected_components
+from ..io.g2o import _apply_policy, connected_components
 from ..lie import SE2, SE3
 from .factor import Factor, between_jacobian, between_residual
 from .init import initial_poses
@@ -79,7 +79,7 @@ def pose_graph_problem(
         information=(
             np.asarray(graph.information)
             if information is None
-            else apply_information_policy(graph.information, information)
+            else _apply_policy(graph.information, information, "pose_graph_problem")[0]
         ),
         kernel=kernel,
         name=f"between_{graph.kind}",
@@ -121,8 +121,9 @@ def optimize_pose_graph(
     :func:`jaxpose.graph.init.initial_poses`; ``information``: as in
     :func:`pose_graph_problem`; other keywords go to :func:`jaxpose.graph.solve`."""
     if information is not None:
-        graph = replace(graph, information=apply_information_policy(graph.information, information))
-    start, _ = initial_poses(graph, init, fix=fix)
+        info, _ = _apply_policy(graph.information, information, "optimize_pose_graph")
+        graph = replace(graph, information=info)
+    start, _ = initial_poses(graph, init, fix=fix)  # after the policy: chordal uses Ω
     problem = pose_graph_problem(graph, kernel=kernel, fix=fix, dtype=dtype, poses=start)
     sol = solve(problem, **solve_kwargs)
     return np.asarray(sol.variables["pose"].data), sol
