@@ -28,21 +28,27 @@ def _random_information(rng: np.random.Generator, m: int, t: int) -> np.ndarray:
 
 
 def _noise_free(kind: str, seed: int = 0) -> tuple[PoseGraph, np.ndarray]:
-    graph, truth = synthetic_pose_graph(kind, n_poses=60, noise=(0.0, 0.0), seed=seed,
-                                        shape="grid")
+    graph, truth = synthetic_pose_graph(kind, n_poses=60, noise=(0.0, 0.0), seed=seed, shape="grid")
     rng = np.random.default_rng(seed)
     start = truth.copy()
     start[1:] = synthetic_pose_graph(kind, n_poses=60, seed=seed + 1, shape="grid")[1][1:]
-    graph = dataclasses.replace(graph, poses=start,
-                                information=_random_information(rng, graph.n_edges,
-                                                                graph.information.shape[1]))
+    graph = dataclasses.replace(
+        graph,
+        poses=start,
+        information=_random_information(rng, graph.n_edges, graph.information.shape[1]),
+    )
     return graph, truth
 
 
 def _same_pose(kind: str, a: np.ndarray, b: np.ndarray) -> float:
     """Largest entry of |A⁻¹·B − I| over the poses (independent of the storage sign)."""
-    return max(np.abs(np.linalg.inv(_pose_matrix(kind, p)) @ _pose_matrix(kind, q)
-                      - np.eye(3 if kind == "SE2" else 4)).max() for p, q in zip(a, b))
+    return max(
+        np.abs(
+            np.linalg.inv(_pose_matrix(kind, p)) @ _pose_matrix(kind, q)
+            - np.eye(3 if kind == "SE2" else 4)
+        ).max()
+        for p, q in zip(a, b)
+    )
 
 
 @pytest.mark.parametrize("kind", ["SE3", "SE2"])
@@ -83,8 +89,9 @@ def test_translations_minimise_the_cost_for_the_chordal_rotations(kind):
     the free translations vanishes (central differences)."""
     graph, _ = synthetic_pose_graph(kind, n_poses=12, noise=(0.05, 0.1), seed=5)
     rng = np.random.default_rng(5)
-    graph = dataclasses.replace(graph, information=random_spd(rng, graph.n_edges,
-                                                              graph.information.shape[1]))
+    graph = dataclasses.replace(
+        graph, information=random_spd(rng, graph.n_edges, graph.information.shape[1])
+    )
     poses = chordal_initialization(graph)
     dt = 3 if kind == "SE3" else 2
     h = 1e-6
@@ -94,8 +101,9 @@ def test_translations_minimise_the_cost_for_the_chordal_rotations(kind):
             up, down = poses.copy(), poses.copy()
             up[v, k] += h
             down[v, k] -= h
-            grad.append((numpy_pose_graph_cost(graph, up)
-                         - numpy_pose_graph_cost(graph, down)) / (2 * h))
+            grad.append(
+                (numpy_pose_graph_cost(graph, up) - numpy_pose_graph_cost(graph, down)) / (2 * h)
+            )
     scale = numpy_pose_graph_cost(graph, poses)
     assert np.max(np.abs(grad)) < 1e-6 * max(scale, 1.0)
 
@@ -104,10 +112,10 @@ def test_translations_minimise_the_cost_for_the_chordal_rotations(kind):
 def test_pose_graph_cost_matches_the_reference(kind):
     graph, _ = synthetic_pose_graph(kind, n_poses=15, noise=(0.3, 0.3), seed=2)
     rng = np.random.default_rng(2)
-    graph = dataclasses.replace(graph, information=random_spd(rng, graph.n_edges,
-                                                              graph.information.shape[1]))
-    np.testing.assert_allclose(pose_graph_cost(graph), numpy_pose_graph_cost(graph),
-                               rtol=1e-12)
+    graph = dataclasses.replace(
+        graph, information=random_spd(rng, graph.n_edges, graph.information.shape[1])
+    )
+    np.testing.assert_allclose(pose_graph_cost(graph), numpy_pose_graph_cost(graph), rtol=1e-12)
 
 
 def test_auto_keeps_file_poses_that_cost_less():
@@ -115,16 +123,23 @@ def test_auto_keeps_file_poses_that_cost_less():
     (scipy), which the relaxation misses, so 'auto' keeps it; 'chordal' does not."""
     z = np.array([[1.0, 0.0, 1.0, 0.0], [1.2, 0.3, np.cos(0.4), np.sin(0.4)]])
     info = np.stack([np.diag([1.0, 4.0, 9.0]), np.array([[5, 1, 2], [1, 3, 0.5], [2, 0.5, 2.0]])])
-    graph = PoseGraph("SE2", np.arange(2), np.array([[0, 0, 1, 0], [0, 0, 1, 0.0]]),
-                      np.array([[0, 1], [0, 1]]), z, info)
+    graph = PoseGraph(
+        "SE2",
+        np.arange(2),
+        np.array([[0, 0, 1, 0], [0, 0, 1, 0.0]]),
+        np.array([[0, 1], [0, 1]]),
+        z,
+        info,
+    )
 
     def f(x):
         p = np.array([[0, 0, 1, 0.0], [x[0], x[1], np.cos(x[2]), np.sin(x[2])]])
         return numpy_pose_graph_cost(graph, p)
 
     x = minimize(f, np.zeros(3), method="BFGS", options={"gtol": 1e-12}).x
-    best = dataclasses.replace(graph, poses=np.array([[0, 0, 1, 0.0],
-                                                      [x[0], x[1], np.cos(x[2]), np.sin(x[2])]]))
+    best = dataclasses.replace(
+        graph, poses=np.array([[0, 0, 1, 0.0], [x[0], x[1], np.cos(x[2]), np.sin(x[2])]])
+    )
     chordal = chordal_initialization(best)
     assert pose_graph_cost(best, chordal) > pose_graph_cost(best) + 1e-9
     poses, method = initial_poses(best, "auto")
@@ -154,7 +169,9 @@ def test_rotations_match_gtsam_initialize_pose3():
     n, m = graph.n_poses, graph.n_edges
     identity = np.array([0, 0, 0, 0, 0, 0, 1.0])
     anchored = PoseGraph(
-        "SE3", np.arange(n + 1), np.tile(identity, (n + 1, 1)),
+        "SE3",
+        np.arange(n + 1),
+        np.tile(identity, (n + 1, 1)),
         np.concatenate([[[0, 1]], graph.edges + 1]),
         np.concatenate([identity[None], graph.measurements]),
         np.broadcast_to(np.eye(6), (m + 1, 6, 6)),
@@ -177,8 +194,9 @@ _EDGE_TAIL = {
 
 def _file(tmp_path, kinds):
     lines = [f"VERTEX_SE3:QUAT {v} {v} 0 0 0 0 0 1" for v in range(len(kinds) + 1)]
-    lines += [f"EDGE_SE3:QUAT {e} {e + 1} 1 0 0 0 0 0 1 {_EDGE_TAIL[k]}"
-              for e, k in enumerate(kinds)]
+    lines += [
+        f"EDGE_SE3:QUAT {e} {e + 1} 1 0 0 0 0 0 1 {_EDGE_TAIL[k]}" for e, k in enumerate(kinds)
+    ]
     path = tmp_path / "nonpd.g2o"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -206,8 +224,9 @@ def test_repair_clips_eigenvalues_and_warns(tmp_path):
         floor = 1e-6 * np.abs(w).max()
         assert np.linalg.eigvalsh(fixed).min() >= floor * (1 - 1e-9)
         # the Frobenius distance of the eigenvalue-clipped (nearest) matrix
-        np.testing.assert_allclose(np.linalg.norm(fixed - raw[e]),
-                                   np.linalg.norm(np.maximum(w, floor) - w), rtol=1e-9)
+        np.testing.assert_allclose(
+            np.linalg.norm(fixed - raw[e]), np.linalg.norm(np.maximum(w, floor) - w), rtol=1e-9
+        )
     with pytest.warns(UserWarning, match=r"apply_information_policy: 2 of 4.*edges 1, 3\)"):
         np.testing.assert_allclose(apply_information_policy(raw, "repair"), graph.information)
 
@@ -252,8 +271,7 @@ def test_isotropic_weights_are_se_sync_traces(tmp_path):
 
 def test_pose_graph_problem_applies_the_policy(tmp_path):
     graph = read_g2o(_file(tmp_path, ["pd", "cross"]), information="isotropic")
-    bad = dataclasses.replace(graph, information=_raw_information(_file(tmp_path,
-                                                                        ["pd", "cross"])))
+    bad = dataclasses.replace(graph, information=_raw_information(_file(tmp_path, ["pd", "cross"])))
     with pytest.raises(ValueError, match="pose_graph_problem: 1 of 2.*repair"):
         pose_graph_problem(bad, information="strict")
     problem = pose_graph_problem(bad, information="isotropic")
@@ -269,8 +287,19 @@ def test_cli_init_and_information_options(tmp_path, capsys):
     assert "not positive definite" in err and "--information repair|isotropic" in err
     out = tmp_path / "o.g2o"
     with pytest.warns(UserWarning, match="2 of 3 information matrices"):
-        rc = main(["pgo", str(path), "--quiet", "--information", "repair", "--init", "chordal",
-                   "--out", str(out)])
+        rc = main(
+            [
+                "pgo",
+                str(path),
+                "--quiet",
+                "--information",
+                "repair",
+                "--init",
+                "chordal",
+                "--out",
+                str(out),
+            ]
+        )
     assert rc == 0
     text = capsys.readouterr().out
     assert "initialisation: chordal" in text and "status converged" in text
