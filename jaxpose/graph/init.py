@@ -155,8 +155,7 @@ def _spd_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray:
     h.sum_duplicates()
     h.sort_indices()
     if cholmod.available():
-        cols = [cholmod.solve(h.data, h.indices, h.indptr, rhs[:, c]) for c in range(rhs.shape[1])]
-        return np.stack(cols, 1)  # NaN when H is not positive definite
+        return cholmod.solve(h.data, h.indices, h.indptr, rhs)  # NaN when not SPD
     import scipy.sparse.linalg
 
     return np.asarray(scipy.sparse.linalg.spsolve(h.tocsc(), rhs)).reshape(rhs.shape)

@@ -308,3 +308,22 @@ def test_cli_init_and_information_options(tmp_path, capsys):
     assert numpy_pose_graph_cost(result) < 1e-12
     with pytest.raises(SystemExit):
         main(["pgo", str(path), "--init", "spanning"])
+
+
+def test_cholmod_solves_several_right_hand_sides_with_one_factorisation():
+    import scipy.sparse
+
+    from jaxpose.graph import cholmod
+
+    if not cholmod.available():
+        pytest.skip(f"CHOLMOD unavailable: {cholmod.unavailable_reason()}")
+    rng = np.random.default_rng(0)
+    a = scipy.sparse.random(40, 40, density=0.1, random_state=1) + scipy.sparse.eye(40)
+    h = (a @ a.T).tocsr()
+    h.sort_indices()
+    b = rng.normal(size=(40, 3))
+    x = cholmod.solve(h.data, h.indices, h.indptr, b)
+    np.testing.assert_allclose(x, np.linalg.solve(h.toarray(), b), rtol=1e-10, atol=1e-12)
+    x1 = cholmod.solve(h.data, h.indices, h.indptr, b[:, 1])
+    assert x1.shape == (40,)
+    np.testing.assert_allclose(x1, x[:, 1], rtol=1e-13)
