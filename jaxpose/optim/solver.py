@@ -59,6 +59,25 @@ class SolverState(eqx.Module):
     history: Array  # (budget + 1,) costs, or (0,) when not recorded
 
 
+def _print_iteration(fresh: Array, step: Array, cost: Array, ratio: Array, damping: Array,
+                     step_norm: Array, accepted: Array, grad_inf: Array) -> None:
+    """One verbose line from inside jit: the start (linearisation: cost and ‖g‖∞) or a
+    trial step (cost, gain ratio, damping, ‖δ‖, accepted)."""
+
+    def start() -> None:
+        jax.debug.print("least_squares start      cost {c:.6e}  |grad|inf {g:.3e}",
+                        c=cost, g=grad_inf)
+
+    def trial() -> None:
+        jax.debug.print(
+            "least_squares iter {i:4d}  cost {c:.6e}  ratio {r: .3e}  damping {d:.3e}  "
+            "|step| {s:.3e}  accepted {a}",
+            i=step, c=cost, r=ratio, d=damping, s=step_norm, a=accepted,
+        )
+
+    jax.lax.cond(fresh, start, trial)
+
+
 def _select(pred: Array, a: PyTree, b: PyTree) -> PyTree:
     return jax.tree.map(lambda x, y: jnp.where(pred, x, y), a, b)
 
@@ -280,16 +299,8 @@ class AbstractSolver(eqx.Module):
         if hist.shape[0] > 0:
             hist = hist.at[jnp.minimum(num_steps, hist.shape[0] - 1)].set(cost)
         if verbose:
-            jax.debug.print(
-                "least_squares iter {i:4d}  cost {c:.6e}  ratio {r: .3e}  damping {d:.3e}  "
-                "|step| {s:.3e}  accepted {a}",
-                i=num_steps,
-                c=cost,
-                r=ratio,
-                d=self._damping(state.strategy_state),
-                s=step_norm,
-                a=accepted,
-            )
+            _print_iteration(fresh, num_steps, cost, ratio, self._damping(state.strategy_state),
+                             step_norm, accepted, grad_inf)
         return SolverState(
             params=params,
             best_params=best_params,
