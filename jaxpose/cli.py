@@ -268,13 +268,13 @@ def _check_initial_cost(costs, dtype, what, unit: str) -> None:
                        "large")
 
 
-def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype):
+def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, poses=None):
     """Solve a PoseGraph, print the table and summary; returns (poses, solution)."""
     import jax
 
     from .graph import pgo, solve
 
-    problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype)
+    problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, poses=poses)
     run = jax.jit(lambda p: solve(p, linear_solver=solver, max_steps=max_steps,
                                   verbose=verbose))
     t0 = time.perf_counter()
@@ -313,7 +313,7 @@ def pgo_command(args: argparse.Namespace) -> int:
                            f"{sorted(formats)}, got {ext!r}")
     kernel = _kernel(args.kernel, args.kernel_delta)
     try:
-        graph = read_g2o(args.file)
+        graph = read_g2o(args.file, information=args.information)
     except (FormatError, OSError) as err:
         print(f"jaxpose pgo: {err}", file=sys.stderr)
         return 1
@@ -326,9 +326,15 @@ def pgo_command(args: argparse.Namespace) -> int:
     ids = graph.vertex_ids[graph.edges]
     _check_initial_cost(_pose_graph_edge_costs(graph), dtype, lambda e: (
         f"{e} ({ids[e, 0]} -> {ids[e, 1]})"), "edge")
+    from .graph.init import initial_poses, pose_graph_cost
+
+    t0 = time.perf_counter()
+    start, method = initial_poses(graph, args.init)
+    init_s = time.perf_counter() - t0
+    print(f"initialisation: {method} ({init_s:.3f} s), cost {pose_graph_cost(graph, start):.6e}")
     poses, _ = _run_pgo(graph, kernel=kernel,
                         solver=args.solver, max_steps=args.max_steps,
-                        verbose=not args.quiet, dtype=dtype)
+                        verbose=not args.quiet, dtype=dtype, poses=start)
     poses = np.asarray(poses, np.float64)
     if not np.isfinite(poses).all():
         raise CLIError("the optimised poses are not finite; nothing written")
@@ -447,6 +453,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--kernel-delta", type=_positive_float, default=1.0, help="kernel scale δ")
     q.add_argument("--solver", default="auto", choices=["auto", "sparse", "pcg", "dense"])
     q.add_argument("--max-steps", type=_int_at_least(0), default=100)
+    q.add_argument("--init", default="auto", choices=["auto", "chordal", "odometry"],
+                   help="starting poses: chordal relaxation, the file's (odometry) poses, or "
+                        "auto (chordal unless the file's poses have a lower cost)")
+    q.add_argument("--information", default="strict", choices=["strict", "repair", "isotropic"],
+                   help="non-positive-definite information matrices: error (strict), nearest "
+                        "positive-definite (repair), SE-Sync trace weights for all (isotropic)")
     q.add_argument("--float32", action="store_true")
     q.add_argument("--quiet", action="store_true", help="no per-iteration table")
     q.set_defaults(func=pgo_command)

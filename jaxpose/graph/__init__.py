@@ -1,10 +1,11 @@
 """Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM.
 
-Pose graphs: :mod:`jaxpose.graph.pgo`; bundle adjustment (BAL camera model, Schur
+Pose graphs: :mod:`jaxpose.graph.pgo` (global initialisation: :mod:`jaxpose.graph.init`);
+bundle adjustment (BAL camera model, Schur
 elimination of the points): :mod:`jaxpose.graph.ba`.
 """
 
-from . import ba, pgo
+from . import ba, init, pgo
 from .ba import (
     bundle_adjustment_problem,
     optimize_bal,
@@ -18,6 +19,7 @@ from .factor import (
     prior_residual,
     vector_prior_residual,
 )
+from .init import chordal_initialization, initial_poses, pose_graph_cost
 from .problem import FactorGraph, Linearization, cost, linearize
 from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STALLED, GraphSolution, solve, summary
 from .strategies import LambdaFactor, Nielsen
@@ -37,10 +39,14 @@ __all__ = [
     "between_jacobian",
     "between_residual",
     "bundle_adjustment_problem",
+    "chordal_initialization",
     "cost",
+    "init",
+    "initial_poses",
     "linearize",
     "optimize_bal",
     "pgo",
+    "pose_graph_cost",
     "prior_residual",
     "reprojection_jacobian",
     "reprojection_residual",

@@ -118,15 +118,17 @@ class _Library:
                                        factor, self.common)
             _, minor = struct.unpack("QQ", ctypes.string_at(factor, 16))  # L->n, L->minor
             if minor < n:  # not positive definite
-                return np.full(n, np.nan)
-            rhs = _Dense(n, 1, n, n, b.ctypes.data, None, _REAL, _DOUBLE)
+                return np.full(b.shape, np.nan)
+            k = 1 if b.ndim == 1 else b.shape[1]
+            cols = np.asfortranarray(b.reshape(n, k))  # CHOLMOD's dense layout: column-major
+            rhs = _Dense(n, k, n * k, n, cols.ctypes.data, None, _REAL, _DOUBLE)
             out = self.lib.cholmod_solve(_SOLVE_A, factor, ctypes.byref(rhs), self.common)
             if not out:
-                return np.full(n, np.nan)
+                return np.full(b.shape, np.nan)
             x = np.ctypeslib.as_array(ctypes.cast(out.contents.x, ctypes.POINTER(ctypes.c_double)),
-                                      (n,)).copy()
+                                      (k, n)).T.copy()
             self.lib.cholmod_free_dense(ctypes.byref(out), self.common)
-            return x
+            return x.reshape(b.shape)
 
     def clear(self) -> None:
         """Free the cached factorisations."""
@@ -193,7 +195,8 @@ def unavailable_reason() -> str | None:
 
 
 def solve(data: Any, indices: Any, indptr: Any, b: Any) -> np.ndarray:
-    """Solve A x = b for SPD A in symmetric CSR (float64 result; NaN if A is not SPD).
+    """Solve A x = b for SPD A in symmetric CSR (float64 result; NaN if A is not SPD);
+    ``b`` is (n,) or (n, k) (k right-hand sides, one factorisation).
 
     The symbolic factorisation of the pattern (``indices``, ``indptr``) is cached."""
     lib = _load()

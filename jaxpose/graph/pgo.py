@@ -14,14 +14,16 @@ gauge free (LM's damping keeps the steps finite).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
 
-from ..io.g2o import connected_components
+from ..io.g2o import _apply_policy, connected_components
 from ..lie import SE2, SE3
 from .factor import Factor, between_jacobian, between_residual
+from .init import initial_poses
 from .problem import FactorGraph
 from .solve import GraphSolution, solve
 
@@ -34,6 +36,8 @@ def pose_graph_problem(
     kernel: Callable[[Any], Any] | None = None,
     fix: str = "first",
     dtype: Any = None,
+    information: str | None = None,
+    poses: Any = None,
 ) -> FactorGraph:
     """Build the factor graph of a :class:`~jaxpose.io.PoseGraph`.
 
@@ -47,6 +51,11 @@ def pose_graph_problem(
             ``"file"``, each further disconnected piece without a fixed pose has its first
             pose held constant too (module docstring).
         dtype: float dtype of the variables (default: JAX's default float).
+        information: ``None`` uses ``graph.information`` as it is; ``"strict"``,
+            ``"repair"`` or ``"isotropic"`` applies that policy first
+            (:func:`jaxpose.io.apply_information_policy`).
+        poses: optional (n, 7)/(n, 4) starting poses instead of ``graph.poses`` (e.g. from
+            :func:`jaxpose.graph.init.initial_poses`).
     """
     if graph.kind not in _GROUPS:
         raise ValueError(f"pose_graph_problem(graph): unsupported kind {graph.kind!r}")
@@ -54,14 +63,24 @@ def pose_graph_problem(
         raise ValueError(f"pose_graph_problem(fix={fix!r}): expected 'first', 'file' or 'none'")
     group = _GROUPS[graph.kind]
     dtype = jnp.result_type(float) if dtype is None else dtype
-    poses = group(jnp.asarray(graph.poses, dtype)).normalize()
+    start = graph.poses if poses is None else getattr(poses, "data", poses)
+    if np.shape(start) != np.shape(graph.poses):
+        raise ValueError(
+            f"pose_graph_problem(poses): expected shape {np.shape(graph.poses)} "
+            f"like graph.poses, got {np.shape(start)}"
+        )
+    poses = group(jnp.asarray(start, dtype)).normalize()
     z = group(jnp.asarray(graph.measurements, dtype)).normalize()
     edges = np.asarray(graph.edges)
     factor = Factor(
         between_residual,
         [("pose", edges[:, 0]), ("pose", edges[:, 1])],
         data=z,
-        information=np.asarray(graph.information),
+        information=(
+            np.asarray(graph.information)
+            if information is None
+            else _apply_policy(graph.information, information, "pose_graph_problem")[0]
+        ),
         kernel=kernel,
         name=f"between_{graph.kind}",
         jacobian=between_jacobian,
@@ -87,9 +106,24 @@ def gauge_anchors(graph: Any, held: Any) -> np.ndarray:
 
 
 def optimize_pose_graph(
-    graph: Any, *, kernel: Any = None, fix: str = "first", dtype: Any = None, **solve_kwargs: Any
+    graph: Any,
+    *,
+    kernel: Any = None,
+    fix: str = "first",
+    dtype: Any = None,
+    init: str = "auto",
+    information: str | None = None,
+    **solve_kwargs: Any,
 ) -> tuple[np.ndarray, GraphSolution]:
-    """Optimise a pose graph; returns (poses as numpy (n, storage), solution)."""
-    problem = pose_graph_problem(graph, kernel=kernel, fix=fix, dtype=dtype)
+    """Optimise a pose graph; returns (poses as numpy (n, storage), solution).
+
+    ``init``: ``"auto"`` (default), ``"chordal"`` or ``"odometry"``, the starting poses of
+    :func:`jaxpose.graph.init.initial_poses`; ``information``: as in
+    :func:`pose_graph_problem`; other keywords go to :func:`jaxpose.graph.solve`."""
+    if information is not None:
+        info, _ = _apply_policy(graph.information, information, "optimize_pose_graph")
+        graph = replace(graph, information=info)
+    start, _ = initial_poses(graph, init, fix=fix)  # after the policy: chordal uses Ω
+    problem = pose_graph_problem(graph, kernel=kernel, fix=fix, dtype=dtype, poses=start)
     sol = solve(problem, **solve_kwargs)
     return np.asarray(sol.variables["pose"].data), sol

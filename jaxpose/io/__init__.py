@@ -6,12 +6,21 @@ All readers return plain float64/int64 numpy containers (:class:`PoseGraph`,
 
 from .bal import BALProblem, project_bal, read_bal, write_bal
 from .errors import FormatError
-from .g2o import PoseGraph, connected_components, read_g2o, write_g2o
+from .g2o import (
+    INFORMATION_POLICIES,
+    PoseGraph,
+    apply_information_policy,
+    connected_components,
+    read_g2o,
+    write_g2o,
+)
 
 __all__ = [
     "BALProblem",
     "FormatError",
+    "INFORMATION_POLICIES",
     "PoseGraph",
+    "apply_information_policy",
     "connected_components",
     "project_bal",
     "read_bal",

@@ -33,7 +33,14 @@ import numpy as np
 from ._text import describe_bad_char, first_bad_char, read_text, refuse_nonfinite_rows
 from .errors import FormatError
 
-__all__ = ["PoseGraph", "connected_components", "read_g2o", "write_g2o"]
+__all__ = [
+    "INFORMATION_POLICIES",
+    "PoseGraph",
+    "apply_information_policy",
+    "connected_components",
+    "read_g2o",
+    "write_g2o",
+]
 
 PathLike = str | os.PathLike[str]
 
@@ -298,34 +305,176 @@ def _poses_from_values(kind: str, v: np.ndarray) -> np.ndarray:
     return np.stack([v[:, 0], v[:, 1], np.cos(v[:, 2]), np.sin(v[:, 2])], -1)
 
 
+INFORMATION_POLICIES = ("strict", "repair", "isotropic")
+"""Policies for information matrices that are not positive definite
+(:func:`apply_information_policy`, ``read_g2o(information=...)``)."""
+_REPAIR_FLOOR = 1e-6  # repaired eigenvalues ≥ this × the largest |eigenvalue| of the edge
+
+
+def _not_positive_definite(info: np.ndarray) -> np.ndarray:
+    """Indices of the (m, t, t) symmetric matrices whose Cholesky factorisation fails."""
+    try:
+        np.linalg.cholesky(info)
+        return np.zeros(0, np.int64)
+    except np.linalg.LinAlgError:
+        pass
+    bad = []
+    for e in range(info.shape[0]):
+        try:
+            np.linalg.cholesky(info[e])
+        except np.linalg.LinAlgError:
+            bad.append(e)
+    return np.asarray(bad, np.int64)
+
+
+def _repaired(info: np.ndarray) -> np.ndarray:
+    """Nearest positive-definite matrices by eigenvalue clipping: each eigenvalue raised to
+    at least ``1e-6 · max |eigenvalue|`` of its matrix (1e-6 for an all-zero matrix)."""
+    w, v = np.linalg.eigh(info)
+    scale = np.max(np.abs(w), axis=-1, keepdims=True)
+    floor = _REPAIR_FLOOR * np.where(scale > 0, scale, 1.0)
+    w = np.maximum(w, floor)
+    out = (v * w[..., None, :]) @ np.swapaxes(v, -1, -2)
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
+
+
+def _isotropic(info: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SE-Sync's trace-based weights; returns (matrices, indices of edges without valid
+    weights). SE3: ``τ = 3/tr(Ω_tt⁻¹)``, ``κ = 3/(2·tr(Ω_RR⁻¹))``, Ω = diag(τ·I₃, 2κ·I₃);
+    SE2: ``τ = 2/tr(Ω_tt⁻¹)``, Ω = diag(τ, τ, Ω_θθ)."""
+    t = info.shape[-1]
+    dt = t // 2 + (t == 3)  # translation block size: 3 of 6, 2 of 3
+    with np.errstate(all="ignore"):
+        tt = info[:, :dt, :dt]
+        tau = dt / np.trace(np.linalg.pinv(tt, hermitian=True), axis1=1, axis2=2)
+        if t == 6:
+            rr = np.linalg.pinv(info[:, 3:, 3:], hermitian=True)
+            rot = 2.0 * (3.0 / (2.0 * np.trace(rr, axis1=1, axis2=2)))  # 2κ
+            diag = np.concatenate([np.repeat(tau[:, None], 3, 1), np.repeat(rot[:, None], 3, 1)], 1)
+        else:
+            diag = np.stack([tau, tau, info[:, 2, 2]], 1)
+    bad = np.flatnonzero(~np.all(np.isfinite(diag) & (diag > 0), axis=1))
+    out = np.zeros_like(info)
+    idx = np.arange(t)
+    out[:, idx, idx] = diag
+    return out, bad
+
+
+def apply_information_policy(information: Any, policy: str = "strict") -> np.ndarray:
+    """Information matrices ``(m, t, t)`` under a policy for non-positive-definite ones.
+
+    * ``"strict"``: returned unchanged (as float64, symmetrised); ``ValueError`` if any is
+      not positive definite (the message names the other policies).
+    * ``"repair"``: the matrices that are not positive definite are replaced by the nearest
+      positive-definite matrix by eigenvalue clipping (eigenvalues raised to at least 1e-6
+      times the largest absolute eigenvalue of that matrix); the others are unchanged.
+    * ``"isotropic"``: every matrix becomes SE-Sync's isotropic rotation/translation weight
+      (Rosen et al., IJRR 2019): SE3 ``diag(τ·I₃, 2κ·I₃)`` with ``τ = 3/tr(Ω_tt⁻¹)``,
+      ``κ = 3/(2·tr(Ω_RR⁻¹))`` (2κ weights the tangent rotation error, since
+      ``‖R_j − R_i Z‖²_F ≈ 2|φ|²``); SE2 ``diag(τ, τ, Ω_θθ)`` with ``τ = 2/tr(Ω_tt⁻¹)``.
+      Blocks whose trace-based weight is not positive raise ``ValueError``.
+
+    ``t`` is 6 (SE3, translation first) or 3 (SE2).
+    ``"repair"`` warns with the count and the first edge indices it changed.
+    """
+    info, _ = _apply_policy(information, policy, "apply_information_policy")
+    return info
+
+
+def _apply_policy(information: Any, policy: str, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """(matrices, indices of the non-positive-definite input matrices) or ValueError."""
+    if policy not in INFORMATION_POLICIES:
+        raise ValueError(f"{where}(information={policy!r}): expected one of {INFORMATION_POLICIES}")
+    info = np.asarray(information, np.float64)
+    if info.ndim != 3 or info.shape[1] != info.shape[2] or info.shape[1] not in (3, 6):
+        raise ValueError(
+            f"{where}: expected information of shape (m, 6, 6) or (m, 3, 3), got {info.shape}"
+        )
+    info = 0.5 * (info + np.swapaxes(info, -1, -2))
+    bad = (
+        _not_positive_definite(info)
+        if np.all(np.isfinite(info))
+        else np.flatnonzero(~np.all(np.isfinite(info), axis=(1, 2)))
+    )
+    if policy == "repair" and bad.size:
+        shown = ", ".join(map(str, bad[:5].tolist())) + (", ..." if bad.size > 5 else "")
+        warnings.warn(
+            f"{where}: {bad.size} of {info.shape[0]} information matrices are not positive "
+            f"definite; repaired by eigenvalue clipping (edges {shown})",
+            stacklevel=3,
+        )
+        info = info.copy()
+        info[bad] = _repaired(np.nan_to_num(info[bad], nan=0.0, posinf=0.0, neginf=0.0))
+    elif policy == "isotropic":
+        info, wrong = _isotropic(info)
+        if wrong.size:
+            raise ValueError(
+                f"{where}(information='isotropic'): edge {wrong[0]} (and {wrong.size - 1} "
+                "more) has a translation or rotation block whose trace-based weight is not "
+                "positive; use information='repair'"
+            )
+    elif policy == "strict" and bad.size:
+        raise ValueError(
+            f"{where}: {bad.size} of {info.shape[0]} information matrices are not positive "
+            f"definite (first: edge {bad[0]}); use information='repair' (nearest positive "
+            "definite) or 'isotropic' (SE-Sync's trace-based weights)"
+        )
+    return info, bad
+
+
 def _information(
-    path: PathLike, upper: np.ndarray, lines: list[int], tag: str, ids: np.ndarray
+    path: PathLike,
+    upper: np.ndarray,
+    lines: list[int],
+    tag: str,
+    ids: np.ndarray,
+    policy: str = "strict",
 ) -> np.ndarray:
-    """(m, t, t) symmetric matrices from row-major upper triangles; checked by Cholesky."""
+    """(m, t, t) symmetric matrices from row-major upper triangles, checked by Cholesky and
+    handled by ``policy`` (:func:`apply_information_policy`)."""
     m, k = upper.shape
     t = int(round((np.sqrt(8 * k + 1) - 1) / 2))
     r, c = np.triu_indices(t)
     info = np.zeros((m, t, t))
     info[:, r, c] = upper
     info[:, c, r] = upper
-    try:
-        np.linalg.cholesky(info)
+    bad = _not_positive_definite(info)
+    if not bad.size and policy != "isotropic":
         return info
-    except np.linalg.LinAlgError:
-        pass
-    for e in range(m):
-        try:
-            np.linalg.cholesky(info[e])
-        except np.linalg.LinAlgError:
-            eig = np.linalg.eigvalsh(info[e])
+    if policy == "strict":
+        e = bad[0]
+        eig = np.linalg.eigvalsh(info[e])
+        raise FormatError(
+            path,
+            lines[e],
+            f"{tag} {ids[e, 0]} {ids[e, 1]} (edge {e}): expected a symmetric positive "
+            f"definite information matrix, found one whose Cholesky factorisation fails "
+            f"(smallest eigenvalue {eig[0]:.6g}; {bad.size} of {m} edges are not positive "
+            "definite). Read the file with information='repair' (nearest positive-definite "
+            "matrix per edge) or information='isotropic' (SE-Sync's trace-based weights); "
+            "CLI: --information repair|isotropic",
+        )
+    if policy == "isotropic":
+        out, wrong = _isotropic(info)
+        if wrong.size:
+            e = wrong[0]
             raise FormatError(
                 path,
                 lines[e],
-                f"{tag} {ids[e, 0]} {ids[e, 1]} (edge {e}): expected a symmetric positive "
-                f"definite information matrix, found one whose Cholesky factorisation fails "
-                f"(smallest eigenvalue {eig[0]:.6g})",
-            ) from None
-    return info  # pragma: no cover - batched and per-edge Cholesky disagree
+                f"{tag} {ids[e, 0]} {ids[e, 1]} (edge {e}): information='isotropic' needs "
+                "translation and rotation blocks with a positive trace-based weight "
+                f"({wrong.size} edges have none); use information='repair'",
+            )
+        return out
+    shown = ", ".join(str(lines[e]) for e in bad[:5]) + (", ..." if bad.size > 5 else "")
+    warnings.warn(
+        f"{os.fspath(path)}: {bad.size} of {m} information matrices are not positive "
+        f"definite; repaired by eigenvalue clipping (lines {shown})",
+        stacklevel=3,
+    )
+    info = info.copy()
+    info[bad] = _repaired(info[bad])
+    return info
 
 
 def _index_of(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -343,13 +492,18 @@ def _lookup(sorted_ids: np.ndarray, order: np.ndarray, query: np.ndarray) -> np.
     return np.where(found, order[pos], -1)
 
 
-def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
+def read_g2o(path: PathLike, *, kind: str | None = None, information: str = "strict") -> PoseGraph:
     """Read a g2o pose graph (SE3 or SE2).
 
     Args:
         path: file to read.
         kind: ``"SE3"`` or ``"SE2"`` to require that kind; by default it is inferred from the
             tags (a file mixing SE2 and SE3 tags is an error).
+        information: policy for information matrices that are not positive definite
+            (:func:`apply_information_policy`): ``"strict"`` (an error naming the other two),
+            ``"repair"`` (nearest positive-definite matrix per such edge, with a warning
+            giving their count and first lines) or ``"isotropic"`` (every edge gets SE-Sync's
+            trace-based rotation/translation weights).
 
     Returns:
         A :class:`PoseGraph`. Quaternions are normalised scale-safely (``1e200`` or ``1e-200``
@@ -375,13 +529,17 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
             non-finite values, non-ASCII or ``_`` characters in them, invalid UTF-8, zero
             quaternions, duplicate vertex ids, self-loop edges (``i == j``), edges or FIX
             lines naming missing vertices, information matrices that are not positive
-            definite, SE2/SE3 tags mixed (or not the requested ``kind``), a byte-order mark
-            after the first line, edges-only initial poses beyond the float64 range, or no
-            pose-graph lines.
+            definite (with ``information="strict"``), SE2/SE3 tags mixed (or not the
+            requested ``kind``), a byte-order mark after the first line, edges-only initial
+            poses beyond the float64 range, or no pose-graph lines.
         OSError: the file cannot be read.
     """
     if kind is not None and kind not in _DIMS:
         raise ValueError(f"read_g2o: kind must be 'SE3', 'SE2' or None, got {kind!r}")
+    if information not in INFORMATION_POLICIES:
+        raise ValueError(
+            f"read_g2o(information={information!r}): expected one of {INFORMATION_POLICIES}"
+        )
     text = read_text(path)  # a leading byte-order mark is dropped
     lines = text.split("\n")
     rows: dict[str, list[list[str]]] = {"vertex": [], "edge": []}
@@ -538,7 +696,7 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
             f"FIX: expected vertex {fix_arr[k]} to be defined by {where}, found none",
         )
     fixed = np.asarray(list(dict.fromkeys(fixed.tolist())), np.int64)
-    info = _information(path, evals[:, n_meas:], elines, etag, eids)
+    info = _information(path, evals[:, n_meas:], elines, etag, eids, information)
 
     if poses is None:
         with np.errstate(over="ignore", invalid="ignore"):

@@ -35,7 +35,13 @@ def test_cli_pgo_tinygrid3d_writes_a_lower_cost_graph(tmp_path, capsys):
     assert c1 < c0
     np.testing.assert_allclose(c1, GTSAM_COST["tinyGrid3D.g2o"], rtol=1e-5)
     np.testing.assert_allclose(float(m.group(2)), c1, rtol=1e-6)  # printed with 7 digits
-    np.testing.assert_allclose(float(m.group(1)), c0, rtol=1e-6)
+    # LM starts from the chordal initialisation (--init auto), printed with its cost
+    from jaxpose.graph import chordal_initialization
+
+    c_init = numpy_pose_graph_cost(before, chordal_initialization(before))
+    assert c_init < c0
+    assert re.search(r"initialisation: chordal \(\S+ s\), cost (\S+)", text)
+    np.testing.assert_allclose(float(m.group(1)), c_init, rtol=1e-6)
 
 
 def test_cli_ba_fixed_intrinsics_reaches_scipy_minimum(tmp_path, capsys):
