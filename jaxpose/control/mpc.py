@@ -11,7 +11,9 @@ solution with respect to every array in the system (dynamics parameters), the co
   backward pass is one extra LQR solve with the Lagrangian Hessian and the incoming
   cotangents as the linear cost term (zero initial state; active control limits held
   fixed), followed by one vector–Jacobian product of the KKT residual w.r.t. the
-  parameters (``custom_vjp``).
+  parameters (``custom_vjp``). First derivatives only: a second derivative through it
+  (``jax.hessian``, ``jacfwd(jacrev(...))``) raises ``NotImplementedError`` instead of
+  returning a value that misses the trajectory's dependence on the parameters.
 * ``gradient="unroll"``: reverse mode through the solver iterations (``max_iter`` of
   them, in ``lax.scan``).
 
@@ -30,6 +32,7 @@ import numpy as np
 
 from ..dynamics._checks import as_array, check_horizon
 from ..dynamics.system import LTI, LTV, System
+from ..optim.implicit import first_order_only
 from .cost import Cost, QuadraticCost
 from .ilqr import ILQRSolution, _bounds, dynamics_jacobians, ilqr
 from .lqr import (
@@ -165,7 +168,7 @@ def implicit_vjp(
     T, m = us.shape
     n = xs.shape[-1]
     ts = jnp.asarray(t0) + jnp.arange(T)
-    xs, us = jax.lax.stop_gradient((xs, us))
+    xs, us = first_order_only((xs, us), "MPC(gradient='implicit')")
     f = system.state_transition
     F = dynamics_jacobians(system, xs[:-1], us, ts)
     # Costates λ_t (λ_0 is the multiplier of x_0 = x0): λ_T = ∇ℓ_T, λ_t = ∇_x ℓ_t + A_tᵀ λ_{t+1}.

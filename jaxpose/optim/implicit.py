@@ -14,7 +14,11 @@ exact Hessian of the (robust, weighted) cost, so the gradient is exact for any r
 (first derivatives only: cheaper to compile, exact for zero-residual problems). The
 final cost's cotangent is propagated by the envelope theorem (∂cost/∂θ at fixed X*).
 Gradients with respect to the initial params are zero; ``history`` has no gradient.
-Reverse mode only (use ``adjoint="unrolled"`` for jvp).
+Reverse mode only (use ``adjoint="unrolled"`` for jvp). First order only: differentiating
+the backward pass again (``jax.hessian``, ``jacfwd(jacrev(...))``, ``grad(grad(...))``)
+raises ``NotImplementedError`` rather than returning a wrong second derivative (the
+backward pass treats the solution's dependence on θ as fixed); use
+``adjoint="unrolled"`` for higher orders.
 """
 
 from __future__ import annotations
@@ -54,6 +58,27 @@ class ImplicitAdjoint(eqx.Module):
 
 class UnrolledAdjoint(eqx.Module):
     """Plain reverse-mode autodiff through every iteration (checkpointed loop)."""
+
+
+def first_order_only(x: PyTree, what: str) -> PyTree:
+    """Identity on ``x`` that raises ``NotImplementedError`` (naming ``what``) when it is
+    differentiated: marks values inside an implicit backward pass whose dependence on the
+    inputs that rule does not carry, so a second derivative fails loudly instead of
+    silently dropping terms."""
+
+    @jax.custom_jvp
+    def ident(y: PyTree) -> PyTree:
+        return y
+
+    @ident.defjvp
+    def _refuse(primals: Any, tangents: Any) -> Any:
+        raise NotImplementedError(
+            f"{what}: the implicit derivative is exact at first order only; a second "
+            f"derivative through it (jax.hessian, jacfwd(jacrev(...)), grad(grad(...))) is "
+            f"not supported. Use the unrolled gradient for higher orders."
+        )
+
+    return ident(x)
 
 
 def _fill(ref: PyTree, ct: PyTree) -> PyTree:
@@ -124,7 +149,7 @@ def _implicit_bwd(
         jac = problem.linearize(x_star, args).jac
         hess = jac.T @ jac
     u = adjoint.linear_solver.solve(hess, -v, hess, -v, jnp.zeros_like(v))
-    u = jax.lax.stop_gradient(u)
+    u = first_order_only(u, "least_squares(adjoint='implicit')")
     dtype = flat0.dtype
     c_cost = jnp.zeros((), dtype) if ct_cost is None else ct_cost
     c_init = jnp.zeros((), dtype) if ct_init is None else ct_init
@@ -159,4 +184,4 @@ def implicit_solve(
     return _implicit((args, problem), params0, run, adjoint)
 
 
-__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "implicit_solve"]
+__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "first_order_only", "implicit_solve"]
