@@ -9,10 +9,10 @@ log-weights. Randomness comes from an explicit PRNG key.
 
 The likelihoods are scale-safe (squares formed after scaling by the largest innovation):
 a finite but absurd measurement (1e200) gives all weight to the particles nearest to it
-instead of NaN weights. Singular ``Q``/``P0`` (positive semi-definite) spread the particles only along
-their range. ``skip_nonfinite`` as in :mod:`~jaxpose.filters.ekf`: a measurement that is
-not finite, or whose normalised innovation overflows for every particle, leaves the weights
-unchanged (propagation only).
+instead of NaN weights. Singular ``Q``/``P0`` (positive semi-definite) spread the
+particles only along their range. ``skip_nonfinite`` as in :mod:`~jaxpose.filters.ekf`:
+a measurement that is not finite, or whose normalised innovation overflows for every
+particle, leaves the weights unchanged (propagation only).
 """
 
 from __future__ import annotations
