@@ -148,6 +148,9 @@ def test_all_nan_trials_end_non_finite_within_a_small_budget(max_steps):
         assert int(sol.status) == jo.Status.NON_FINITE
         np.testing.assert_array_equal(sol.params, [1.0])
     # finite trials that run out of budget are still MAX_STEPS
-    sol = jo.least_squares(lambda x, a: jnp.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]]),
-                           jnp.array([-1.2, 1.0]), max_steps=2)
+    sol = jo.least_squares(
+        lambda x, a: jnp.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]]),
+        jnp.array([-1.2, 1.0]),
+        max_steps=2,
+    )
     assert int(sol.status) == jo.Status.MAX_STEPS
