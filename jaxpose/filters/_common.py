@@ -46,8 +46,11 @@ def check_cov(P: Any, dim: int, name: str = "P") -> Array:
 
 
 def check_noise_dim(M: Array, dim: int, name: str, what: str) -> None:
-    if M.shape != (dim, dim):
-        raise ValueError(f"{name}: expected shape ({dim}, {dim}) ({what}), got {tuple(M.shape)}")
+    """``M`` must be (dim, dim); the error names ``name`` and what ``dim`` is."""
+    if jnp.shape(M) != (dim, dim):
+        raise ValueError(
+            f"{name}: expected shape ({dim}, {dim}) ({what}), got {tuple(jnp.shape(M))}"
+        )
 
 
 def symmetrize(P: Array) -> Array:
@@ -179,7 +182,14 @@ def check_sequence(model: Any, R: Array, x0: Any, ys: Any, us: Any, t0: Any) -> 
         raise ValueError(
             f"us: expected shape ({n_y}, m) (one input per measurement), got {tuple(us.shape)}"
         )
-    y_hat = model.observation(x0, us[0], jnp.asarray(t0))
+    try:
+        eqx.filter_eval_shape(model.state_transition, x0, us[0], jnp.asarray(t0))
+        y_hat = model.observation(x0, us[0], jnp.asarray(t0))
+    except (ValueError, TypeError) as err:
+        raise type(err)(
+            f"x0, us: the model does not accept the state x0 with inputs us[t] of shape "
+            f"{tuple(us.shape[1:])} (us is (N, m)): {err}"
+        ) from err
     dim = tangent_space(y_hat).dim
     check_noise_dim(R, dim, "R", f"measurement noise: h(x) gives {dim} values")
     check_measurement(ys, y_hat, R, "ys", (n_y,))

@@ -74,6 +74,7 @@ class EKF(eqx.Module):
     def predict(self, x: Any, P: Array, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """``x⁻ = f(x, u, t)``, ``P⁻ = F P Fᵀ + Q``."""
         ts = tangent_space(x)
+        check_noise_dim(P, ts.dim, "P", "state tangent size")
         check_noise_dim(self.Q, ts.dim, "Q", "state tangent size")
         xp, F = tangent_jacobian(lambda s: self.model.state_transition(s, u, t), x, ts, ts)
         return xp, symmetrize(F @ P @ F.T + self.Q)
@@ -85,6 +86,7 @@ class EKF(eqx.Module):
     def _update(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         """:meth:`update` and whether the measurement was used."""
         ts = tangent_space(x)
+        check_noise_dim(P, ts.dim, "P", "state tangent size")
         yh = self.model.observation(x, u, t)
         ys = tangent_space(yh)
         check_noise_dim(self.R, ys.dim, "R", f"measurement noise: h(x) gives {ys.dim} values")

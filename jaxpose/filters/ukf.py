@@ -112,6 +112,7 @@ class UKF(eqx.Module):
         ``x`` is an array (n,) or a Lie group element; ``P`` (k, k) in its tangent coordinates.
         """
         ts = tangent_space(x)
+        check_noise_dim(P, ts.dim, "P", "state tangent size")
         check_noise_dim(self.Q, ts.dim, "Q", "state tangent size")
         pts, _, wm, wc = self.sigma_points(x, P)
         prop = jax.vmap(lambda s: self.model.state_transition(s, u, t))(pts)
@@ -128,6 +129,7 @@ class UKF(eqx.Module):
 
     def _update(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         ts = tangent_space(x)
+        check_noise_dim(P, ts.dim, "P", "state tangent size")
         pts, offs, wm, wc = self.sigma_points(x, P)
         obs = jax.vmap(lambda s: self.model.observation(s, u, t))(pts)
         ymean, ydev = _mean(obs, wm)

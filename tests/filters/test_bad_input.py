@@ -64,7 +64,13 @@ def test_measurement_size_errors_name_ys_and_R(kind):
     )
     with pytest.raises(ValueError, match=r"R: expected shape \(2, 2\) \(measurement noise: h"):
         _run_any(f3, d["x0"], d["P0"], d["ys"], d["us"])
-    # single steps name y
+    # inputs of the wrong width name x0/us (the model's own check names only its u)
+    with pytest.raises(ValueError, match=r"x0, us: the model does not accept .*\(3,\)"):
+        _run_any(f, d["x0"], d["P0"], d["ys"], np.zeros((15, 3)))
+    # single steps name y (and P)
+    if kind != "PF":
+        with pytest.raises(ValueError, match=r"P: expected shape \(3, 3\) \(state tangent"):
+            f.step(d["x0"], np.eye(2), d["ys"][0], d["us"][0])
     if kind == "PF":
         state = f.init(jax.random.key(1), d["x0"], d["P0"])
         with pytest.raises(ValueError, match=r"y: expected shape \(2,\) .*got shape \(3,\)"):
