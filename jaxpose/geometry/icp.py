@@ -103,6 +103,18 @@ def _plane_rmse(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
     return _weighted_rms(r[:, None], w)
 
 
+def _spread(src: Array, w: Array) -> Array:
+    """True when the weighted source points are not all on one line (or one point): the
+    second largest eigenvalue of their scatter exceeds rounding level. Collinear points
+    leave the rotation about their line undetermined (Status.DEGENERATE)."""
+    c = jnp.sum(w[:, None] * src, 0) / jnp.maximum(jnp.sum(w), 1.0)
+    d = (src - c) * w[:, None]
+    scale = jnp.max(jnp.abs(d))
+    d = d / jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)  # no overflow at 1e200
+    ev = jnp.linalg.eigvalsh(d.T @ d)
+    return ev[1] > 1e3 * jnp.finfo(src.dtype).eps * ev[2]
+
+
 def _weighted_rms(diff: Array, w: Array) -> Array:
     """``sqrt(Σ w‖d‖² / max(Σw, 1))`` for rows ``diff`` (N, k), scale-safe: the squares
     are formed after dividing by the largest weighted entry, so distances of 1e200 give
@@ -154,7 +166,7 @@ def _icp_single(
         idx = nearest(SE3(s.t).act(src_c), s.idx)
         t_new, w, _ = update(s.t, idx)
         finite = jnp.all(jnp.isfinite(t_new))
-        enough = jnp.sum(w) >= 3
+        enough = (jnp.sum(w) >= 3) & _spread(src_c, w)
         ok = finite & enough
         step = jnp.linalg.norm(SE3(t_new).rminus(SE3(s.t)))
         converged = ok & (step <= tolerance)
