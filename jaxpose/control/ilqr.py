@@ -86,6 +86,9 @@ def _bounds(lower: Any, upper: Any, T: int, m: int, dtype: Any) -> tuple[Array, 
             raise ValueError(f"{nm}: expected (m,) or (T, m), got {tuple(arr.shape)}")
     lo = jnp.broadcast_to(lo, (T, m)).astype(dtype)
     hi = jnp.broadcast_to(hi, (T, m)).astype(dtype)
+    for arr, nm in ((lo, "u_lower"), (hi, "u_upper")):
+        if is_concrete(arr) and bool(jnp.any(jnp.isnan(arr))):
+            raise ValueError(f"{nm}: contains NaN (use ±inf for an unbounded input)")
     if is_concrete(lo) and is_concrete(hi) and bool(jnp.any(lo > hi)):
         raise ValueError("u_lower, u_upper: expected u_lower ≤ u_upper everywhere")
     return lo, hi
@@ -138,7 +141,13 @@ def ilqr(
     ts = jnp.asarray(t0) + jnp.arange(T)
     al = jnp.asarray(alphas, dtype)
     f = system.state_transition
-    x_try = jax.eval_shape(f, x0, u_init[0], ts[0])
+    try:
+        x_try = jax.eval_shape(f, x0, u_init[0], ts[0])
+    except (ValueError, TypeError) as err:
+        raise type(err)(
+            f"x0, u_init: the system does not accept x0 {tuple(x0.shape)} with inputs "
+            f"u_init[t] {tuple(u_init.shape[1:])} (u_init is (T, m)): {err}"
+        ) from err
     if x_try.shape != (n,):
         raise ValueError(
             f"system: state_transition maps x0 {tuple(x0.shape)} to "

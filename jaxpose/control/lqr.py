@@ -207,7 +207,8 @@ def lqr_solve(
     K, k, _, _, ok, _ = riccati(F, f, C, c, CT, cT, free)
     xs, us = policy_rollout(F, f, K, k, x0)
     cost = quadratic_total(C, c, CT, cT, xs, us)
-    finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us))
+    # the cost too: a state of 1e200 has a finite trajectory but a cost that overflows
+    finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us)) & jnp.isfinite(cost)
     status = jnp.where(finite, CONVERGED, NONFINITE).astype(jnp.int32)
     return LQRSolution(xs, us, cost, K, k, status)
 

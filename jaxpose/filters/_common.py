@@ -1,4 +1,5 @@
-"""Shared pieces of the filters: result type, covariance checks, Gaussian helpers."""
+"""Shared pieces of the filters: result type, covariance and measurement checks, Gaussian
+helpers (a positive-semi-definite square root, scale-safe likelihoods and innovation tests)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ Array = jax.Array
 class FilterResult(eqx.Module):
     """Per-step posterior estimates of a run: ``x`` (N, …) (stacked states or group
     elements), ``P`` (N, k, k) covariances in the state's tangent coordinates, and
-    ``ok`` (N,) False where the step produced non-finite values."""
+    ``ok`` (N,) False where the step produced non-finite values or (``skip_nonfinite=True``)
+    skipped its measurement."""
 
     x: Any
     P: Array
@@ -44,8 +46,11 @@ def check_cov(P: Any, dim: int, name: str = "P") -> Array:
 
 
 def check_noise_dim(M: Array, dim: int, name: str, what: str) -> None:
-    if M.shape != (dim, dim):
-        raise ValueError(f"{name}: expected shape ({dim}, {dim}) ({what}), got {tuple(M.shape)}")
+    """``M`` must be (dim, dim); the error names ``name`` and what ``dim`` is."""
+    if jnp.shape(M) != (dim, dim):
+        raise ValueError(
+            f"{name}: expected shape ({dim}, {dim}) ({what}), got {tuple(jnp.shape(M))}"
+        )
 
 
 def symmetrize(P: Array) -> Array:
@@ -61,15 +66,6 @@ def finite_tree(*trees: Any) -> Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in leaves]))
 
 
-def gaussian_loglik(r: Array, L_inv: Array) -> Array:
-    """log N(r; 0, S) with S = L Lᵀ, given the inverse lower Cholesky factor ``L_inv``
-    (a matrix product per step instead of a LAPACK triangular solve); r (..., p)."""
-    p = r.shape[-1]
-    z = r @ L_inv.T
-    logdet = -2.0 * jnp.sum(jnp.log(jnp.diag(L_inv)))
-    return -0.5 * jnp.sum(z * z, -1) - 0.5 * logdet - 0.5 * p * jnp.log(2.0 * jnp.pi)
-
-
 def kalman_gain(PHt: Array, S: Array) -> tuple[Array, Array]:
     """``K = PHᵀ S⁻¹`` by Cholesky of S; also returns the factor."""
     L = jnp.linalg.cholesky(symmetrize(S))
@@ -79,3 +75,122 @@ def kalman_gain(PHt: Array, S: Array) -> tuple[Array, Array]:
 
 def measurement_space(y: Any) -> TangentSpace:
     return tangent_space(y)
+
+
+def psd_cholesky(A: Array) -> Array:
+    """Lower-triangular ``L`` with ``L Lᵀ = A`` for a symmetric positive *semi*-definite
+    ``A`` (k, k): a Cholesky factorisation whose pivots at or below ``k·eps·max(diag A)``
+    (rounding level) give a zero column instead of NaN.
+
+    Chosen over an eigendecomposition with clipped eigenvalues because (i) for a
+    positive-definite ``A`` it is the Cholesky factor (same operations, so the UKF's sigma
+    points and results are unchanged there), and (ii) its derivatives stay finite where
+    ``eigh``'s do not (repeated eigenvalues, e.g. ``P = σ²I``, make the ``eigh`` JVP
+    divide by zero). Over a jitter ``A + δI`` it has the advantage of being exact for PSD
+    input: null directions get no spread at all (``A = 0`` gives ``L = 0``). Non-finite
+    entries propagate (NaN in, NaN out). ``k`` columns unrolled (a ``fori_loop`` for large
+    ``k``); every branch is NaN-free under differentiation (double ``where``).
+    """
+    k = A.shape[-1]
+    A = symmetrize(A)
+    eps = jnp.finfo(A.dtype).eps
+    tol = k * eps * jnp.maximum(jnp.max(jnp.diagonal(A)), 0.0)
+    rows = jnp.arange(k)
+
+    def column(j: Any, L: Array) -> Array:
+        lj = L[j]  # row j: only its first j entries are set
+        d = A[j, j] - lj @ lj
+        pos = ~(d <= tol)  # NaN stays "positive" so that it propagates
+        ljj = jnp.where(pos, jnp.sqrt(jnp.where(pos, d, 1.0)), 0.0)
+        below = (A[:, j] - L @ lj) / jnp.where(pos, ljj, 1.0)
+        col = jnp.where(rows > j, jnp.where(pos, below, 0.0), jnp.where(rows == j, ljj, 0.0))
+        return L.at[:, j].set(col)
+
+    L = jnp.zeros_like(A)
+    if k <= 16:
+        for j in range(k):
+            L = column(j, L)
+        return L
+    return jax.lax.fori_loop(0, k, column, L)
+
+
+def relative_loglik(r: Array, L_inv: Array) -> tuple[Array, Array]:
+    """Gaussian log-likelihoods of innovations ``r`` (N, p) under ``N(0, S)``, ``S = L Lᵀ``
+    (``L_inv`` = L⁻¹), up to one constant shared by all N: ``−½(‖z_i‖² − min_j ‖z_j‖²)``
+    with ``z = L⁻¹ r``. Scale-safe: the squares are formed from ``z / max|z|``, so an
+    innovation of 1e200 gives the nearest rows 0 and the others ``-inf`` (instead of
+    ``inf − inf = NaN``). Also returns ``min ‖z‖²`` (``inf`` when it overflows)."""
+    z = r @ L_inv.T
+    s = jnp.max(jnp.abs(z))
+    s = jnp.where(jnp.isfinite(s) & (s > 0), s, 1.0)
+    q = jnp.sum(jnp.square(z / s), -1)
+    qmin = jnp.min(q)
+    return -0.5 * ((s * (q - qmin)) * s), (s * jnp.sqrt(qmin)) ** 2
+
+
+def innovation_ok(L: Array, r: Array) -> Array:
+    """True when the normalised innovation squared ``rᵀ S⁻¹ r`` (``S = L Lᵀ``) is finite:
+    False for a non-finite ``r`` or one so large (beyond ~1e154 standard deviations in
+    float64) that no information survives in floating point."""
+    z = jax.scipy.linalg.solve_triangular(L, r, lower=True)
+    return jnp.isfinite(z @ z)
+
+
+def select_tree(pred: Array, a: Any, b: Any) -> Any:
+    """``a`` where ``pred`` else ``b``, leaf by leaf (same structure)."""
+    return jax.tree.map(lambda u, v: jnp.where(pred, u, v), a, b)
+
+
+def _describe(tree: Any, batch: tuple = ()) -> str:
+    shapes = [(*batch, *jnp.shape(leaf)) for leaf in jax.tree.leaves(tree)]
+    if len(shapes) == 1 and not isinstance(tree, eqx.Module):
+        return f"shape {shapes[0]}"
+    return f"{type(tree).__name__} with leaf shapes {shapes}"
+
+
+def check_measurement(y: Any, y_hat: Any, R: Array, name: str = "y", batch: tuple = ()) -> None:
+    """Trace-time check that a measurement ``y`` (or a stack ``ys`` with leading ``batch``
+    axes) matches the model's observation ``y_hat = h(x, u, t)`` and the noise ``R``."""
+    dim = tangent_space(y_hat).dim
+    want = jax.tree.map(lambda a: (*batch, *jnp.shape(a)), y_hat)
+    ok = jax.tree.structure(y) == jax.tree.structure(y_hat) and all(
+        tuple(jnp.shape(a)) == w
+        for a, w in zip(jax.tree.leaves(y), jax.tree.leaves(want, is_leaf=_is_shape))
+    )
+    if not ok:
+        what = "one measurement per step; " if batch else ""
+        raise ValueError(
+            f"{name}: expected {_describe(y_hat, batch)} ({what}h(x) gives {dim} values "
+            f"and R is {R.shape[0]}×{R.shape[1]}), got {_describe(y)}"
+        )
+
+
+def _is_shape(v: Any) -> bool:
+    return isinstance(v, tuple)
+
+
+def check_sequence(model: Any, R: Array, x0: Any, ys: Any, us: Any, t0: Any) -> Array:
+    """Trace-time checks of a run's inputs: ``us`` (N, m) with one row per measurement,
+    ``R`` matching the model's observation size and ``ys`` (N, …) matching ``h(x0)``.
+    Returns ``us`` as an array."""
+    us = jnp.asarray(us)
+    leaves = jax.tree.leaves(ys)
+    if not leaves or any(jnp.ndim(a) == 0 for a in leaves):
+        raise ValueError(f"ys: expected a stack of measurements (N, p), got {_describe(ys)}")
+    n_y = jnp.shape(leaves[0])[0]
+    if us.ndim != 2 or us.shape[0] != n_y:
+        raise ValueError(
+            f"us: expected shape ({n_y}, m) (one input per measurement), got {tuple(us.shape)}"
+        )
+    try:
+        eqx.filter_eval_shape(model.state_transition, x0, us[0], jnp.asarray(t0))
+        y_hat = model.observation(x0, us[0], jnp.asarray(t0))
+    except (ValueError, TypeError) as err:
+        raise type(err)(
+            f"x0, us: the model does not accept the state x0 with inputs us[t] of shape "
+            f"{tuple(us.shape[1:])} (us is (N, m)): {err}"
+        ) from err
+    dim = tangent_space(y_hat).dim
+    check_noise_dim(R, dim, "R", f"measurement noise: h(x) gives {dim} values")
+    check_measurement(ys, y_hat, R, "ys", (n_y,))
+    return us

@@ -6,6 +6,13 @@ group states), reweights by the Gaussian likelihood ``N(y ⊖ h(x); 0, R)``, rep
 weighted mean and covariance and the effective sample size ``ESS = 1 / Σ w_i²``, and
 resamples systematically when ``ESS < threshold · N``. Weights are kept as
 log-weights. Randomness comes from an explicit PRNG key.
+
+The likelihoods are scale-safe (squares formed after scaling by the largest innovation):
+a finite but absurd measurement (1e200) gives all weight to the particles nearest to it
+instead of NaN weights. Singular ``Q``/``P0`` (positive semi-definite) spread the
+particles only along their range. ``skip_nonfinite`` as in :mod:`~jaxpose.filters.ekf`:
+a measurement that is not finite, or whose normalised innovation overflows for every
+particle, leaves the weights unchanged (propagation only).
 """
 
 from __future__ import annotations
@@ -18,7 +25,18 @@ import jax.numpy as jnp
 
 from ..dynamics._tangent import tangent_space
 from ..dynamics.system import System
-from ._common import FilterResult, check_cov, check_noise_dim, gaussian_loglik, noise_matrix
+from ._common import (
+    FilterResult,
+    check_cov,
+    check_measurement,
+    check_noise_dim,
+    check_sequence,
+    finite_tree,
+    noise_matrix,
+    psd_cholesky,
+    relative_loglik,
+    select_tree,
+)
 
 Array = jax.Array
 
@@ -48,13 +66,15 @@ def systematic_resample(key: Array, log_weights: Array) -> Array:
 
 
 class ParticleFilter(eqx.Module):
-    """``ParticleFilter(model, Q, R, num_particles=1000, resample_threshold=0.5)``."""
+    """``ParticleFilter(model, Q, R, num_particles=1000, resample_threshold=0.5,
+    skip_nonfinite=False)``."""
 
     model: System
     Q: Array
     R: Array
     num_particles: int = eqx.field(static=True, default=1000)
     resample_threshold: float = eqx.field(static=True, default=0.5)
+    skip_nonfinite: bool = eqx.field(static=True, default=False)
 
     def __init__(
         self,
@@ -63,6 +83,7 @@ class ParticleFilter(eqx.Module):
         R: Any,
         num_particles: int = 1000,
         resample_threshold: float = 0.5,
+        skip_nonfinite: bool = False,
     ):
         if not isinstance(model, System):
             raise TypeError(
@@ -79,15 +100,15 @@ class ParticleFilter(eqx.Module):
         self.R = noise_matrix(R, "R", strict=True)
         self.num_particles = num_particles
         self.resample_threshold = float(resample_threshold)
+        self.skip_nonfinite = bool(skip_nonfinite)
 
     def init(self, key: Array, x0: Any, P0: Any) -> ParticleState:
         """Particles drawn from ``x0 ⊕ N(0, P0)`` with equal weights."""
         ts = tangent_space(x0)
         P0 = check_cov(P0, ts.dim, "P0")
         N = self.num_particles
-        L = jnp.linalg.cholesky(P0 + 0.0)
+        L = psd_cholesky(P0)  # P0 = 0 → all particles at x0
         d = jax.random.normal(key, (N, ts.dim), P0.dtype) @ L.T
-        d = jnp.where(jnp.isfinite(d), d, 0.0)  # P0 = 0 → all particles at x0
         parts = jax.vmap(lambda e: ts.plus(x0, e))(d)
         return ParticleState(parts, jnp.full((N,), -jnp.log(N), P0.dtype))
 
@@ -112,13 +133,13 @@ class ParticleFilter(eqx.Module):
     ) -> tuple[ParticleState, tuple[Any, Array, Array]]:
         """Propagate, reweight, estimate, resample if needed. Returns the new state and
         ``(mean, cov, ess)`` (estimates before resampling)."""
-        return self._step(key, state, y, u, t, *self._factors())
+        return self._step(key, state, y, u, t, *self._factors())[:2]
 
     def _factors(self) -> tuple[Array, Array]:
-        """Cholesky factor of Q (zeroed where Q is singular: no noise there) and the
-        inverse Cholesky factor of R, computed once per run rather than per step."""
-        Lq = jnp.linalg.cholesky(self.Q + 0.0)
-        Lq = jnp.where(jnp.isfinite(Lq), Lq, 0.0)
+        """Cholesky factor of Q (positive semi-definite: zero columns where Q is singular,
+        no noise there) and the inverse Cholesky factor of R, computed once per run rather
+        than per step."""
+        Lq = psd_cholesky(self.Q)
         Lr = jnp.linalg.cholesky(self.R)
         eye = jnp.eye(self.R.shape[0], dtype=Lr.dtype)
         return Lq, jax.scipy.linalg.solve_triangular(Lr, eye, lower=True)
@@ -132,7 +153,7 @@ class ParticleFilter(eqx.Module):
         t: Any,
         Lq: Array,
         Lr_inv: Array,
-    ) -> tuple[ParticleState, tuple[Any, Array, Array]]:
+    ) -> tuple[ParticleState, tuple[Any, Array, Array], Array]:
         k_noise, k_res = jax.random.split(key)
         N = self.num_particles
         first = jax.tree.map(lambda a: a[0], state.particles)
@@ -144,9 +165,18 @@ class ParticleFilter(eqx.Module):
         )
         obs = jax.vmap(lambda p: self.model.observation(p, u, t))(parts)
         yts = tangent_space(jax.tree.map(lambda a: a[0], obs))
-        check_noise_dim(self.R, yts.dim, "R", "measurement size")
+        check_noise_dim(self.R, yts.dim, "R", f"measurement noise: h(x) gives {yts.dim} values")
+        first_obs = jax.tree.map(lambda a: a[0], obs)
+        check_measurement(y, first_obs, self.R)
+        use = jnp.asarray(True)
+        if self.skip_nonfinite:
+            use = finite_tree(y)
+            y = select_tree(use, y, first_obs)
         r = jax.vmap(lambda o: yts.minus(y, o))(obs)
-        ll = gaussian_loglik(r, Lr_inv)
+        ll, nis_min = relative_loglik(r, Lr_inv)
+        if self.skip_nonfinite:
+            use = use & jnp.isfinite(nis_min)
+            ll = jnp.where(use, ll, 0.0)
         logw = state.log_weights + ll
         logw = jnp.where(jnp.isfinite(logw), logw, -jnp.inf)
         logw = logw - jax.scipy.special.logsumexp(logw)
@@ -159,19 +189,16 @@ class ParticleFilter(eqx.Module):
             jax.tree.map(lambda a: a[idx], parts), jnp.full((N,), -jnp.log(N), logw.dtype)
         )
         new = jax.tree.map(lambda a, b: jnp.where(do, a, b), resampled, new)
-        return new, (mean, cov, ess)
+        return new, (mean, cov, ess), use
 
     def run(
         self, key: Array, x0: Any, P0: Any, ys: Any, us: Array, t0: Any = 0
     ) -> tuple[FilterResult, Array]:
         """Filter a sequence with ``lax.scan``; returns the per-step estimates
-        (:class:`FilterResult`) and the ESS (N,) before resampling."""
-        us = jnp.asarray(us)
+        (:class:`FilterResult`) and the ESS (N,) before resampling. Sizes are checked at
+        trace time as in :meth:`EKF.run <jaxpose.filters.EKF.run>`."""
+        us = check_sequence(self.model, self.R, x0, ys, us, t0)
         n_y = jax.tree.leaves(ys)[0].shape[0]
-        if us.ndim != 2 or us.shape[0] != n_y:
-            raise ValueError(
-                f"us: expected shape ({n_y}, m) (one input per measurement), got {tuple(us.shape)}"
-            )
         k0, key = jax.random.split(key)
         state = self.init(k0, x0, P0)
         keys = jax.random.split(key, n_y)
@@ -180,11 +207,8 @@ class ParticleFilter(eqx.Module):
 
         def body(s: ParticleState, inp: tuple[Array, Any, Array, Array]):
             k, y, u, t = inp
-            s, (mean, cov, ess) = self._step(k, s, y, u, t, *factors)
-            ok = jnp.all(jnp.isfinite(cov)) & jnp.all(
-                jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree.leaves(mean)])
-            )
-            return s, (mean, cov, ess, ok)
+            s, (mean, cov, ess), used = self._step(k, s, y, u, t, *factors)
+            return s, (mean, cov, ess, used & finite_tree(mean, cov))
 
         _, (means, covs, ess, ok) = jax.lax.scan(body, state, (keys, ys, us, ts))
         return FilterResult(means, covs, ok), ess

@@ -1,12 +1,19 @@
 """Unscented Kalman filter with Merwe's scaled sigma points (van der Merwe 2004).
 
 ``λ = α²(k + κ) − k``; sigma points ``x``, ``x ⊕ ±col_i(√((k+λ)P))`` (lower Cholesky
-columns); weights ``Wm_0 = λ/(k+λ)``, ``Wc_0 = Wm_0 + 1 − α² + β``,
+columns; for a positive *semi*-definite P, e.g. ``P0 = 0``, the factor's null directions
+are zero columns: a semidefinite Cholesky, exact for PD and PSD P); weights
+``Wm_0 = λ/(k+λ)``, ``Wc_0 = Wm_0 + 1 − α² + β``,
 ``W_i = 1/(2(k+λ))``. Same model and step convention as :class:`~jaxpose.filters.EKF`.
 For group states the sigma points are ``x ⊕ s_i`` and means are taken in the tangent
 space of the propagated central point (one Gauss–Newton step of the Fréchet mean, as in
 UKF-M, Brossard et al. 2020). Sigma points are redrawn from the predicted Gaussian for
 the update, so on linear-Gaussian models the UKF equals the Kalman filter.
+``skip_nonfinite`` as in :mod:`~jaxpose.filters.ekf`. Without it, a finite but absurd
+measurement (1e200) moves the state to ~1e199, where the sigma-point deviations (rounding
+at that magnitude) square to overflow: the covariance becomes NaN for the rest of the run
+(the EKF's does not, being independent of the state for linear models); with it, such a
+measurement is skipped.
 """
 
 from __future__ import annotations
@@ -22,12 +29,17 @@ from ..dynamics.system import System
 from ._common import (
     FilterResult,
     check_cov,
+    check_measurement,
     check_noise_dim,
+    check_sequence,
+    innovation_ok,
     kalman_gain,
     noise_matrix,
+    psd_cholesky,
+    select_tree,
     symmetrize,
 )
-from .ekf import scan_filter
+from .ekf import _safe_measurement, scan_filter
 
 Array = jax.Array
 
@@ -49,7 +61,8 @@ def merwe_weights(
 
 
 class UKF(eqx.Module):
-    """``UKF(model, Q, R, alpha=1.0, beta=2.0, kappa=0.0)``; ``Q`` (k, k), ``R`` (p, p).
+    """``UKF(model, Q, R, alpha=1.0, beta=2.0, kappa=0.0, skip_nonfinite=False)``; ``Q``
+    (k, k), ``R`` (p, p); ``P`` may be positive semi-definite (``P0 = 0``).
 
     Defaults α = 1, β = 2, κ = 0 keep all weights non-negative except none (Wm_0 = 0);
     small α (e.g. 1e-3) gives large negative central weights and loses digits."""
@@ -60,6 +73,7 @@ class UKF(eqx.Module):
     alpha: float = eqx.field(static=True, default=1.0)
     beta: float = eqx.field(static=True, default=2.0)
     kappa: float = eqx.field(static=True, default=0.0)
+    skip_nonfinite: bool = eqx.field(static=True, default=False)
 
     def __init__(
         self,
@@ -69,6 +83,7 @@ class UKF(eqx.Module):
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
+        skip_nonfinite: bool = False,
     ):
         if not isinstance(model, System):
             raise TypeError(
@@ -80,12 +95,13 @@ class UKF(eqx.Module):
         self.Q = noise_matrix(Q, "Q")
         self.R = noise_matrix(R, "R", strict=True)
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
+        self.skip_nonfinite = bool(skip_nonfinite)
 
     def sigma_points(self, x: Any, P: Array) -> tuple[Any, Array, Array, Array]:
         """Stacked sigma points (2k+1, …), their tangent offsets (2k+1, k), Wm, Wc."""
         ts = tangent_space(x)
         wm, wc, c = merwe_weights(ts.dim, self.alpha, self.beta, self.kappa, P.dtype)
-        L = jnp.linalg.cholesky(symmetrize(c * P))
+        L = psd_cholesky(c * P)
         offs = jnp.concatenate([jnp.zeros((1, ts.dim), P.dtype), L.T, -L.T], 0)
         pts = jax.vmap(lambda d: ts.plus(x, d))(offs)
         return pts, offs, wm, wc
@@ -96,6 +112,7 @@ class UKF(eqx.Module):
         ``x`` is an array (n,) or a Lie group element; ``P`` (k, k) in its tangent coordinates.
         """
         ts = tangent_space(x)
+        check_noise_dim(P, ts.dim, "P", "state tangent size")
         check_noise_dim(self.Q, ts.dim, "Q", "state tangent size")
         pts, _, wm, wc = self.sigma_points(x, P)
         prop = jax.vmap(lambda s: self.model.state_transition(s, u, t))(pts)
@@ -108,29 +125,45 @@ class UKF(eqx.Module):
 
         Returns the posterior estimate and covariance (k, k).
         """
+        return self._update(x, P, y, u, t)[:2]
+
+    def _update(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         ts = tangent_space(x)
+        check_noise_dim(P, ts.dim, "P", "state tangent size")
         pts, offs, wm, wc = self.sigma_points(x, P)
         obs = jax.vmap(lambda s: self.model.observation(s, u, t))(pts)
         ymean, ydev = _mean(obs, wm)
-        check_noise_dim(self.R, ydev.shape[-1], "R", "measurement size")
+        p = ydev.shape[-1]
+        check_noise_dim(self.R, p, "R", f"measurement noise: h(x) gives {p} values")
+        check_measurement(y, ymean, self.R)
+        y, y_ok = _safe_measurement(y, ymean, self.skip_nonfinite)
         Pyy = (wc[:, None] * ydev).T @ ydev + self.R
         Pxy = (wc[:, None] * offs).T @ ydev
-        K, _ = kalman_gain(Pxy, Pyy)
+        K, L = kalman_gain(Pxy, Pyy)
         r = tangent_space(ymean).minus(y, ymean)
+        use = y_ok & innovation_ok(L, r) if self.skip_nonfinite else y_ok
+        r = jnp.where(use, r, 0.0)
         x_new = ts.plus(x, K @ r)
-        return x_new, symmetrize(P - K @ Pyy @ K.T)
+        P_new = P - K @ Pyy @ K.T
+        if self.skip_nonfinite:
+            x_new, P_new = select_tree(use, (x_new, P_new), (x, P))
+        return x_new, symmetrize(P_new), use
 
     def step(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """Predict with ``u`` then update with ``y``; also ``ukf(x, P, y, u, t)``."""
+        return self._step(x, P, y, u, t)[:2]
+
+    def _step(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         xp, Pp = self.predict(x, P, u, t)
-        return self.update(xp, Pp, y, u, t)
+        return self._update(xp, Pp, y, u, t)
 
     __call__ = step
 
     def run(self, x0: Any, P0: Any, ys: Any, us: Array, t0: Any = 0) -> FilterResult:
-        """Filter a sequence with ``lax.scan`` (see :meth:`EKF.run`)."""
+        """Filter a sequence with ``lax.scan`` (see :meth:`EKF.run`; same size checks)."""
         P0 = check_cov(P0, tangent_space(x0).dim, "P0")
-        return scan_filter(lambda x, P, y, u, t: self.step(x, P, y, u, t), x0, P0, ys, us, t0)
+        us = check_sequence(self.model, self.R, x0, ys, us, t0)
+        return scan_filter(self._step, x0, P0, ys, us, t0)
 
 
 def _mean(pts: Any, wm: Array) -> tuple[Any, Array]:

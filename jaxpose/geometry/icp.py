@@ -100,7 +100,30 @@ def _plane_implicit(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Arr
 
 def _plane_rmse(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
     r = jnp.sum(nrm * (SE3(t).act(src) - q), -1)
-    return jnp.sqrt(jnp.sum(w * r * r) / jnp.maximum(jnp.sum(w), 1.0))
+    return _weighted_rms(r[:, None], w)
+
+
+def _spread(src: Array, w: Array) -> Array:
+    """True when the weighted source points are not all on one line (or one point): the
+    second largest eigenvalue of their scatter exceeds rounding level. Collinear points
+    leave the rotation about their line undetermined (Status.DEGENERATE)."""
+    c = jnp.sum(w[:, None] * src, 0) / jnp.maximum(jnp.sum(w), 1.0)
+    d = (src - c) * w[:, None]
+    scale = jnp.max(jnp.abs(d))
+    d = d / jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)  # no overflow at 1e200
+    ev = jnp.linalg.eigvalsh(d.T @ d)
+    return ev[1] > 1e3 * jnp.finfo(src.dtype).eps * ev[2]
+
+
+def _weighted_rms(diff: Array, w: Array) -> Array:
+    """``sqrt(Σ w‖d‖² / max(Σw, 1))`` for rows ``diff`` (N, k), scale-safe: the squares
+    are formed after dividing by the largest weighted entry, so distances of 1e200 give
+    1e200 rather than inf."""
+    diff = jnp.where(w[:, None] > 0, diff, 0.0)
+    s = jnp.max(jnp.abs(diff))
+    s = jnp.where(jnp.isfinite(s) & (s > 0), s, 1.0)
+    ms = jnp.sum(w * jnp.sum(jnp.square(diff / s), -1)) / jnp.maximum(jnp.sum(w), 1.0)
+    return s * jnp.sqrt(ms)
 
 
 def _icp_single(
@@ -143,7 +166,7 @@ def _icp_single(
         idx = nearest(SE3(s.t).act(src_c), s.idx)
         t_new, w, _ = update(s.t, idx)
         finite = jnp.all(jnp.isfinite(t_new))
-        enough = jnp.sum(w) >= 3
+        enough = (jnp.sum(w) >= 3) & _spread(src_c, w)
         ok = finite & enough
         step = jnp.linalg.norm(SE3(t_new).rminus(SE3(s.t)))
         converged = ok & (step <= tolerance)
@@ -180,11 +203,14 @@ def _icp_single(
         rmse = _plane_rmse(s.t, src_c, tgt_c[idx], nrm_c[idx], w)
     else:
         t_fin = svdtf(src, tgt[idx], w).data
-        d2 = jnp.sum(jnp.square(SE3(jax.lax.stop_gradient(s.t)).act(src_c) - tgt_c[idx]), -1)
-        rmse = jnp.sqrt(jnp.sum(w * d2) / jnp.maximum(jnp.sum(w), 1.0))
+        diff = SE3(jax.lax.stop_gradient(s.t)).act(src_c) - tgt_c[idx]
+        rmse = _weighted_rms(diff, w)
     t_out = jnp.where(accepted, t_fin, s.t)
     fitness = jnp.where(accepted, jnp.sum(w) / n, 0.0)
     rmse = jnp.where(accepted, rmse, jnp.nan)
+    # an accepted estimate whose transform or residual is not finite is not a success
+    bad = accepted & ~(jnp.isfinite(rmse) & jnp.all(jnp.isfinite(t_out)))
+    status = jnp.where(bad, Status.NON_FINITE, status).astype(jnp.int32)
     return ICPResult(SE3(t_out), s.it, status, rmse, fitness)
 
 

@@ -319,8 +319,19 @@ def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps:
         pws, uvs, ks = (jax.lax.stop_gradient(x) for x in (pw, uv, k))
         t, status = _epnp_single(pws, uvs, ks)
         if refine:
-            t_ref = _refine(t, pws, uvs, ks, refine_steps)
-            ok = jnp.all(jnp.isfinite(t_ref)) & (status == Status.SUCCESS)
+            # only a finite, well-posed EPnP estimate is refined: NaN/inf data would make
+            # the refinement's start cost non-finite, which least_squares raises on (an
+            # error about its residual_fn instead of this function's NON_FINITE status);
+            # other problems get a trivially solved stand-in (one point on the axis)
+            good = (jnp.all(jnp.isfinite(pws)) & jnp.all(jnp.isfinite(uvs))
+                    & jnp.all(jnp.isfinite(ks)) & jnp.all(jnp.isfinite(t))
+                    & (status == Status.SUCCESS))
+            ident = jnp.zeros(7, t.dtype).at[6].set(1.0)
+            on_axis = jnp.zeros_like(pws).at[:, 2].set(1.0)
+            t_ref = _refine(jnp.where(good, t, ident), jnp.where(good, pws, on_axis),
+                            jnp.where(good, uvs, 0.0),
+                            jnp.where(good, ks, jnp.eye(3, dtype=ks.dtype)), refine_steps)
+            ok = good & jnp.all(jnp.isfinite(t_ref))
             t = jnp.where(ok, t_ref, t)
         ok = status != Status.NON_FINITE
         t = jnp.where(ok, _implicit_tangent(t, pw, uv, k), t)

@@ -29,7 +29,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..optim.stopping import Status, Stopping, Trial, check, plateau_count
+from ..optim.stopping import Status, Stopping, Trial, check, nonfinite_run, plateau_count
 from ..optim.strategies import Strategy, System
 from . import linear
 from .problem import (
@@ -72,7 +72,9 @@ class GraphSolution(eqx.Module):
 
     ``status``: a :class:`jaxpose.optim.Status` code: 0 converged, 1 max_steps,
     2 stalled (``Status.DIVERGED``: damping exhausted; the estimate is the best found),
-    3 non_finite (a non-finite cost or step appeared; best estimate kept).
+    3 non_finite (a non-finite cost or step stopped the solve: ``max_rejects`` such
+    trials, or the budget ran out while every trial since the last accepted one was
+    non-finite, or the gradient at the start is not finite; best estimate kept).
     ``iterations``: linear solves (accepted and rejected trials).
     ``history``: cost after each iteration (NaN beyond ``iterations``).
     ``linear_iterations``: total CG iterations (``"pcg"``; 0 for direct solvers)."""
@@ -283,13 +285,14 @@ def solve(
         # a rejection that cannot change the damping would repeat the same trial
         stuck = ~accept & (strategy.damping(new_s) == strategy.damping(sstate))
         rejects = jnp.where(stuck, jnp.maximum(rejects, stopping.max_rejects), rejects)
+        bad_run = nonfinite_run(state["bad_run"], accept, finite)
         plateau = plateau_count(stopping, lin.cost, lin_next.cost,
                                 state["plateau"]).astype(jnp.int32)
         _, status = check(stopping, Trial(
             step=k + 1, last=lin.cost, cost=lin_next.cost, accepted=accept, finite=finite,
             step_norm=jnp.linalg.norm(step), predicted=predicted, initial=lin0.cost,
             grad_inf=jnp.max(jnp.abs(g_next), initial=0.0), rejects=rejects,
-            plateau_count=plateau,
+            plateau_count=plateau, nonfinite_run=~accept & bad_run,
         ))
         if verbose:
             jax.debug.print(
@@ -303,18 +306,21 @@ def solve(
             hist = hist.at[jnp.minimum(k, hist.shape[0] - 1)].set(lin_next.cost)
         return dict(x=x_next, lin=lin_next, g=g_next, s=new_s, k=k + 1, status=status,
                     history=hist, cg=state["cg"] + jnp.asarray(solver.iterations, jnp.int32),
-                    rejects=rejects,
+                    rejects=rejects, bad_run=bad_run,
                     plateau=plateau)
 
+    # a Jacobian that is not finite at the start: no step can be computed (as in
+    # jaxpose.optim.least_squares, a status rather than an exception)
     status0 = jnp.where(
-        jnp.max(jnp.abs(g0), initial=0.0) <= stopping.gtol, CONVERGED,
-        jnp.where(stopping.budget <= 0, MAX_STEPS, int(Status.RUNNING)),
+        ~jnp.all(jnp.isfinite(g0)), NON_FINITE,
+        jnp.where(jnp.max(jnp.abs(g0), initial=0.0) <= stopping.gtol, CONVERGED,
+                  jnp.where(stopping.budget <= 0, MAX_STEPS, int(Status.RUNNING))),
     ).astype(jnp.int32)
     init = dict(
         x=x0, lin=lin0, g=g0, s=strategy.init(dtype), k=jnp.asarray(0, jnp.int32),
         status=status0, history=jnp.full((stopping.budget,), jnp.nan, dtype),
         cg=jnp.asarray(0, jnp.int32), rejects=jnp.asarray(0, jnp.int32),
-        plateau=jnp.asarray(0, jnp.int32),
+        bad_run=jnp.asarray(True), plateau=jnp.asarray(0, jnp.int32),
     )
     out = jax.lax.while_loop(lambda s: s["status"] < 0, body, init)
     return GraphSolution(

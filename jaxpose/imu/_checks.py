@@ -90,9 +90,30 @@ def check_values(g: Array, a: Array, d: Array, fn: str) -> tuple[Array, Array, A
                      f"{fn}(gyro): samples contain NaN or inf")
     a = eqx.error_if(a, ~jnp.all(jnp.isfinite(a)),
                      f"{fn}(acc): samples contain NaN or inf")
-    d = eqx.error_if(d, ~jnp.all(d > 0), f"{fn}(dt): every time step must be positive and "
-                     f"finite (found dt <= 0 or NaN)")
+    d = eqx.error_if(d, ~jnp.all((d > 0) & jnp.isfinite(d)),
+                     f"{fn}(dt): every time step must be positive and finite (found dt <= 0, "
+                     f"inf or NaN)")
     return g, a, d
+
+
+def check_finite_inputs(values: dict[str, Array | None], fn: str) -> dict[str, Array | None]:
+    """Run-time check that optional inputs (noise densities, biases) are finite."""
+    out: dict[str, Array | None] = {}
+    for name, v in values.items():
+        out[name] = None if v is None else eqx.error_if(
+            v, ~jnp.all(jnp.isfinite(v)), f"{fn}({name}): contains NaN or inf")
+    return out
+
+
+def check_outputs(out: Any, fn: str) -> Any:
+    """Run-time check that the outputs computed from finite inputs are finite: extreme
+    magnitudes (e.g. samples, dt or noise densities of 1e200) overflow somewhere in the
+    rotation, the deltas, the covariance or the bias Jacobians."""
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(out)]
+    bad = ~jnp.all(jnp.stack(leaves))
+    return eqx.error_if(out, bad, f"{fn}: the result overflows (not finite) although every "
+                        f"input is finite: samples, dt or noise densities of extreme "
+                        f"magnitude (such as 1e200, or |gyro·dt| beyond ~1e150)")
 
 
 def biases(gyro_bias: Any, acc_bias: Any, batch: tuple[int, ...],

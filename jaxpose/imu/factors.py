@@ -174,6 +174,14 @@ def imu_factor(
         gravity=jnp.broadcast_to(g.astype(dtype), (m, 3)),
     )
     cov = np.asarray(pre.cov, dtype=np.float64)
+    if not np.all(np.isfinite(cov)):
+        raise ValueError("imu_factor(pre): the covariance contains NaN or inf")
+    w = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    bad = np.flatnonzero(~(w[:, 0] > 9 * np.finfo(pre.cov.dtype).eps * w[:, -1]))
+    if bad.size:
+        raise ValueError(f"imu_factor(pre): the covariance of window {int(bad[0])} is "
+                         f"singular (a zero noise density gives infinite information); "
+                         f"give positive gyro_noise and acc_noise")
     info = np.linalg.inv(cov)
     info = 0.5 * (info + np.swapaxes(info, -1, -2))
     return Factor(imu_residual, [(pose, ii), (vel, ii), (pose, jj), (vel, jj), (bias, ii)],

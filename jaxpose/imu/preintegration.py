@@ -49,6 +49,8 @@ from ._checks import (
     as_float,
     biases,
     broadcast_samples,
+    check_finite_inputs,
+    check_outputs,
     check_samples,
     check_values,
     noise_sigma,
@@ -118,10 +120,25 @@ class Preintegrated(eqx.Module):
 
     @property
     def information(self) -> Array:
-        """Inverse covariance (*b, 9, 9), symmetrised."""
+        """Inverse covariance (*b, 9, 9), symmetrised.
+
+        A zero noise density (``gyro_noise=0`` or ``acc_noise=0``) gives a well-defined but
+        singular covariance (zero variance in the directions it drives): the information is
+        infinite there, so this raises (``eqx.error_if``, also under ``jit``) when the
+        covariance is singular to working precision (smallest eigenvalue ≤ 9·eps·largest)
+        instead of returning inf/NaN or rounding garbage. Use ``cov`` directly then."""
         if self.cov is None:
             raise ValueError("Preintegrated: no covariance (give gyro_noise/acc_noise)")
-        info = jnp.linalg.inv(self.cov)
+        cov = self.cov
+        w = jnp.linalg.eigvalsh(cov)
+        eps = jnp.finfo(cov.dtype).eps
+        singular = ~(w[..., 0] > cov.shape[-1] * eps * w[..., -1])
+        info = jnp.linalg.inv(cov)
+        info = eqx.error_if(
+            info, jnp.any(singular),
+            "Preintegrated.information: the covariance is singular (a zero noise density "
+            "makes the information infinite in the directions it drives); give positive "
+            "gyro_noise and acc_noise, or use .cov")
         return 0.5 * (info + jnp.swapaxes(info, -1, -2))
 
     # -- first-order bias correction and prediction --------------------------------------
@@ -219,9 +236,11 @@ def preintegrate(
         prefix: return every cumulative delta (batch (…, N)) instead of the window's.
         scheme: ``"manifold"`` (Forster et al., exact rotation increments, associative)
             or ``"tangent"`` (GTSAM's default ``PreintegratedImuMeasurements``).
-        check: run-time value checks (NaN/inf samples, dt ≤ 0 or NaN) through
-            ``eqx.error_if``: a bad value raises (also under ``jit``/``vmap``). With
-            ``check=False`` bad values propagate as NaN into the outputs.
+        check: run-time value checks through ``eqx.error_if`` (also under ``jit`` and
+            ``vmap``): NaN/inf samples, biases or noise densities, dt ≤ 0, inf or NaN, and
+            outputs that overflow although the inputs are finite (extreme magnitudes such
+            as 1e200) raise. With ``check=False`` bad values propagate as NaN/inf into the
+            outputs.
 
     Returns:
         :class:`Preintegrated` with batch shape (…) (or (…, N) with ``prefix``).
@@ -256,6 +275,10 @@ def _preintegrate(
     ba = jnp.broadcast_to(zero if ba is None else ba.astype(dtype), (*batch, 3))
     if check:
         g, a, d = check_values(g, a, d, fn)
+        c = check_finite_inputs({"gyro_bias": bg, "acc_bias": ba, "gyro_noise": gs,
+                                 "acc_noise": as_, "integration_noise": iv}, fn)
+        bg, ba, gs, as_, iv = (c["gyro_bias"], c["acc_bias"], c["gyro_noise"],
+                               c["acc_noise"], c["integration_noise"])
     # keeps XLA from constant-folding cumulative sums of a constant dt (slow compiles)
     d = jax.lax.optimization_barrier(d)
     gv = av = None
@@ -277,6 +300,8 @@ def _preintegrate(
         return _core.prefix(_core.samples(w, f, d1, gv, av, iv, bias_jacobians))
 
     out = _vmap_n(one, len(batch))(g, a, d, bg, ba)
+    if check:
+        out = check_outputs(out, fn)
     if prefix:
         n = g.shape[-2]
         bg = jnp.broadcast_to(bg[..., None, :], (*batch, n, 3))

@@ -119,7 +119,10 @@ def least_squares(
         ValueError: at trace time for malformed weights, kernels or options (shapes).
         TypeError: at trace time for arguments of the wrong type (solver, adjoint, ...).
         RuntimeError: (``eqx.EquinoxRuntimeError``, from ``eqx.error_if``) if
-            ``residual_fn`` (or its Jacobian) is NaN/Inf at the initial ``params``.
+            ``residual_fn`` is NaN/Inf at the initial ``params``. A Jacobian that is not
+            finite there (e.g. ``sqrt(x)`` at 0) does not raise: solvers report a status,
+            so the solve ends at once with ``NON_FINITE`` and the initial ``params``
+            (as :func:`jaxpose.graph.solve` does).
     """
     return _least_squares(
         residual_fn, _inexact(params), args, solver, weights=weights, kernel=kernel,

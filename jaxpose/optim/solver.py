@@ -29,7 +29,7 @@ from jax.flatten_util import ravel_pytree
 from ..lie import manifold
 from .linear import Cholesky, LinearSolver
 from .problem import Linearization, Problem, as_problem
-from .stopping import Status, Stopping, Trial, check, plateau_count
+from .stopping import Status, Stopping, Trial, check, nonfinite_run, plateau_count
 from .strategies import Strategy, System, TrustRegion
 
 Array = jax.Array
@@ -49,6 +49,7 @@ class SolverState(eqx.Module):
     num_steps: Array  # int32, trials so far
     num_accepted: Array  # int32
     rejects: Array  # int32, consecutive rejected trials
+    bad_run: Array  # bool, every trial since the last accepted one was not finite
     plateau: Array  # int32, StopOnPlateau counter
     ratio: Array  # gain ratio of the last trial
     step_norm: Array  # ‖δ‖ of the last trial
@@ -182,6 +183,7 @@ class AbstractSolver(eqx.Module):
             num_steps=zero_i,
             num_accepted=zero_i,
             rejects=zero_i,
+            bad_run=jnp.asarray(True),
             plateau=zero_i,
             ratio=jnp.zeros((), dtype),
             step_norm=jnp.zeros((), dtype),
@@ -258,6 +260,7 @@ class AbstractSolver(eqx.Module):
             self._strategy_update(state.strategy_state, ratio, step_norm),
         )
         rejects = jnp.where(accepted, 0, state.rejects + 1).astype(jnp.int32)
+        bad_run = nonfinite_run(state.bad_run, accepted, finite)
         rejects = self._on_failure_rejects(rejects, finite, stopping)
         # a rejection that cannot change the damping (Constant, or clamped at its bound)
         # would repeat the same trial: give up now
@@ -281,6 +284,7 @@ class AbstractSolver(eqx.Module):
                 grad_inf=grad_inf,
                 rejects=rejects,
                 plateau_count=plateau,
+                nonfinite_run=~accepted & bad_run,
             ),
         )
         # the linearisation step: only non-finite Jacobian, gtol or a zero budget stop it
@@ -312,6 +316,7 @@ class AbstractSolver(eqx.Module):
             num_steps=num_steps,
             num_accepted=state.num_accepted + (accepted & ~fresh).astype(jnp.int32),
             rejects=jnp.where(fresh, 0, rejects),
+            bad_run=jnp.where(fresh, True, bad_run),
             plateau=plateau,
             ratio=ratio,
             step_norm=step_norm,

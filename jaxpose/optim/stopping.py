@@ -24,8 +24,9 @@ class Status(enum.IntEnum):
     MAX_STEPS = 1  #: the iteration budget ran out first
     DIVERGED = 2  #: no trial lowers the cost: rejected at the strategy's damping bound
     #: (or with Constant damping), or ``max_rejects`` times in a row
-    NON_FINITE = 3  #: the last such failed trial was NaN/Inf (or the Jacobian at the
-    #: start); the best finite estimate is kept
+    NON_FINITE = 3  #: the last such failed trial was NaN/Inf, the budget ran out while
+    #: every trial since the last accepted one was NaN/Inf, or the Jacobian at the start
+    #: was; the best finite estimate is kept
 
 
 class StopOnPlateau(eqx.Module):
@@ -72,9 +73,12 @@ class Stopping(eqx.Module):
       cost ≤ eps²·initial cost (the residual has shrunk by the dtype's precision, as in
       zero-residual problems: further "decreases" are rounding noise) → CONVERGED;
     * ``max_rejects``: that many consecutive rejected trials → DIVERGED (or NON_FINITE
-      if the last one was not finite). A rejected trial that leaves the damping unchanged
-      (Constant strategy, damping clamped at its bound, Gauss-Newton) ends the solve at
-      once, since the same trial would repeat;
+      if the last one was not finite). When ``max_steps`` runs out first while every trial
+      since the last accepted one was not finite, the status is NON_FINITE too (not
+      MAX_STEPS: with a budget below ``max_rejects`` all-NaN trials would otherwise look
+      like a solve that merely needed more steps). A rejected trial that leaves the
+      damping unchanged (Constant strategy, damping clamped at its bound, Gauss-Newton)
+      ends the solve at once, since the same trial would repeat;
     * ``plateau``: optional :class:`StopOnPlateau`.
     """
 
@@ -120,6 +124,14 @@ class Trial(NamedTuple):
     grad_inf: Array  # ‖g‖_∞ at the (possibly new) current estimate
     rejects: Array  # consecutive rejected trials so far (int32)
     plateau_count: Array  # consecutive non-decreasing iterations so far (int32)
+    nonfinite_run: Array | bool = False  # bool: every trial since the last accepted one
+    # (at least this one) was not finite
+
+
+def nonfinite_run(previous: Array, accepted: Array, finite: Array) -> Array:
+    """Update the flag "every trial since the last accepted one was not finite" (start it
+    at True; an accepted trial resets it, a finite rejected one clears it)."""
+    return jnp.where(accepted, True, previous & ~finite)
 
 
 def plateau_count(stopping: Stopping, last: Array, cost: Array, count: Array) -> Array:
@@ -147,9 +159,9 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     if stopping.plateau is not None:
         conv = conv | (t.plateau_count >= stopping.plateau.patience)
     stalled = t.rejects >= stopping.max_rejects
-    nonfinite = stalled & ~t.finite
-    diverged = stalled & t.finite
     out_of_steps = t.step >= stopping.budget
+    nonfinite = (stalled & ~t.finite) | (out_of_steps & ~t.finite & t.nonfinite_run)
+    diverged = stalled & t.finite
     status = jnp.where(
         nonfinite,
         Status.NON_FINITE,
@@ -165,4 +177,12 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     return status != Status.RUNNING, status
 
 
-__all__ = ["Status", "StopOnPlateau", "Stopping", "Trial", "check", "plateau_count"]
+__all__ = [
+    "Status",
+    "StopOnPlateau",
+    "Stopping",
+    "Trial",
+    "check",
+    "nonfinite_run",
+    "plateau_count",
+]

@@ -273,3 +273,19 @@ def test_nonfinite_status_not_garbage():
     assert int(bad.status) == NONFINITE
     it = ILQR(np.eye(n), np.ones((n, m)), np.zeros(n), np.array([np.inf, 0.0, 0.0]))
     assert int(it.status) == NONFINITE
+
+
+def test_issue19_overflow_status_nan_bounds_and_input_size():
+    """Found by fault injection: x0 = 1e200 gave a finite trajectory, cost inf and status
+    CONVERGED (now NONFINITE); NaN box bounds passed the u_lower ≤ u_upper check (NaN
+    compares false) and only showed up as a NONFINITE status; a u_init of the wrong width
+    raised an error naming the system's ``u``, not ``u_init``."""
+    n, m, T = 3, 2, 4
+    A, B = np.eye(n), np.ones((n, m))
+    cost = QuadraticCost(np.eye(n + m))
+    sol = lqr(LTI(A, B), cost, np.array([1e200, 0.0, 0.0]), T)
+    assert not np.isfinite(float(sol.cost)) and int(sol.status) == NONFINITE
+    with pytest.raises(ValueError, match="u_lower: contains NaN"):
+        ilqr(LTI(A, B), cost, np.ones(n), np.zeros((T, m)), u_lower=np.array([np.nan, 0.0]))
+    with pytest.raises(ValueError, match=r"x0, u_init: .*u_init\[t\] \(3,\)"):
+        ilqr(LTI(A, B), cost, np.ones(n), np.zeros((T, 3)))

@@ -143,3 +143,19 @@ def test_larger_cloud_kdtree_float32(rng):
     res = icp(src, tgt, knn_method="kdtree", max_iterations=80)
     assert int(res.status) == Status.SUCCESS
     np.testing.assert_allclose(res.transform.matrix(), truth.matrix(), atol=1e-4)
+
+
+def test_huge_coordinates_give_finite_rmse_or_non_finite_status(rng):
+    """Coordinates of 1e200: the squared distances overflow; the RMSE used to be inf with
+    status SUCCESS. It is now formed scale-safely (finite, of the size of the offsets)."""
+    src = _cloud(rng, 40)
+    res = icp(src * 1e200, src * 1e200 + 1e199, max_iterations=3)
+    assert np.isfinite(float(res.rmse)) or int(res.status) == Status.NON_FINITE
+    if int(res.status) == Status.SUCCESS:
+        assert 1e198 < float(res.rmse) < 1e201
+    # degenerate geometry (documented as DEGENERATE): collinear or coincident source points
+    # leave the rotation about the line undetermined; this used to report SUCCESS
+    line = np.outer(np.linspace(-1.0, 1.0, 40), [1.0, 0.5, 0.2])
+    for pts in (line, np.ones((40, 3))):
+        res = icp(pts, pts + np.array([0.1, 0.0, 0.0]), max_iterations=3)
+        assert int(res.status) == Status.DEGENERATE

@@ -148,3 +148,21 @@ def test_transform_is_camera_extrinsics(rng):
     pw, pose, uv = _scene(rng, 1)
     res = epnp_plain(pw, uv, K)
     np.testing.assert_allclose(point2pixel(pw, K, SE3(res.transform.data)), uv, atol=1e-6)
+
+
+def test_non_finite_data_with_refinement_reports_status(rng):
+    """NaN/inf points or pixels with refine=True (the default) used to raise the internal
+    least_squares error ("residual_fn ... NaN/Inf at the initial params") instead of
+    reporting NON_FINITE; other scenes of the same batch are unaffected."""
+    pw, pose, uv = _scene(rng, 2)
+    pw_bad = pw.copy()
+    pw_bad[1, 3, 0] = np.nan
+    uv_bad = uv.copy()
+    uv_bad[1, 2, 1] = np.inf
+    for p, u in ((pw_bad, uv), (pw, uv_bad)):
+        res = epnp_refined(p, u, K)
+        assert int(res.status[1]) == Status.NON_FINITE
+        assert int(res.status[0]) == Status.SUCCESS
+        np.testing.assert_allclose(res.transform.data[0], pose.data[0], atol=1e-8)
+    eager = epnp(pw_bad[1], uv[1], K)  # eager call, default refinement
+    assert int(eager.status) == Status.NON_FINITE

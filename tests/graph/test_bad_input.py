@@ -92,3 +92,23 @@ def test_bad_graph_arguments():
     graph = FactorGraph([_between([0], [1])], {"pose": _poses()})
     with pytest.raises(ValueError, match="linear_solver='cholmod'"):
         solve(graph, linear_solver="cholmod")
+
+
+def _nan_away(x, z):
+    """Finite only at the start value z (every trial step lands on NaN)."""
+    return jnp.where(x == z, x - 3.0, jnp.nan)
+
+
+def test_all_nan_trials_end_non_finite_not_max_steps():
+    """max_steps below the reject budget (64) with every trial NaN: ``non_finite`` (the
+    status used to be ``max_steps``); the initial variables are kept."""
+    x0 = jnp.array([[1.0], [2.0]])
+    fac = Factor(_nan_away, [("x", np.array([0, 1]))], data=x0)
+    graph = FactorGraph([fac], {"x": x0})
+    sol = solve(graph, max_steps=5, linear_solver="dense")
+    assert sol.status_name == "non_finite" and int(sol.iterations) == 5
+    np.testing.assert_array_equal(sol.variables["x"], x0)
+    # a Jacobian that is not finite at the start: non_finite at once, as least_squares
+    sq = Factor(lambda x, z: jnp.sqrt(x) + z, [("x", np.array([0]))], data=jnp.ones((1, 1)))
+    sol = solve(FactorGraph([sq], {"x": jnp.zeros((1, 1))}), linear_solver="dense")
+    assert sol.status_name == "non_finite" and int(sol.iterations) == 0

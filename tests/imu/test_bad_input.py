@@ -59,6 +59,7 @@ def test_complex_samples_rejected():
         ("zero_dt", r"preintegrate\(dt\): every time step must be positive"),
         ("negative_dt", r"preintegrate\(dt\): every time step must be positive"),
         ("nan_dt", r"preintegrate\(dt\): every time step must be positive"),
+        ("inf_dt", r"preintegrate\(dt\): every time step must be positive and finite"),
     ],
 )
 def test_runtime_value_errors_under_jit_and_vmap(bad, match):
@@ -71,8 +72,12 @@ def test_runtime_value_errors_under_jit_and_vmap(bad, match):
         d[4] = 0.0
     elif bad == "negative_dt":
         d[0] = -0.01
+    elif bad == "inf_dt":
+        d[1] = np.inf
     else:
         d[5] = np.nan
+    with pytest.raises(Exception, match=match):  # eagerly
+        preintegrate(g, a, d)
     with pytest.raises(Exception, match=match):
         jax.block_until_ready(_checked(g, a, d))
     with pytest.raises(Exception, match=match):  # a bad window inside a batch
@@ -169,3 +174,55 @@ def test_biases_broadcast_and_dtype():
     out = preintegrate(np.zeros((N, 3), int), A, DT, gyro_bias=np.zeros((2, 3)),
                        bias_jacobians=False)
     assert out.vel.shape == (2, 3) and jnp.issubdtype(out.vel.dtype, jnp.floating)
+
+
+def test_zero_noise_covariance_and_information():
+    """Zero noise densities: the covariance is well defined (zero), the information is
+    infinite there, so requesting it raises (eagerly and under jit) instead of returning
+    inf/NaN (it used to); so does imu_factor. Zero gyro noise alone makes it singular too."""
+    pre = preintegrate(G, A, DT, gyro_noise=0.0, acc_noise=0.0)
+    np.testing.assert_array_equal(pre.cov, np.zeros((9, 9)))
+    match = "Preintegrated.information: the covariance is singular"
+    with pytest.raises(Exception, match=match):
+        _ = pre.information
+    half = preintegrate(G, A, DT, gyro_noise=0.0, acc_noise=1e-2)
+    assert np.all(np.isfinite(np.asarray(half.cov)))
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(jax.jit(lambda p: p.information)(half))
+    two = preintegrate(np.stack([G, G]), np.stack([A, A]), DT, gyro_noise=1e-3, acc_noise=1e-2)
+    cov = np.asarray(two.cov).copy()
+    cov[1] = 0.0  # the second window as with zero noise
+    two = Preintegrated(two.rot, two.vel, two.pos, two.dt, jnp.asarray(cov), two.jac,
+                        two.gyro_bias, two.acc_bias)
+    with pytest.raises(ValueError, match=r"imu_factor\(pre\): the covariance of window 1"):
+        imu_factor(two, [0, 1], [1, 2], [0.0, 0.0, -9.81])
+    # the information of a regular covariance is its inverse
+    reg = preintegrate(G, A, DT, gyro_noise=1e-3, acc_noise=1e-2)
+    np.testing.assert_allclose(np.asarray(reg.information) @ np.asarray(reg.cov), np.eye(9),
+                               atol=1e-8)
+
+
+@pytest.mark.parametrize("scheme", ["manifold", "tangent"])
+@pytest.mark.parametrize("what", ["gyro", "acc", "dt"])
+def test_extreme_magnitudes_raise_instead_of_silent_nan(scheme, what):
+    """Values of 1e200 overflow (gyro: the rotation angle's norm; acc: the covariance; dt:
+    the position): a clear error, not NaN/inf outputs; check=False lets them through."""
+    g, a, d = G.copy(), A.copy(), DT.copy()
+    if what == "gyro":
+        g[2] = 1e200
+    elif what == "acc":
+        a[2] = 1e200
+    else:
+        d[:] = 1e200
+    with pytest.raises(Exception, match="preintegrate: the result overflows"):
+        preintegrate(g, a, d, gyro_noise=1e-3, acc_noise=1e-2, scheme=scheme)
+    out = preintegrate(g, a, d, gyro_noise=1e-3, acc_noise=1e-2, scheme=scheme, check=False)
+    leaves = [out.rot.data, out.vel, out.pos, out.cov, out.jac]
+    assert not all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
+
+
+def test_non_finite_noise_and_bias_raise():
+    with pytest.raises(Exception, match=r"preintegrate\(gyro_noise\): contains NaN or inf"):
+        preintegrate(G, A, DT, gyro_noise=np.nan, acc_noise=1e-2)
+    with pytest.raises(Exception, match=r"preintegrate\(acc_bias\): contains NaN or inf"):
+        preintegrate(G, A, DT, acc_bias=[0.0, np.inf, 0.0])

@@ -117,3 +117,40 @@ def test_bad_options_raise_clear_errors():
         jo.least_squares("not callable", x0)
     with pytest.raises(TypeError, match="strategy"):
         jo.LM(strategy=jo.Cholesky())
+
+
+def test_nonfinite_jacobian_at_start_reports_status_not_exception():
+    """The docstring promised a RuntimeError for a non-finite Jacobian at the start; code and
+    docstring now agree on a status (solvers report a status, as the graph solver does):
+    sqrt(x) + 1 at x = 0 has a finite residual and an infinite Jacobian → NON_FINITE at
+    once, initial params kept. A non-finite *residual* at the start still raises."""
+
+    def res(x, args):
+        return jnp.sqrt(x) + 1.0
+
+    for run in (jo.least_squares, jax.jit(jo.least_squares, static_argnums=0)):
+        sol = run(res, jnp.zeros(2))
+        assert int(sol.status) == jo.Status.NON_FINITE
+        np.testing.assert_array_equal(sol.params, np.zeros(2))
+        assert int(sol.num_steps) == 0 and float(sol.cost) == pytest.approx(1.0)
+    assert "RuntimeError" in jo.least_squares.__doc__ and "sqrt(x)" in jo.least_squares.__doc__
+
+
+@pytest.mark.parametrize("max_steps", [3, 10])
+def test_all_nan_trials_end_non_finite_within_a_small_budget(max_steps):
+    """Every trial NaN and max_steps < max_rejects: NON_FINITE (was MAX_STEPS)."""
+
+    def res(x, args):
+        return jnp.where(x == 1.0, x - 3.0, jnp.nan)
+
+    for solver in (jo.LM(), jo.LM(strategy=jo.Adaptive())):
+        sol = jo.least_squares(res, jnp.array([1.0]), solver=solver, max_steps=max_steps)
+        assert int(sol.status) == jo.Status.NON_FINITE
+        np.testing.assert_array_equal(sol.params, [1.0])
+    # finite trials that run out of budget are still MAX_STEPS
+    sol = jo.least_squares(
+        lambda x, a: jnp.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]]),
+        jnp.array([-1.2, 1.0]),
+        max_steps=2,
+    )
+    assert int(sol.status) == jo.Status.MAX_STEPS

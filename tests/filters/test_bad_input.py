@@ -1,0 +1,259 @@
+"""Bad and extreme input to the filters (issue 19): measurement sizes checked at trace time,
+positive semi-definite covariances (UKF sigma points, PF noise), non-finite and absurd
+measurements (``skip_nonfinite``; scale-safe PF weights), and a seeded fuzz test of ``run``:
+a clear exception or finite outputs / ``ok`` False, never a silent NaN."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from jaxpose.dynamics import LTI
+from jaxpose.filters import EKF, UKF, ParticleFilter
+from jaxpose.filters._common import psd_cholesky
+
+from .test_filters import kalman_reference, linear_gaussian
+
+
+def _setup(**over):
+    d = linear_gaussian()
+    d.update(over)
+    return d, LTI(d["A"], d["B"], d["C"], d["D"], d["c1"], d["c2"])
+
+
+def _pf(sys, d, **kw):
+    return ParticleFilter(sys, d["Q"], d["R"], num_particles=64, **kw)
+
+
+def _run_any(flt, x0, P0, ys, us):
+    if isinstance(flt, ParticleFilter):
+        return flt.run(jax.random.key(0), x0, P0, ys, us)[0]
+    return flt.run(x0, P0, ys, us)
+
+
+# one compiled runner per filter configuration (arrays, including the filter's, are leaves)
+_jit_run = eqx.filter_jit(_run_any)
+
+
+# ----------------------------------------------------------------------------------
+# Sizes: clear errors naming ys / y and R (trace time, so also under jit)
+# ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["EKF", "UKF", "PF"])
+def test_measurement_size_errors_name_ys_and_R(kind):
+    d, sys = _setup()
+    flt = {"EKF": EKF, "UKF": UKF, "PF": _pf}[kind]
+    f = flt(sys, d["Q"], d["R"]) if kind != "PF" else _pf(sys, d)
+    bad = np.zeros((15, 3))  # p = 2 measurements, R 2×2
+    msg = r"ys: expected shape \(15, 2\) .*R is 2×2\), got shape \(15, 3\)"
+    with pytest.raises(ValueError, match=msg):
+        _run_any(f, d["x0"], d["P0"], bad, d["us"])
+    with pytest.raises(ValueError, match=msg):  # trace time: the same error under jit
+        eqx.filter_jit(_run_any)(f, d["x0"], d["P0"], bad, d["us"])
+    with pytest.raises(ValueError, match=r"ys: expected shape \(15, 2\).*got shape \(15,\)"):
+        _run_any(f, d["x0"], d["P0"], d["ys"][:, 0], d["us"])
+    with pytest.raises(ValueError, match="ys: expected a stack of measurements"):
+        _run_any(f, d["x0"], d["P0"], np.float64(1.0), d["us"])
+    # R of the wrong size for the model's observation
+    f3 = (
+        (EKF if kind == "EKF" else UKF)(sys, d["Q"], np.eye(3))
+        if kind != "PF"
+        else (ParticleFilter(sys, d["Q"], np.eye(3), num_particles=8))
+    )
+    with pytest.raises(ValueError, match=r"R: expected shape \(2, 2\) \(measurement noise: h"):
+        _run_any(f3, d["x0"], d["P0"], d["ys"], d["us"])
+    # inputs of the wrong width name x0/us (the model's own check names only its u)
+    with pytest.raises(ValueError, match=r"x0, us: the model does not accept .*\(3,\)"):
+        _run_any(f, d["x0"], d["P0"], d["ys"], np.zeros((15, 3)))
+    # single steps name y (and P)
+    if kind != "PF":
+        with pytest.raises(ValueError, match=r"P: expected shape \(3, 3\) \(state tangent"):
+            f.step(d["x0"], np.eye(2), d["ys"][0], d["us"][0])
+    if kind == "PF":
+        state = f.init(jax.random.key(1), d["x0"], d["P0"])
+        with pytest.raises(ValueError, match=r"y: expected shape \(2,\) .*got shape \(3,\)"):
+            f.step(jax.random.key(2), state, np.zeros(3), d["us"][0])
+    else:
+        with pytest.raises(ValueError, match=r"y: expected shape \(2,\) .*got shape \(3,\)"):
+            f.step(d["x0"], d["P0"], np.zeros(3), d["us"][0])
+        with pytest.raises(ValueError, match=r"y: expected shape \(2,\)"):
+            eqx.filter_jit(f.update)(d["x0"], d["P0"], np.zeros(1), d["us"][0])
+
+
+# ----------------------------------------------------------------------------------
+# Positive semi-definite covariances
+# ----------------------------------------------------------------------------------
+def test_psd_cholesky_against_numpy():
+    chol = jax.jit(psd_cholesky)
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(5, 5))
+    pd = M @ M.T + 0.1 * np.eye(5)
+    np.testing.assert_allclose(
+        chol(jnp.asarray(pd)), np.linalg.cholesky(pd), rtol=1e-13, atol=1e-13
+    )
+    for rank in (0, 1, 3):
+        V = rng.normal(size=(5, rank))
+        A = V @ V.T
+        L = np.asarray(chol(jnp.asarray(A)))
+        assert np.all(np.isfinite(L)) and np.allclose(L, np.tril(L))
+        np.testing.assert_allclose(L @ L.T, A, atol=1e-12)
+        assert np.linalg.matrix_rank(L, tol=1e-8) == rank
+    big = jnp.asarray(np.diag([1.0] * 20))  # the fori_loop path (k > 16)
+    np.testing.assert_allclose(chol(big), np.eye(20), atol=0)
+    assert np.isnan(np.asarray(psd_cholesky(jnp.full((2, 2), jnp.nan)))[np.tril_indices(2)]).all()
+    # derivatives stay finite at repeated eigenvalues and at a singular matrix
+    g = jax.jit(
+        jax.grad(
+            lambda s: jnp.sum(psd_cholesky(s * jnp.eye(3) + jnp.diag(jnp.array([0.0, 0.0, 1.0]))))
+        )
+    )
+    assert np.isfinite(g(1.0)) and np.isfinite(g(0.0))
+
+
+@pytest.mark.parametrize("P0", ["zero", "rank1"])
+def test_ukf_with_psd_covariance_equals_kalman_filter(P0):
+    """UKF with P0 = 0 (or rank 1) was NaN at every step: on a linear model it must equal
+    the closed-form Kalman filter (numpy reference, independent of the code)."""
+    v = np.array([1.0, -2.0, 0.5])
+    P0m = np.zeros((3, 3)) if P0 == "zero" else np.outer(v, v)
+    d, sys = _setup(P0=P0m)
+    xr, Pr = kalman_reference(d)
+    for flt in (UKF(sys, d["Q"], d["R"]), EKF(sys, d["Q"], d["R"])):
+        res = _jit_run(flt, d["x0"], d["P0"], d["ys"], d["us"])
+        assert bool(np.all(res.ok))
+        np.testing.assert_allclose(res.x, xr, atol=1e-11, rtol=1e-11)
+        np.testing.assert_allclose(res.P, Pr, atol=1e-11, rtol=1e-11)
+
+
+def test_particle_filter_singular_process_noise_spreads_along_its_range():
+    """A singular Q used to zero the whole noise factor (NaN Cholesky → 0): now the
+    sampled noise has covariance Q, zero only in Q's null direction."""
+    Q = np.diag([0.5, 0.0, 0.2])
+    d, sys = _setup(Q=Q)
+    Lq, _ = _pf(sys, d)._factors()
+    np.testing.assert_allclose(Lq @ Lq.T, Q, atol=1e-15)
+    st = _pf(sys, d).init(jax.random.key(0), d["x0"], np.diag([1.0, 0.0, 0.0]))
+    spread = np.std(np.asarray(st.particles), 0)
+    assert spread[0] > 0.5 and spread[1] < 1e-12 and spread[2] < 1e-12
+
+
+# ----------------------------------------------------------------------------------
+# Non-finite and absurd measurements
+# ----------------------------------------------------------------------------------
+def _skip_reference(d, k):
+    """Kalman filter that skips (predicts only) at step k."""
+    xr, Pr = kalman_reference({**d, "ys": d["ys"][:k], "us": d["us"][:k]}) if k else ([], [])
+    x = xr[-1] if k else d["x0"]
+    P = Pr[-1] if k else d["P0"]
+    A, B, c1, Q = d["A"], d["B"], d["c1"], d["Q"]
+    x, P = A @ x + B @ d["us"][k] + c1, A @ P @ A.T + Q
+    rest = {**d, "x0": x, "P0": P, "ys": d["ys"][k + 1 :], "us": d["us"][k + 1 :]}
+    xr2, Pr2 = kalman_reference(rest)
+    return (
+        np.concatenate([np.reshape(xr, (-1, 3)), x[None], xr2]),
+        np.concatenate([np.reshape(Pr, (-1, 3, 3)), P[None], Pr2]),
+    )
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e200])
+def test_skip_nonfinite_predicts_only(value):
+    d, sys = _setup()
+    k = 4
+    ys = d["ys"].copy()
+    ys[k, 1] = value
+    xr, Pr = _skip_reference(d, k)
+    for F in (EKF, UKF):
+        res = _jit_run(F(sys, d["Q"], d["R"], skip_nonfinite=True), d["x0"], d["P0"], ys, d["us"])
+        ok = np.ones(len(ys), bool)
+        ok[k] = False
+        np.testing.assert_array_equal(res.ok, ok)
+        np.testing.assert_allclose(res.x, xr, atol=1e-10, rtol=1e-10)
+        np.testing.assert_allclose(res.P, Pr, atol=1e-10, rtol=1e-10)
+        # documented default: the measurement is used; a NaN stays for the rest of the run
+        if not np.isfinite(value):
+            dflt = _jit_run(F(sys, d["Q"], d["R"]), d["x0"], d["P0"], ys, d["us"])
+            np.testing.assert_array_equal(dflt.ok, np.arange(len(ys)) < k)
+    res = _jit_run(_pf(sys, d, skip_nonfinite=True), d["x0"], d["P0"], ys, d["us"])
+    assert np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.P))
+    np.testing.assert_array_equal(res.ok, np.arange(len(ys)) != k)
+
+
+def test_particle_filter_absurd_measurement_stays_finite():
+    """1e200 used to give -inf log-likelihoods for every particle, NaN weights and NaN for
+    the rest of the run; now the particles nearest to it take the weight."""
+    d, sys = _setup()
+    ys = d["ys"].copy()
+    ys[4] = 1e200
+    res, ess = _pf(sys, d).run(jax.random.key(0), d["x0"], d["P0"], ys, d["us"])
+    assert bool(np.all(res.ok)) and np.all(np.isfinite(res.x)) and np.all(np.isfinite(ess))
+    # the particles tied (in floating point) for nearest keep the weight, the rest get none
+    assert 1.0 <= float(ess[4]) < 64.0
+    xr, _ = kalman_reference(d)  # and the filter is back on track afterwards
+    assert np.max(np.abs(np.asarray(res.x[-1]) - xr[-1])) < 1.5
+
+
+def test_skip_nonfinite_gradient_is_finite():
+    d, sys = _setup()
+    ys = d["ys"].copy()
+    ys[3] = np.nan
+    ekf = EKF(sys, d["Q"], d["R"], skip_nonfinite=True)
+    g = jax.grad(lambda x0: jnp.sum(ekf.run(x0, d["P0"], ys, d["us"]).x[-1]))(d["x0"])
+    assert np.all(np.isfinite(g))
+
+
+# ----------------------------------------------------------------------------------
+# Fuzz: malformed / extreme inputs to run
+# ----------------------------------------------------------------------------------
+_N = 6
+_VALUES = st.sampled_from([np.nan, np.inf, -np.inf, 1e200, -1e200, 1e-300, 0.0, 1e8])
+
+
+@settings(
+    max_examples=25,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(
+    kind=st.sampled_from(["EKF", "UKF", "PF"]),
+    skip=st.booleans(),
+    p=st.sampled_from([2, 2, 2, 3, 1]),
+    n_us=st.sampled_from([_N, _N, _N, _N - 1]),
+    P0=st.sampled_from(["eye", "zero", "rank1", "huge"]),
+    hits=st.lists(st.tuples(st.integers(0, _N - 1), st.integers(0, 1), _VALUES), max_size=3),
+)
+def test_fuzz_filter_run(kind, skip, p, n_us, P0, hits):
+    rng = np.random.default_rng(0)
+    sys = LTI(
+        np.eye(2) + 0.1 * rng.normal(size=(2, 2)), rng.normal(size=(2, 1)), rng.normal(size=(2, 2))
+    )
+    Q, R = 0.1 * np.eye(2), 0.2 * np.eye(2)
+    P0m = {
+        "eye": np.eye(2),
+        "zero": np.zeros((2, 2)),
+        "rank1": np.ones((2, 2)),
+        "huge": 1e150 * np.eye(2),
+    }[P0]
+    ys = rng.normal(size=(_N, p))
+    for i, j, v in hits:
+        ys[i, min(j, p - 1)] = v
+    us = rng.normal(size=(n_us, 1))
+    if kind == "PF":
+        flt = ParticleFilter(sys, Q, R, num_particles=16, skip_nonfinite=skip)
+    else:
+        flt = (EKF if kind == "EKF" else UKF)(sys, Q, R, skip_nonfinite=skip)
+    if p != 2 or n_us != _N:
+        with pytest.raises(ValueError, match="ys: expected|us: expected"):
+            _run_any(flt, np.zeros(2), P0m, ys, us)
+        return
+    res = _jit_run(flt, np.zeros(2), P0m, ys, us)
+    ok = np.asarray(res.ok)
+    finite = np.isfinite(np.asarray(res.x)).all(1) & np.isfinite(np.asarray(res.P)).all((1, 2))
+    assert np.all(finite[ok]), "a non-finite estimate flagged ok"  # never a silent NaN
+    bad_rows = [i for i, _, v in hits if not np.isfinite(v)]
+    if skip:
+        assert np.all(finite), "skip_nonfinite must keep every estimate finite"
+        assert not np.any(ok[bad_rows])
