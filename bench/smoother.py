@@ -46,8 +46,14 @@ from bench._common import (  # noqa: E402
     pin_threads,
 )
 
-DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..",
-                    "shared", "data", "imu", "imuAndGPSdata.csv")
+DATA = os.path.join(
+    os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    "..",
+    "shared",
+    "data",
+    "imu",
+    "imuAndGPSdata.csv",
+)
 NOISE = dict(gyro_noise=2.05689024915e-4, acc_noise=3.924e-4, integration_noise=1e-4)
 WALK = dict(gyro_walk=1.454441043e-6, acc_walk=4.905e-3)
 GPS_SIGMA = 0.5
@@ -74,12 +80,23 @@ def run_jaxpose(window: int, gyro, acc, init, kf, dr) -> tuple[float, float, lis
     from jaxpose.smoothing import examples as ex
     from jaxpose.smoothing._fixed_lag import _take
 
-    steps = ex.imu_gps_steps(gyro, acc, 0.005, kf, np.asarray(dr.pos), init,
-                             gps_sigma=GPS_SIGMA, prior_sigmas=PRIOR, **NOISE, **WALK)
+    steps = ex.imu_gps_steps(
+        gyro,
+        acc,
+        0.005,
+        kf,
+        np.asarray(dr.pos),
+        init,
+        gps_sigma=GPS_SIGMA,
+        prior_sigmas=PRIOR,
+        **NOISE,
+        **WALK,
+    )
     sm = ex.imu_gps_smoother(steps, window, max_iterations=20)
     t = kf.size + 1
     guesses = [steps.first] + [
-        {"bias": jnp.zeros(6), "pose": dr[k].pose(), "vel": dr[k].vel} for k in range(t - 1)]
+        {"bias": jnp.zeros(6), "pose": dr[k].pose(), "vel": dr[k].vel} for k in range(t - 1)
+    ]
     t0 = time.perf_counter()
     step = jax.jit(FixedLagSmoother.update).lower(sm, guesses[0], _take(steps.data, 0)).compile()
     compile_s = time.perf_counter() - t0
@@ -108,12 +125,23 @@ def run_gtsam(gtsam, window: int, gyro, acc, init, kf, dr) -> tuple[float, np.nd
     for k in range(bounds.size):
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if k == 0:
-            graph.add(gtsam.PriorFactorPose3(X(0), pose0, gtsam.noiseModel.Diagonal.Sigmas(
-                np.r_[np.full(3, s_rot), np.full(3, s_pos)])))
-            graph.add(gtsam.PriorFactorVector(V(0), np.asarray(init.vel, float),
-                                              gtsam.noiseModel.Isotropic.Sigma(3, s_vel)))
-            graph.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(),
-                                                    gtsam.noiseModel.Isotropic.Sigma(6, s_bias)))
+            graph.add(
+                gtsam.PriorFactorPose3(
+                    X(0),
+                    pose0,
+                    gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, s_rot), np.full(3, s_pos)]),
+                )
+            )
+            graph.add(
+                gtsam.PriorFactorVector(
+                    V(0), np.asarray(init.vel, float), gtsam.noiseModel.Isotropic.Sigma(3, s_vel)
+                )
+            )
+            graph.add(
+                gtsam.PriorFactorConstantBias(
+                    B(0), gtsam.imuBias.ConstantBias(), gtsam.noiseModel.Isotropic.Sigma(6, s_bias)
+                )
+            )
             values.insert(X(0), pose0)
             values.insert(V(0), np.asarray(init.vel, float))
         else:
@@ -123,11 +151,21 @@ def run_gtsam(gtsam, window: int, gyro, acc, init, kf, dr) -> tuple[float, np.nd
             graph.add(gtsam.ImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), pim))
             dt = 0.005 * (bounds[k] - bounds[k - 1])
             sig = np.r_[np.full(3, WALK["acc_walk"]), np.full(3, WALK["gyro_walk"])]
-            graph.add(gtsam.BetweenFactorConstantBias(
-                B(k - 1), B(k), gtsam.imuBias.ConstantBias(),
-                gtsam.noiseModel.Diagonal.Sigmas(sig * np.sqrt(dt))))
-            graph.add(gtsam.GPSFactor(X(k), np.asarray(dr[k - 1].pos, float),
-                                      gtsam.noiseModel.Isotropic.Sigma(3, GPS_SIGMA)))
+            graph.add(
+                gtsam.BetweenFactorConstantBias(
+                    B(k - 1),
+                    B(k),
+                    gtsam.imuBias.ConstantBias(),
+                    gtsam.noiseModel.Diagonal.Sigmas(sig * np.sqrt(dt)),
+                )
+            )
+            graph.add(
+                gtsam.GPSFactor(
+                    X(k),
+                    np.asarray(dr[k - 1].pos, float),
+                    gtsam.noiseModel.Isotropic.Sigma(3, GPS_SIGMA),
+                )
+            )
             values.insert(X(k), gtsam.Pose3(np.asarray(dr[k - 1].pose().matrix())))
             values.insert(V(k), np.asarray(dr[k - 1].vel, float))
         values.insert(B(k), gtsam.imuBias.ConstantBias())
@@ -165,25 +203,49 @@ def main(argv: Sequence[str] | None = None) -> str:
         if gtsam.available:
             g_lat, g_last = run_gtsam(gtsam.module, w, *data)
         diff = "—" if g_last is None else f"{np.abs(last - g_last).max():.1e}"
-        rows.append([str(w), f"{lat * 1e3:.2f}", "—" if g_lat is None else f"{g_lat * 1e3:.2f}",
-                     fmt_ratio(g_lat, lat), f"{comp:.1f}", diff])
+        rows.append(
+            [
+                str(w),
+                f"{lat * 1e3:.2f}",
+                "—" if g_lat is None else f"{g_lat * 1e3:.2f}",
+                fmt_ratio(g_lat, lat),
+                f"{comp:.1f}",
+                diff,
+            ]
+        )
         ratios.append((w, None if g_lat is None else g_lat / lat))
     lines = [
-        "# Fixed-lag smoother: per-update latency (IMU + GPS stream)", "",
+        "# Fixed-lag smoother: per-update latency (IMU + GPS stream)",
+        "",
         environment() + f"; {gtsam}; {args.threads} thread(s); keyframe every "
-        f"{args.stride} samples", "",
-        markdown_table(["window K", "jaxpose [ms]", "GTSAM iSAM2 [ms]", "GTSAM / jaxpose",
-                        "jaxpose compile [s]", "last position Δ [m]"], rows), "",
+        f"{args.stride} samples",
+        "",
+        markdown_table(
+            [
+                "window K",
+                "jaxpose [ms]",
+                "GTSAM iSAM2 [ms]",
+                "GTSAM / jaxpose",
+                "jaxpose compile [s]",
+                "last position Δ [m]",
+            ],
+            rows,
+        ),
+        "",
         "Latency: median over the updates with a full window. Last position Δ: the newest "
         "position of the two smoothers at the end (GTSAM's ImuFactor is not jaxpose's "
         "IMU residual, and iSAM2 relinearises lazily, so they agree to the noise level, not "
         "to rounding; tests/smoothing/test_gtsam.py checks equality against "
         "BatchFixedLagSmoother with identical factors).",
     ]
-    met = [f"K={w}: {'met' if r >= 1 else 'not met'} ({r:.2f}x)" for w, r in ratios
-           if r is not None]
-    lines += ["", "Result: latency ≤ GTSAM IncrementalFixedLagSmoother — " +
-              ("; ".join(met) if met else "not checked (gtsam missing)")]
+    met = [
+        f"K={w}: {'met' if r >= 1 else 'not met'} ({r:.2f}x)" for w, r in ratios if r is not None
+    ]
+    lines += [
+        "",
+        "Result: latency ≤ GTSAM IncrementalFixedLagSmoother — "
+        + ("; ".join(met) if met else "not checked (gtsam missing)"),
+    ]
     text = "\n".join(lines)
     print(text)
     if args.out:

@@ -67,8 +67,9 @@ def _take(x: PyTree, i: Any) -> PyTree:
 
 def _shift_in(x: PyTree, new: PyTree) -> PyTree:
     """Drop slot 0, append ``new`` as the last slot."""
-    return jax.tree.map(lambda a, b: jnp.concatenate([a[1:], jnp.asarray(b, a.dtype)[None]]), x,
-                        new)
+    return jax.tree.map(
+        lambda a, b: jnp.concatenate([a[1:], jnp.asarray(b, a.dtype)[None]]), x, new
+    )
 
 
 def _where(c: Array, a: PyTree, b: PyTree) -> PyTree:
@@ -172,18 +173,22 @@ class FixedLagSmoother(eqx.Module):
         if not isinstance(window, int) or window < 2:
             raise ValueError(f"FixedLagSmoother(window): expected an int >= 2, got {window!r}")
         if not isinstance(max_loops, int) or max_loops < 0:
-            raise ValueError(f"FixedLagSmoother(max_loops): expected an int >= 0, got "
-                             f"{max_loops!r}")
+            raise ValueError(
+                f"FixedLagSmoother(max_loops): expected an int >= 0, got {max_loops!r}"
+            )
         if max_loops > 0 and (loop is None or loop_data is None):
             raise ValueError("FixedLagSmoother(max_loops > 0): needs loop and loop_data")
         if not isinstance(max_iterations, int) or max_iterations < 1:
-            raise ValueError(f"FixedLagSmoother(max_iterations): expected an int >= 1, got "
-                             f"{max_iterations!r}")
+            raise ValueError(
+                f"FixedLagSmoother(max_iterations): expected an int >= 1, got {max_iterations!r}"
+            )
         leaves = jax.tree.leaves(state)
-        if not leaves or not all(jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating)
-                                 for a in leaves):
-            raise TypeError("FixedLagSmoother(state): expected a pytree of float arrays and "
-                            "Lie groups")
+        if not leaves or not all(
+            jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) for a in leaves
+        ):
+            raise TypeError(
+                "FixedLagSmoother(state): expected a pytree of float arrays and Lie groups"
+            )
         dtype = jnp.result_type(*leaves)
         d = manifold.tangent_size(state)
         k, m = window, max_loops
@@ -274,8 +279,7 @@ class FixedLagSmoother(eqx.Module):
         slots = jnp.arange(k)
         # motion factors (s-1, s), s = 1..K-1
         a, b = slots[:-1], slots[1:]
-        r, ja, jb = self._pair_terms(self.motion, _take(x, a), _take(x, b),
-                                     _take(self.data, b), d)
+        r, ja, jb = self._pair_terms(self.motion, _take(x, a), _take(x, b), _take(self.data, b), d)
         mask = valid[a] & valid[b]
         if touching_first:
             mask = mask & (a == 0)
@@ -313,9 +317,9 @@ class FixedLagSmoother(eqx.Module):
         # prior: g_pᵀδ + ½δᵀH_pδ, δ = x ⊖ x̄ per slot
         delta = jax.vmap(self._minus)(x, self.prior_point)  # (K, d)
         if self.exact_prior_jacobian:
+
             def chart(xs, xb):
-                return jax.jacfwd(lambda e: self._minus(self._plus(xs, e), xb))(
-                    jnp.zeros(d, dtype))
+                return jax.jacfwd(lambda e: self._minus(self._plus(xs, e), xb))(jnp.zeros(d, dtype))
 
             jac = jax.vmap(chart)(x, self.prior_point)  # (K, d, d)
         else:
@@ -354,8 +358,9 @@ class FixedLagSmoother(eqx.Module):
             done = ~ok | (jnp.max(jnp.abs(change)) < self.tol)
             return x_new, it + 1, done
 
-        x, it, _ = jax.lax.while_loop(cond, body, (self.states, jnp.zeros((), jnp.int32),
-                                                    jnp.zeros((), bool)))
+        x, it, _ = jax.lax.while_loop(
+            cond, body, (self.states, jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+        )
         return eqx.tree_at(lambda s: (s.states, s.iterations), self, (x, it))
 
     def _marginalize_first(self) -> tuple[Array, Array, Array]:
@@ -396,29 +401,40 @@ class FixedLagSmoother(eqx.Module):
         """
         k, d = self.window, self.tangent_dim
         if jax.tree.structure(guess) != jax.tree.structure(_take(self.states, 0)):
-            raise TypeError("FixedLagSmoother.update(guess): expected the structure of "
-                            "the example state")
+            raise TypeError(
+                "FixedLagSmoother.update(guess): expected the structure of the example state"
+            )
         if jax.tree.structure(data) != jax.tree.structure(_take(self.data, 0)):
-            raise TypeError("FixedLagSmoother.update(data): expected the structure of the "
-                            "example data")
-        for a, b in zip(jax.tree.leaves(guess), jax.tree.leaves(_take(self.states, 0)),
-                        strict=True):
+            raise TypeError(
+                "FixedLagSmoother.update(data): expected the structure of the example data"
+            )
+        for a, b in zip(
+            jax.tree.leaves(guess), jax.tree.leaves(_take(self.states, 0)), strict=True
+        ):
             if jnp.shape(a) != jnp.shape(b):
-                raise ValueError(f"FixedLagSmoother.update(guess): leaf of shape "
-                                 f"{jnp.shape(a)}, expected {jnp.shape(b)}")
+                raise ValueError(
+                    f"FixedLagSmoother.update(guess): leaf of shape "
+                    f"{jnp.shape(a)}, expected {jnp.shape(b)}"
+                )
         m = self.loop_lag.shape[1]
         if m:
             if loop_lag is None or loop_valid is None or loop_data is None:
-                raise ValueError("FixedLagSmoother.update: this smoother has max_loops > 0; "
-                                 "pass loop_lag, loop_valid and loop_data")
+                raise ValueError(
+                    "FixedLagSmoother.update: this smoother has max_loops > 0; "
+                    "pass loop_lag, loop_valid and loop_data"
+                )
             lag = jnp.asarray(loop_lag, jnp.int32)
             lv = jnp.asarray(loop_valid, bool)
             if lag.shape != (m,) or lv.shape != (m,):
-                raise ValueError(f"FixedLagSmoother.update(loop_lag, loop_valid): expected "
-                                 f"shape ({m},), got {lag.shape} and {lv.shape}")
-        guess = eqx.error_if(guess, ~jnp.all(jnp.stack(
-            [jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(guess)])),
-            "FixedLagSmoother.update(guess): non-finite values")
+                raise ValueError(
+                    f"FixedLagSmoother.update(loop_lag, loop_valid): expected "
+                    f"shape ({m},), got {lag.shape} and {lv.shape}"
+                )
+        guess = eqx.error_if(
+            guess,
+            ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(guess)])),
+            "FixedLagSmoother.update(guess): non-finite values",
+        )
         full = self.valid[0]
         info_m, grad_m, coupled = self._marginalize_first()
         dd = (k - 1) * d
@@ -432,17 +448,35 @@ class FixedLagSmoother(eqx.Module):
         if self.first_estimate:
             frozen = jnp.where(full, coupled, frozen)
         new = eqx.tree_at(
-            lambda s: (s.states, s.data, s.prior_info, s.prior_grad, s.prior_point, s.frozen,
-                       s.count),
+            lambda s: (
+                s.states,
+                s.data,
+                s.prior_info,
+                s.prior_grad,
+                s.prior_point,
+                s.frozen,
+                s.count,
+            ),
             self,
-            (_shift_in(self.states, guess), _shift_in(self.data, data), info, grad, point,
-             frozen, jnp.minimum(self.count + 1, k)),
+            (
+                _shift_in(self.states, guess),
+                _shift_in(self.data, data),
+                info,
+                grad,
+                point,
+                frozen,
+                jnp.minimum(self.count + 1, k),
+            ),
         )
         if m:
             new = eqx.tree_at(
-                lambda s: (s.loop_lag, s.loop_valid, s.loop_data), new,
-                (_shift_in(self.loop_lag, lag), _shift_in(self.loop_valid, lv),
-                 _shift_in(self.loop_data, loop_data)),
+                lambda s: (s.loop_lag, s.loop_valid, s.loop_data),
+                new,
+                (
+                    _shift_in(self.loop_lag, lag),
+                    _shift_in(self.loop_valid, lv),
+                    _shift_in(self.loop_data, loop_data),
+                ),
             )
         return new._optimize()
 

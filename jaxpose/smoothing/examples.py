@@ -58,8 +58,9 @@ def imu_motion(xp: dict, x: dict, d: dict) -> Array:
 def imu_unary(x: dict, d: dict) -> Array:
     """Whitened ``[S_gps·(t − z) (3,), w·S_prior·[pose, vel, bias prior] (15,)]``."""
     gps = d["gps_sqrt"] @ (x["pose"].data[0:3] - d["gps"])
-    prior = jnp.concatenate([pose_prior_residual(x["pose"], SE3(d["prior_pose"])),
-                             x["vel"] - d["prior_vel"], x["bias"]])
+    prior = jnp.concatenate(
+        [pose_prior_residual(x["pose"], SE3(d["prior_pose"])), x["vel"] - d["prior_vel"], x["bias"]]
+    )
     return jnp.concatenate([gps, d["prior_w"] * (d["prior_sqrt"] @ prior)])
 
 
@@ -106,25 +107,39 @@ def imu_gps_steps(
     gi = np.asarray(gps_index, dtype=np.int64).reshape(-1)
     z = np.asarray(gps_position, dtype=np.float64)
     if z.shape != (gi.size, 3):
-        raise ValueError(f"imu_gps_steps: {gi.size} GPS indices but gps_position has shape "
-                         f"{z.shape}")
+        raise ValueError(
+            f"imu_gps_steps: {gi.size} GPS indices but gps_position has shape {z.shape}"
+        )
     if gi.size == 0 or np.any(np.diff(gi) < 0) or gi[0] < 0 or gi[-1] > n:
-        raise ValueError(f"imu_gps_steps(gps_index): expected non-decreasing sample counts "
-                         f"in [0, {n}]")
+        raise ValueError(
+            f"imu_gps_steps(gps_index): expected non-decreasing sample counts in [0, {n}]"
+        )
     if not isinstance(init, NavState):
         raise TypeError(f"imu_gps_steps(init): expected NavState, got {type(init).__name__}")
     keyframes = np.unique(np.concatenate([[0], gi]))
     t = keyframes.size
     dtype = g.dtype
-    pre = preintegrate_windows(gyro, acc, dt, keyframes, gyro_noise=gyro_noise,
-                               acc_noise=acc_noise, integration_noise=integration_noise)
+    pre = preintegrate_windows(
+        gyro,
+        acc,
+        dt,
+        keyframes,
+        gyro_noise=gyro_noise,
+        acc_noise=acc_noise,
+        integration_noise=integration_noise,
+    )
     grav = jnp.asarray(gravity, dtype)
     # step k >= 1 carries window k-1 -> k; step 0 a copy of window 0 (motion unused)
     idx = np.concatenate([[0], np.arange(t - 1)])
     imu = ImuFactorData(
-        rot=pre.rot.data[idx], vel=pre.vel[idx], pos=pre.pos[idx], dt=pre.dt[idx],
-        jac=pre.jac[idx], bias_hat=jnp.concatenate([pre.gyro_bias, pre.acc_bias], -1)[idx],
-        gravity=jnp.broadcast_to(grav, (t, 3)))
+        rot=pre.rot.data[idx],
+        vel=pre.vel[idx],
+        pos=pre.pos[idx],
+        dt=pre.dt[idx],
+        jac=pre.jac[idx],
+        bias_hat=jnp.concatenate([pre.gyro_bias, pre.acc_bias], -1)[idx],
+        gravity=jnp.broadcast_to(grav, (t, 3)),
+    )
     cov = np.asarray(pre.cov, np.float64)[idx]
     imu_sqrt = _sqrt_information(np.linalg.inv(0.5 * (cov + np.swapaxes(cov, 1, 2))), t)
     var = np.concatenate([np.full(3, gyro_walk**2), np.full(3, acc_walk**2)])
@@ -137,8 +152,12 @@ def imu_gps_steps(
     gps[kf] = z
     gps_sqrt[kf] = np.eye(3) / gps_sigma
     s_rot, s_pos, s_vel, s_bias = prior_sigmas
-    prior_sqrt = np.diag(1.0 / np.concatenate([np.full(3, s_pos), np.full(3, s_rot),
-                                                np.full(3, s_vel), np.full(6, s_bias)]))
+    prior_sqrt = np.diag(
+        1.0
+        / np.concatenate(
+            [np.full(3, s_pos), np.full(3, s_rot), np.full(3, s_vel), np.full(6, s_bias)]
+        )
+    )
     first = np.zeros(t)
     first[0] = 1.0
     pose0 = init.pose().data
@@ -159,8 +178,14 @@ def imu_gps_steps(
 
 def imu_gps_smoother(steps: Steps, window: int, **kwargs: Any) -> FixedLagSmoother:
     """An empty :class:`FixedLagSmoother` for :func:`imu_gps_steps` (``kwargs`` go to it)."""
-    return FixedLagSmoother(steps.first, _take(steps.data, 0), window=window,
-                            motion=imu_motion, unary=imu_unary, **kwargs)
+    return FixedLagSmoother(
+        steps.first,
+        _take(steps.data, 0),
+        window=window,
+        motion=imu_motion,
+        unary=imu_unary,
+        **kwargs,
+    )
 
 
 # ---------------------------------------------------------------------- 2D pose graph
@@ -192,8 +217,9 @@ def pose_graph_steps(graph: Any, *, num_poses: int | None = None, dtype: Any = N
         raise ValueError("pose_graph_steps(graph): expected a 2D (SE2) PoseGraph")
     n = graph.poses.shape[0] if num_poses is None else int(num_poses)
     if not 2 <= n <= graph.poses.shape[0]:
-        raise ValueError(f"pose_graph_steps(num_poses): expected 2..{graph.poses.shape[0]}, "
-                         f"got {num_poses}")
+        raise ValueError(
+            f"pose_graph_steps(num_poses): expected 2..{graph.poses.shape[0]}, got {num_poses}"
+        )
     dtype = jnp.result_type(float) if dtype is None else dtype
     e = np.asarray(graph.edges)
     zm = np.asarray(graph.measurements, np.float64)
@@ -228,11 +254,17 @@ def pose_graph_steps(graph: Any, *, num_poses: int | None = None, dtype: Any = N
     prior_w = np.zeros(n)
     prior_w[0] = 1.0
     p0 = np.asarray(SE2(jnp.asarray(graph.poses[0], jnp.float64)).normalize().data)
-    data = {"z": jnp.asarray(odo, dtype), "sqrt": jnp.asarray(odo_sqrt, dtype),
-            "prior": jnp.broadcast_to(jnp.asarray(p0, dtype), (n, 4)),
-            "prior_w": jnp.asarray(prior_w, dtype)}
-    loops = (jnp.asarray(lag), jnp.asarray(valid),
-             {"z": jnp.asarray(lz, dtype), "sqrt": jnp.asarray(lsq, dtype)})
+    data = {
+        "z": jnp.asarray(odo, dtype),
+        "sqrt": jnp.asarray(odo_sqrt, dtype),
+        "prior": jnp.broadcast_to(jnp.asarray(p0, dtype), (n, 4)),
+        "prior_w": jnp.asarray(prior_w, dtype),
+    }
+    loops = (
+        jnp.asarray(lag),
+        jnp.asarray(valid),
+        {"z": jnp.asarray(lz, dtype), "sqrt": jnp.asarray(lsq, dtype)},
+    )
     x0 = {"pose": SE2(jnp.asarray(p0, dtype))}
     return Steps(data, x0, loops, _se2_predict)
 
@@ -240,10 +272,17 @@ def pose_graph_steps(graph: Any, *, num_poses: int | None = None, dtype: Any = N
 def pose_graph_smoother(steps: Steps, window: int, **kwargs: Any) -> FixedLagSmoother:
     """An empty :class:`FixedLagSmoother` for :func:`pose_graph_steps`."""
     lag, _, ld = steps.loops
-    return FixedLagSmoother(steps.first, _take(steps.data, 0), window=window,
-                            motion=se2_between, unary=se2_prior, loop=se2_loop,
-                            loop_data=_take(_take(ld, 0), 0), max_loops=lag.shape[1],
-                            **kwargs)
+    return FixedLagSmoother(
+        steps.first,
+        _take(steps.data, 0),
+        window=window,
+        motion=se2_between,
+        unary=se2_prior,
+        loop=se2_loop,
+        loop_data=_take(_take(ld, 0), 0),
+        max_loops=lag.shape[1],
+        **kwargs,
+    )
 
 
 # ---------------------------------------------------------------------- runner
@@ -265,8 +304,9 @@ class RunResult(NamedTuple):
 def _scan(sm: FixedLagSmoother, steps: Steps, covariance: bool):
     def body(s, inp):
         k, d, lp = inp
-        x = jax.tree.map(lambda a, b: jnp.where(k == 0, a, b), steps.first,
-                         steps.predict(s.latest(), d))
+        x = jax.tree.map(
+            lambda a, b: jnp.where(k == 0, a, b), steps.first, steps.predict(s.latest(), d)
+        )
         if lp is None:
             s = s.update(x, d)
         else:
@@ -287,6 +327,9 @@ def run(sm: FixedLagSmoother, steps: Steps, *, covariance: bool = False) -> RunR
     head = _take(oldest, jnp.arange(k - 1, t)) if t >= k else None
     n_tail = min(t, k)
     tail = _take(sm.states, jnp.arange(k - n_tail, k))
-    traj = tail if head is None else jax.tree.map(
-        lambda a, b: jnp.concatenate([a[: t - n_tail], b]), head, tail)
+    traj = (
+        tail
+        if head is None
+        else jax.tree.map(lambda a, b: jnp.concatenate([a[: t - n_tail], b]), head, tail)
+    )
     return RunResult(latest, cov, traj, guesses, sm, its)

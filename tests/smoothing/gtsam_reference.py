@@ -35,8 +35,11 @@ def _split(jac):
 
 def _state(values, k):
     pose = SE3.from_matrix(jnp.asarray(values.atPose3(X(k)).matrix()))
-    return {"bias": jnp.asarray(values.atVector(B(k))), "pose": pose,
-            "vel": jnp.asarray(values.atVector(V(k)))}
+    return {
+        "bias": jnp.asarray(values.atVector(B(k))),
+        "pose": pose,
+        "vel": jnp.asarray(values.atVector(V(k))),
+    }
 
 
 def _plus(x, e):
@@ -69,8 +72,7 @@ def make_factors(motion, unary):
             return np.asarray(r)
 
         dim = int(motion_rj(_state_zero(), _state_zero(), d)[0].shape[0])
-        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(dim), _keys(k - 1) + _keys(k),
-                                  err)
+        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(dim), _keys(k - 1) + _keys(k), err)
 
     def unary_factor(k, d):
         def err(this, values, H):

@@ -45,7 +45,7 @@ def _batch(data, t):
     a, b = [], []
     for k in range(t):
         row = np.zeros((2, n))
-        row[:, 2 * k: 2 * k + 2] = np.eye(2) / R
+        row[:, 2 * k : 2 * k + 2] = np.eye(2) / R
         a.append(row)
         b.append(np.asarray(data["z"][k]) / R)
         if k == 0:
@@ -55,8 +55,8 @@ def _batch(data, t):
             b.append(np.zeros(2))
         else:
             row = np.zeros((2, n))
-            row[:, 2 * k - 2: 2 * k] = -np.eye(2) / Q
-            row[:, 2 * k: 2 * k + 2] = np.eye(2) / Q
+            row[:, 2 * k - 2 : 2 * k] = -np.eye(2) / Q
+            row[:, 2 * k : 2 * k + 2] = np.eye(2) / Q
             a.append(row)
             b.append(np.zeros(2))
     a, b = np.concatenate(a), np.concatenate(b)
@@ -138,9 +138,14 @@ def test_pose_graph_replay_window_covering_the_graph_equals_batch():
     steps = ex.pose_graph_steps(graph, num_poses=n)
     res = ex.run(ex.pose_graph_smoother(steps, n), steps)
     keep = graph.edges.max(1) < n
-    sub = type(graph)(kind="SE2", vertex_ids=graph.vertex_ids[:n], poses=graph.poses[:n],
-                      edges=graph.edges[keep], measurements=graph.measurements[keep],
-                      information=graph.information[keep])
+    sub = type(graph)(
+        kind="SE2",
+        vertex_ids=graph.vertex_ids[:n],
+        poses=graph.poses[:n],
+        edges=graph.edges[keep],
+        measurements=graph.measurements[keep],
+        information=graph.information[keep],
+    )
     ref_poses, _ = pgo.optimize_pose_graph(sub, fix="first")
     got = np.asarray(res.trajectory["pose"].data)
     np.testing.assert_allclose(got, ref_poses, atol=1e-5)

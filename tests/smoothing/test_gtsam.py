@@ -23,8 +23,9 @@ from jaxpose.smoothing import examples as ex
 gtsam = pytest.importorskip("gtsam")
 pytestmark = [pytest.mark.peer, pytest.mark.slow]
 
-CSV = os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data", "imu",
-                   "imuAndGPSdata.csv")
+CSV = os.path.join(
+    os.path.dirname(__file__), "..", "..", "..", "shared", "data", "imu", "imuAndGPSdata.csv"
+)
 
 
 def stream(fixes, noise=0.0, seed=0):
@@ -37,8 +38,7 @@ def stream(fixes, noise=0.0, seed=0):
     n = int(d.gps_index[fixes - 1])
     z = d.gps_position[sel] + np.random.default_rng(seed).normal(size=(fixes - 1, 3)) * noise
     init = NavState(SO3(jnp.asarray(d.init_rotation)), d.init_velocity, d.init_position)
-    return ex.imu_gps_steps(d.gyro[:n], d.acc[:n], 0.005, d.gps_index[sel], z, init,
-                            gps_sigma=0.5)
+    return ex.imu_gps_steps(d.gyro[:n], d.acc[:n], 0.005, d.gps_index[sel], z, init, gps_sigma=0.5)
 
 
 def test_imu_gps_equals_gtsam_batch_fixed_lag():
