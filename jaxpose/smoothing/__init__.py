@@ -8,6 +8,7 @@ marginalising the oldest into a Gaussian prior (``docs/smoothing.md``).
   (:func:`~jaxpose.smoothing.examples.pose_graph_replay`).
 """
 
+from . import examples as examples
 from ._fixed_lag import FixedLagSmoother as FixedLagSmoother
 
-__all__ = ["FixedLagSmoother"]
+__all__ = ["FixedLagSmoother", "examples"]

@@ -36,6 +36,22 @@ from ._fixed_lag import FixedLagSmoother, _take
 
 Array = jax.Array
 
+__all__ = [
+    "RunResult",
+    "Steps",
+    "imu_gps_smoother",
+    "imu_gps_steps",
+    "imu_motion",
+    "imu_unary",
+    "pose_graph_smoother",
+    "pose_graph_steps",
+    "run",
+    "run_scan",
+    "se2_between",
+    "se2_loop",
+    "se2_prior",
+]
+
 
 class Steps(NamedTuple):
     """A stream: ``data`` step data stacked over T steps (leading axis), ``first`` the
@@ -300,8 +316,7 @@ class RunResult(NamedTuple):
     iterations: Array
 
 
-@eqx.filter_jit
-def _scan(sm: FixedLagSmoother, steps: Steps, covariance: bool):
+def _scan_impl(sm: FixedLagSmoother, steps: Steps, covariance: bool):
     def body(s, inp):
         k, d, lp = inp
         x = jax.tree.map(
@@ -317,6 +332,14 @@ def _scan(sm: FixedLagSmoother, steps: Steps, covariance: bool):
     t = jax.tree.leaves(steps.data)[0].shape[0]
     sm, out = jax.lax.scan(body, sm, (jnp.arange(t), steps.data, steps.loops))
     return sm, out
+
+
+_scan = eqx.filter_jit(_scan_impl)
+
+
+def run_scan(sm: FixedLagSmoother, steps: Steps) -> FixedLagSmoother:
+    """The smoother after replaying ``steps`` (pure: jit it, vmap it over streams)."""
+    return _scan_impl(sm, steps, False)[0]
 
 
 def run(sm: FixedLagSmoother, steps: Steps, *, covariance: bool = False) -> RunResult:
