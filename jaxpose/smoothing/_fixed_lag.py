@@ -108,7 +108,10 @@ class FixedLagSmoother(eqx.Module):
     Fields (all arrays, batchable with ``jax.vmap`` / ``eqx.filter_vmap`` over streams):
     ``states`` (K, ...) stacked states, ``data`` (K, ...) their step data, ``loop_lag``
     (K, M) int, ``loop_valid`` (K, M) bool, ``loop_data`` (K, M, ...), ``prior_info``
-    (n, n), ``prior_grad`` (n,), ``prior_point`` (K, ...) stacked linearisation point,
+    (n, n) and ``prior_grad`` (n,) (without loop factors, ``max_loops=0``: (d, d) and
+    (d,) on the oldest slot, the only one a prior can reach in a chain, and the window
+    is solved with block-tridiagonal Cholesky in O(K·d³)), ``prior_point`` (K, ...)
+    stacked linearisation point, ``frozen`` (K,) states in the prior,
     ``count`` () number of filled slots (≤ K), ``iterations`` () Gauss–Newton iterations of
     the last update.
     """
@@ -132,6 +135,7 @@ class FixedLagSmoother(eqx.Module):
     tol: float = eqx.field(static=True)
     exact_prior_jacobian: bool = eqx.field(static=True)
     first_estimate: bool = eqx.field(static=True)
+    chain: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -198,8 +202,12 @@ class FixedLagSmoother(eqx.Module):
         self.loop_lag = jnp.ones((k, m), jnp.int32)
         self.loop_valid = jnp.zeros((k, m), bool)
         self.loop_data = _stack(_stack(loop_data, m), k) if m else None
-        self.prior_info = jnp.zeros((k * d, k * d), dtype)
-        self.prior_grad = jnp.zeros((k * d,), dtype)
+        # without loop factors the window system is block tridiagonal and the prior
+        # only ever lives on the oldest slot: (d, d) storage, block-tridiagonal solves
+        self.chain = m == 0
+        p = d if self.chain else k * d
+        self.prior_info = jnp.zeros((p, p), dtype)
+        self.prior_grad = jnp.zeros((p,), dtype)
         self.frozen = jnp.zeros((k,), bool)
         self.count = jnp.zeros((), jnp.int32)
         self.iterations = jnp.zeros((), jnp.int32)
@@ -252,6 +260,95 @@ class FixedLagSmoother(eqx.Module):
             return r, j[:, :d], j[:, d:]
 
         return jax.vmap(one)(xa, xb, data)
+
+    def _prior_dense(self) -> tuple[Array, Array]:
+        """The prior as (n, n) information and (n,) gradient."""
+        if not self.chain:
+            return self.prior_info, self.prior_grad
+        n, d = self.window * self.tangent_dim, self.tangent_dim
+        info = jnp.zeros((n, n), self.prior_info.dtype).at[:d, :d].set(self.prior_info)
+        return info, jnp.zeros((n,), self.prior_grad.dtype).at[:d].set(self.prior_grad)
+
+    def _unary_terms(self, x: PyTree) -> tuple[Array, Array]:
+        """Residuals (m, r) and Jacobians (m, r, d) of the unary factors of stacked x."""
+        unary, d = self.unary, self.tangent_dim
+
+        def one(xs, dat):
+            def f(e):
+                return unary(self._plus(xs, e), dat)
+
+            z = jnp.zeros(d, self.prior_grad.dtype)
+            return f(z), jax.jacfwd(f)(z)
+
+        return jax.vmap(one)(x, _take(self.data, jnp.arange(jax.tree.leaves(x)[0].shape[0])))
+
+    def _prior_terms(self, y0: PyTree, xb0: PyTree) -> tuple[Array, Array, Array]:
+        """Chain prior at slot 0: (d, d) information, (d,) gradient and cost at y0."""
+        d = self.tangent_dim
+        delta = self._minus(y0, xb0)
+        if self.exact_prior_jacobian:
+            jac = jax.jacfwd(lambda e: self._minus(self._plus(y0, e), xb0))(
+                jnp.zeros(d, delta.dtype)
+            )
+        else:
+            jac = jnp.eye(d, dtype=delta.dtype)
+        p, gp = self.prior_info, self.prior_grad
+        cost = gp @ delta + 0.5 * delta @ (p @ delta)
+        return jac.T @ p @ jac, jac.T @ (p @ delta + gp), cost
+
+    def _chain_system(self, x: PyTree) -> tuple[Array, Array, Array]:
+        """Block-tridiagonal Gauss–Newton system at x: diagonal blocks (K, d, d), upper
+        blocks (K−1, d, d) (slot s, s+1) and gradient (K, d)."""
+        k, d = self.window, self.tangent_dim
+        valid = self.valid
+        slots = jnp.arange(k)
+        a, b = slots[:-1], slots[1:]
+        r, ja, jb = self._pair_terms(self.motion, _take(x, a), _take(x, b), _take(self.data, b), d)
+        mask = (valid[a] & valid[b])[:, None, None]
+        ja, jb = jnp.where(mask, ja, 0.0), jnp.where(mask, jb, 0.0)
+        r = jnp.where(mask[:, :, 0], r, 0.0)
+        diag = jnp.zeros((k, d, d), r.dtype)
+        diag = diag.at[:-1].add(jnp.einsum("mra,mrb->mab", ja, ja))
+        diag = diag.at[1:].add(jnp.einsum("mra,mrb->mab", jb, jb))
+        up = jnp.einsum("mra,mrb->mab", ja, jb)
+        g = jnp.zeros((k, d), r.dtype)
+        g = g.at[:-1].add(jnp.einsum("mra,mr->ma", ja, r))
+        g = g.at[1:].add(jnp.einsum("mra,mr->ma", jb, r))
+        if self.unary is not None:
+            ru, ju = self._unary_terms(x)
+            ju = jnp.where(valid[:, None, None], ju, 0.0)
+            ru = jnp.where(valid[:, None], ru, 0.0)
+            diag = diag + jnp.einsum("mra,mrb->mab", ju, ju)
+            g = g + jnp.einsum("mra,mr->ma", ju, ru)
+        hp, gp, _ = self._prior_terms(_take(x, 0), _take(self.prior_point, 0))
+        diag = diag.at[0].add(hp)
+        g = g.at[0].add(gp)
+        return diag, up, g
+
+    @staticmethod
+    def _solve_chain(diag: Array, up: Array, rhs: Array) -> Array:
+        """Solve the SPD block-tridiagonal system (block Cholesky / Thomas), (K, d)."""
+
+        def fwd(carry, inp):
+            s_prev, y_prev = carry
+            d_i, b_prev, r_i = inp
+            cf = jsl.cho_factor(s_prev)
+            s_i = d_i - b_prev.T @ jsl.cho_solve(cf, b_prev)
+            y_i = r_i - b_prev.T @ jsl.cho_solve(cf, y_prev)
+            return (s_i, y_i), (s_i, y_i)
+
+        _, (ss, ys) = jax.lax.scan(fwd, (diag[0], rhs[0]), (diag[1:], up, rhs[1:]))
+        ss = jnp.concatenate([diag[:1], ss])
+        ys = jnp.concatenate([rhs[:1], ys])
+        x_last = jsl.cho_solve(jsl.cho_factor(ss[-1]), ys[-1])
+
+        def back(x_next, inp):
+            s_i, y_i, b_i = inp
+            x_i = jsl.cho_solve(jsl.cho_factor(s_i), y_i - b_i @ x_next)
+            return x_i, x_i
+
+        _, xs = jax.lax.scan(back, x_last, (ss[:-1], ys[:-1], up), reverse=True)
+        return jnp.concatenate([xs, x_last[None]])
 
     def _system(self, x: PyTree, touching_first: bool) -> tuple[Array, Array, Array]:
         """Gauss–Newton system (H (n, n), g (n,), cost) at ``x``; with
@@ -315,6 +412,7 @@ class FixedLagSmoother(eqx.Module):
         h = h.reshape(k * d, k * d)
         g = g.reshape(k * d)
         # prior: g_pᵀδ + ½δᵀH_pδ, δ = x ⊖ x̄ per slot
+        pinfo, pgrad = self._prior_dense()
         delta = jax.vmap(self._minus)(x, self.prior_point)  # (K, d)
         if self.exact_prior_jacobian:
 
@@ -325,11 +423,11 @@ class FixedLagSmoother(eqx.Module):
         else:
             jac = jnp.broadcast_to(jnp.eye(d, dtype=dtype), (k, d, d))
         dv = delta.reshape(-1)
-        hp4 = self.prior_info.reshape(k, d, k, d)
+        hp4 = pinfo.reshape(k, d, k, d)
         h = h + jnp.einsum("iab,iajc,jcd->ibjd", jac, hp4, jac).reshape(k * d, k * d)
-        grad_p = (self.prior_info @ dv + self.prior_grad).reshape(k, d)
+        grad_p = (pinfo @ dv + pgrad).reshape(k, d)
         g = g + jnp.einsum("iab,ia->ib", jac, grad_p).reshape(-1)
-        cost = cost + self.prior_grad @ dv + 0.5 * dv @ (self.prior_info @ dv)
+        cost = cost + pgrad @ dv + 0.5 * dv @ (pinfo @ dv)
         return h, g, cost
 
     def _regularised(self, h: Array) -> Array:
@@ -348,9 +446,15 @@ class FixedLagSmoother(eqx.Module):
         def body(c):
             x, it, _ = c
             y = _where(self.frozen, self.prior_point, x)
-            h, g, _ = self._system(y, False)
-            cf = jsl.cho_factor(self._regularised(h))
-            step = -jsl.cho_solve(cf, g)
+            if self.chain:
+                diag, up, g = self._chain_system(y)
+                empty = (~self.valid).astype(g.dtype)[:, None, None]
+                diag = diag + empty * jnp.eye(d, dtype=g.dtype)
+                step = self._solve_chain(diag, up, -g)
+            else:
+                h, g, _ = self._system(y, False)
+                cf = jsl.cho_factor(self._regularised(h))
+                step = -jsl.cho_solve(cf, g)
             ok = jnp.all(jnp.isfinite(step))
             step = jnp.where(ok, step, 0.0).reshape(k, d)
             x_new = _where(ok, jax.vmap(self._plus)(y, step), x)
@@ -367,6 +471,8 @@ class FixedLagSmoother(eqx.Module):
         """Prior on slots 1..K-1 (shifted to 0..K-2, last slot empty) after eliminating
         slot 0 at the linearisation point, and the (K,) slots it couples (shifted)."""
         k, d = self.window, self.tangent_dim
+        if self.chain:
+            return self._marginalize_chain()
         h, g, _ = self._system(self.linearization_point(), True)
         coupled = jnp.any(h[:d].reshape(d, k, d) != 0, axis=(0, 2)) | self.frozen
         coupled = jnp.concatenate([coupled[1:], jnp.zeros((1,), bool)])
@@ -379,6 +485,30 @@ class FixedLagSmoother(eqx.Module):
         info = jnp.zeros_like(self.prior_info).at[: (k - 1) * d, : (k - 1) * d].set(hn)
         grad = jnp.zeros_like(self.prior_grad).at[: (k - 1) * d].set(gn)
         return info, grad, coupled
+
+    def _marginalize_chain(self) -> tuple[Array, Array, Array]:
+        """Chain case of :meth:`_marginalize_first`: the new prior lives on slot 1."""
+        d = self.tangent_dim
+        y = self.linearization_point()
+        pair = jnp.array([0, 1])
+        x01 = _take(y, pair)
+        r, ja, jb = self._pair_terms(
+            self.motion, _take(x01, pair[:1]), _take(x01, pair[1:]), _take(self.data, pair[1:]), d
+        )
+        r, ja, jb = r[0], ja[0], jb[0]
+        h00, g0, _ = self._prior_terms(_take(y, 0), _take(self.prior_point, 0))
+        h00 = h00 + ja.T @ ja
+        g0 = g0 + ja.T @ r
+        if self.unary is not None:
+            ru, ju = self._unary_terms(_take(y, pair[:1]))
+            h00 = h00 + ju[0].T @ ju[0]
+            g0 = g0 + ju[0].T @ ru[0]
+        h01, h11, g1 = ja.T @ jb, jb.T @ jb, jb.T @ r
+        cf = jsl.cho_factor(h00)
+        info = h11 - h01.T @ jsl.cho_solve(cf, h01)
+        grad = g1 - h01.T @ jsl.cho_solve(cf, g0)
+        coupled = jnp.zeros((self.window,), bool).at[0].set(True)
+        return 0.5 * (info + info.T), grad, coupled
 
     # ------------------------------------------------------------------ public
     def update(
@@ -437,9 +567,12 @@ class FixedLagSmoother(eqx.Module):
         )
         full = self.valid[0]
         info_m, grad_m, coupled = self._marginalize_first()
-        dd = (k - 1) * d
-        info_s = jnp.zeros_like(self.prior_info).at[:dd, :dd].set(self.prior_info[d:, d:])
-        grad_s = jnp.zeros_like(self.prior_grad).at[:dd].set(self.prior_grad[d:])
+        if self.chain:  # before the first marginalisation the prior is empty
+            info_s, grad_s = self.prior_info, self.prior_grad
+        else:
+            dd = (k - 1) * d
+            info_s = jnp.zeros_like(self.prior_info).at[:dd, :dd].set(self.prior_info[d:, d:])
+            grad_s = jnp.zeros_like(self.prior_grad).at[:dd].set(self.prior_grad[d:])
         info = jnp.where(full, info_m, info_s)
         grad = jnp.where(full, grad_m, grad_s)
         # a new prior is anchored at the linearisation point; else unchanged

@@ -165,7 +165,7 @@ if g2o is not None and g2o.exists():
     plt.legend()
     plt.show()
     print(f"{poses} poses: smoother vs batch, RMS position difference "
-          f"{np.sqrt(np.mean(np.sum((xy - ref[:, :2]) ** 2, 1))):.3f} m")
+          f"{np.sqrt(np.mean(np.sum((xy - ref[:, :2]) ** 2, 1))):.2e} m")
 
 # %% [markdown]
 # ## Many streams at once
@@ -188,4 +188,5 @@ def run_many(sms, data):
 
 
 final = run_many(sms, batched)
-print("newest positions of", B, "streams:\n", np.asarray(final.latest()["pose"].data[:, :3]))
+newest = jax.vmap(lambda s: s.latest())(final)
+print(f"newest positions of {B} streams:\n", np.asarray(newest["pose"].data[:, :3]))

@@ -64,25 +64,35 @@ def _batch(data, t):
     return h, np.linalg.solve(h, a.T @ b)
 
 
-def _smoother(window, **kw):
+def _smoother(window, dense=False, **kw):
+    """``dense``: one (never valid) loop slot forces the dense window system instead of
+    the block-tridiagonal chain solver."""
     x0 = {"p": jnp.zeros(2)}
     d0 = {"z": jnp.zeros(2), "w": jnp.zeros(())}
+    if dense:
+        kw.update(loop=_motion, loop_data=d0, max_loops=1)
     return FixedLagSmoother(x0, d0, window=window, motion=_motion, unary=_unary, **kw)
 
 
 @jax.jit
 def _run_linear(sm, data):
     def body(s, d):
-        s = s.update({"p": s.latest()["p"]}, d)
+        if s.chain:
+            s = s.update({"p": s.latest()["p"]}, d)
+        else:
+            ld = jax.tree.map(lambda a: a[None], d)
+            s = s.update({"p": s.latest()["p"]}, d, jnp.ones(1, int), jnp.zeros(1, bool), ld)
         return s, (s.latest()["p"], s.marginal_covariances()[-1])
 
     return jax.lax.scan(body, sm, data)
 
 
-def test_linear_chain_equals_batch_marginals():
+@pytest.mark.parametrize("dense", [False, True], ids=["chain", "dense"])
+def test_linear_chain_equals_batch_marginals(dense):
     t, k = 9, 4
     data = _linear_stream(t)
-    sm, (latest, cov) = _run_linear(_smoother(k), data)
+    sm, (latest, cov) = _run_linear(_smoother(k, dense), data)
+    assert sm.chain != dense
     for j in range(1, t + 1):
         h, mean = _batch(jax.tree.map(lambda a: a[:j], data), j)
         np.testing.assert_allclose(latest[j - 1], mean[-2:], atol=1e-9)
@@ -93,7 +103,7 @@ def test_linear_chain_equals_batch_marginals():
     full_cov = np.linalg.inv(h).reshape(t, 2, t, 2)
     blocks = np.stack([full_cov[i, :, i, :] for i in range(t - k, t)])
     np.testing.assert_allclose(sm.marginal_covariances(), blocks, atol=1e-9)
-    assert sm.count == k and bool(sm.frozen[0])
+    assert sm.count == k and bool(sm.frozen[0]) and not bool(sm.frozen[1:].any())
 
 
 def test_vmap_over_streams_equals_separate_runs():
