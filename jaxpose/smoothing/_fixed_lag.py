@@ -1,4 +1,4 @@
-"""Fixed-lag smoothing over a window of the last ``K`` states (dense window system).
+"""Fixed-lag smoothing over a window of the last ``K`` states.
 
 The smoother holds the last ``K`` states of a stream in fixed-shape arrays (a shift
 register: slot 0 is the oldest, slot ``K − 1`` the newest) together with the data of the
@@ -8,8 +8,8 @@ Each :meth:`FixedLagSmoother.update`:
 1. marginalises the oldest state, if the window is full: the factors touching slot 0
    (its unary factors, the motion factor to slot 1, loop factors ending in slot 0) and
    the current prior are linearised at the linearisation point (below) and slot 0 is
-   eliminated (Schur complement). The result is the new prior, stored as information ``H_p``
-   (n, n) and gradient ``g_p`` (n,) in the tangent chart at a linearisation point
+   eliminated (Schur complement). The result is the new prior, stored as information
+   ``H_p`` (n, n) and gradient ``g_p`` (n,) in the tangent chart at a linearisation point
    ``x̄`` (the linearisation point at marginalisation time): ``cost_p(x) = g_pᵀδ +
    ½δᵀH_pδ`` with ``δ = x ⊖ x̄`` per slot (``Log(x̄⁻¹x)`` for groups). Those factors
    are dropped.
@@ -18,9 +18,10 @@ Each :meth:`FixedLagSmoother.update`:
    ``M`` loop factors to older states still in the window; loop factors whose other end
    was marginalised are dropped, as in GTSAM, whose fixed-lag smoothers remove the
    factors of marginalised variables);
-3. solves the window by Gauss–Newton on the dense normal equations (``n = K·d``,
-   ``d`` the tangent size of one state; Cholesky) until the largest change of the
-   estimate (tangent components) is below ``tol``.
+3. solves the window by Gauss–Newton (Cholesky of the normal equations: block
+   tridiagonal, ``O(K·d³)``, without loop factors; dense, ``n = K·d``, with them; ``d``
+   the tangent size of one state) until the largest change of the estimate (tangent
+   components) is below ``tol``.
 
 The prior's linearisation point ``x̄`` never moves while the prior exists. With
 ``first_estimate=True`` (default; GTSAM's ``BatchFixedLagSmoother``, whose

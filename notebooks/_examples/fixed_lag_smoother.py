@@ -84,9 +84,11 @@ smoother = ex.imu_gps_smoother(steps, WINDOW)
 t0 = time.perf_counter()
 res = ex.run(smoother, steps, covariance=True)
 jax.block_until_ready(res.latest)
-print(f"{len(gps_index) + 1} updates (window {WINDOW}) incl. compilation: "
-      f"{time.perf_counter() - t0:.1f} s; Gauss-Newton iterations per update: "
-      f"{np.asarray(res.iterations).tolist()[:12]}...")
+print(
+    f"{len(gps_index) + 1} updates (window {WINDOW}) incl. compilation: "
+    f"{time.perf_counter() - t0:.1f} s; Gauss-Newton iterations per update: "
+    f"{np.asarray(res.iterations).tolist()[:12]}..."
+)
 
 # %% [markdown]
 # ## Estimate and ±3σ band against GPS
@@ -106,8 +108,9 @@ sigma = np.sqrt(np.diagonal(cov_nav, axis1=1, axis2=2))
 time_s = np.concatenate([[0.0], gps_index * 0.005])
 fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
 for i, ax in enumerate(axes):
-    ax.fill_between(time_s, pos[:, i] - 3 * sigma[:, i], pos[:, i] + 3 * sigma[:, i],
-                    alpha=0.3, label="±3σ")
+    ax.fill_between(
+        time_s, pos[:, i] - 3 * sigma[:, i], pos[:, i] + 3 * sigma[:, i], alpha=0.3, label="±3σ"
+    )
     ax.plot(time_s, pos[:, i], label="smoother (newest)")
     ax.plot(time_s[1:], gps[:, i], ".", label="GPS")
     ax.set_ylabel("xyz"[i] + " [m]")
@@ -116,8 +119,10 @@ axes[-1].set_xlabel("time [s]")
 fig.tight_layout()
 plt.show()
 err = pos[1:] - truth
-print(f"newest-state error: RMS {np.sqrt(np.mean(err**2)):.3f} m (GPS noise σ {SIGMA} m); "
-      f"inside 3σ: {np.mean(np.abs(err) <= 3 * sigma[1:]):.0%} of the coordinates")
+print(
+    f"newest-state error: RMS {np.sqrt(np.mean(err**2)):.3f} m (GPS noise σ {SIGMA} m); "
+    f"inside 3σ: {np.mean(np.abs(err) <= 3 * sigma[1:]):.0%} of the coordinates"
+)
 
 # %% [markdown]
 # ## Against the full batch solution
@@ -129,8 +134,10 @@ print(f"newest-state error: RMS {np.sqrt(np.mean(err**2)):.3f} m (GPS noise σ {
 batch = fuse_imu_gps(gyro[:n], acc[:n], 0.005, gps_index, gps, init, gps_sigma=SIGMA)
 traj = np.asarray(res.trajectory["pose"].data[:, 0:3])
 diff = traj - np.asarray(batch.pose.data[:, 0:3])
-print(f"final trajectory vs batch: RMS {np.sqrt(np.mean(diff**2)):.2e} m, "
-      f"max {np.abs(diff).max():.2e} m (newest state: {np.abs(diff[-1]).max():.2e} m)")
+print(
+    f"final trajectory vs batch: RMS {np.sqrt(np.mean(diff**2)):.2e} m, "
+    f"max {np.abs(diff).max():.2e} m (newest state: {np.abs(diff[-1]).max():.2e} m)"
+)
 
 # %% [markdown]
 # ## A 2D pose graph, pose by pose
@@ -151,10 +158,14 @@ if g2o is not None and g2o.exists():
     pg_steps = ex.pose_graph_steps(graph, num_poses=poses)
     pg = ex.run(ex.pose_graph_smoother(pg_steps, 6 if SMOKE else 30), pg_steps)
     keep = graph.edges.max(1) < poses
-    sub = type(graph)(kind="SE2", vertex_ids=graph.vertex_ids[:poses],
-                      poses=graph.poses[:poses], edges=graph.edges[keep],
-                      measurements=graph.measurements[keep],
-                      information=graph.information[keep])
+    sub = type(graph)(
+        kind="SE2",
+        vertex_ids=graph.vertex_ids[:poses],
+        poses=graph.poses[:poses],
+        edges=graph.edges[keep],
+        measurements=graph.measurements[keep],
+        information=graph.information[keep],
+    )
     ref, _ = pgo.optimize_pose_graph(sub)
     xy = np.asarray(pg.trajectory["pose"].data[:, :2])
     plt.figure(figsize=(6, 6))
@@ -164,8 +175,10 @@ if g2o is not None and g2o.exists():
     plt.axis("equal")
     plt.legend()
     plt.show()
-    print(f"{poses} poses: smoother vs batch, RMS position difference "
-          f"{np.sqrt(np.mean(np.sum((xy - ref[:, :2]) ** 2, 1))):.2e} m")
+    print(
+        f"{poses} poses: smoother vs batch, RMS position difference "
+        f"{np.sqrt(np.mean(np.sum((xy - ref[:, :2]) ** 2, 1))):.2e} m"
+    )
 
 # %% [markdown]
 # ## Many streams at once
@@ -176,8 +189,9 @@ if g2o is not None and g2o.exists():
 # %%
 B = 2 if SMOKE else 8
 noisy = truth[None] + rng.normal(size=(B, *truth.shape)) * SIGMA
-datas = [ex.imu_gps_steps(gyro[:n], acc[:n], 0.005, gps_index, z, init, gps_sigma=SIGMA)
-         for z in noisy]
+datas = [
+    ex.imu_gps_steps(gyro[:n], acc[:n], 0.005, gps_index, z, init, gps_sigma=SIGMA) for z in noisy
+]
 batched = jax.tree.map(lambda *a: jnp.stack(a), *[s.data for s in datas])
 sms = eqx.filter_vmap(lambda _: ex.imu_gps_smoother(steps, WINDOW), axis_size=B)(jnp.arange(B))
 
