@@ -69,6 +69,7 @@ KNOWN: dict[str, Spec] = {
     "geometry": Spec("Geometry"),
     "imu": Spec("IMU preintegration"),
     "ba": Spec("Bundle adjustment"),
+    "smoother": Spec("Fixed-lag smoother: jaxpose vs GTSAM iSAM2", quick=("--quick",)),
 }
 
 

@@ -4,7 +4,8 @@ Public API: ``jaxpose.lie`` (groups, algebras, manifold calculus), re-exported h
 ``jp.SO3``, ``jp.SE3``, ... and the functional ops ``jp.exp``, ``jp.log``, ...; the
 subpackages ``optim`` (dense least squares), ``graph`` (sparse factor graphs, PGO, BA),
 ``io`` (g2o, BAL), ``dynamics``, ``filters``, ``control``, ``imu``, ``geometry``,
-``sharding``, ``interop`` and ``testing`` (a Lie-aware ``assert_close``).
+``sharding``, ``smoothing`` (fixed-lag smoother), ``interop`` and ``testing`` (a Lie-aware
+``assert_close``).
 """
 
 from . import (
@@ -20,6 +21,7 @@ from . import (
     lie,
     optim,
     sharding,
+    smoothing,
     testing,
 )
 from .datasets import synthetic_bal, synthetic_pose_graph
@@ -79,7 +81,7 @@ __version__ = "0.1.0"
 __all__ = [
     "BALProblem", "FormatError", "PoseGraph", "__version__", "control", "datasets", "dynamics",
     "filters", "geometry", "graph", "imu", "interop", "io", "lie", "optim", "read_bal",
-    "read_g2o", "sharding", "synthetic_bal", "synthetic_pose_graph", "testing", "write_bal",
-    "write_g2o",
+    "read_g2o", "sharding", "smoothing", "synthetic_bal", "synthetic_pose_graph", "testing",
+    "write_bal", "write_g2o",
     *lie.__all__,
 ]

@@ -1,0 +1,162 @@
+"""FixedLagSmoother: closed forms on a linear-Gaussian chain, marginalisation against the
+full batch solve, vmap over streams, bad input, and the 2D pose-graph replay.
+
+Reference for the linear case (independent of the code under test): with linear factors
+and a window that never drops information, the smoother's newest estimate and its
+covariance equal the Kalman filter's (the marginal of the full batch posterior), and
+every window estimate equals the fixed-lag smoothed batch solution restricted to the
+factors seen so far.
+"""
+
+import os
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxpose.lie import SE2
+from jaxpose.smoothing import FixedLagSmoother
+from jaxpose.smoothing import examples as ex
+
+Q, R = 0.3, 0.5  # random-walk and measurement σ
+
+
+def _motion(xp, x, d):
+    return (x["p"] - xp["p"]) / Q
+
+
+def _unary(x, d):
+    return jnp.concatenate([(x["p"] - d["z"]) / R, d["w"] * x["p"] / 10.0])
+
+
+def _linear_stream(t, seed=0):
+    rng = np.random.default_rng(seed)
+    z = np.cumsum(rng.normal(size=(t, 2)) * Q, 0) + rng.normal(size=(t, 2)) * R
+    w = np.zeros(t)
+    w[0] = 1.0
+    return {"z": jnp.asarray(z), "w": jnp.asarray(w)}
+
+
+def _batch(data, t):
+    """Dense least squares over all t states (numpy): the information matrix and mean."""
+    n = 2 * t
+    a, b = [], []
+    for k in range(t):
+        row = np.zeros((2, n))
+        row[:, 2 * k : 2 * k + 2] = np.eye(2) / R
+        a.append(row)
+        b.append(np.asarray(data["z"][k]) / R)
+        if k == 0:
+            row = np.zeros((2, n))
+            row[:, 0:2] = np.eye(2) / 10.0
+            a.append(row)
+            b.append(np.zeros(2))
+        else:
+            row = np.zeros((2, n))
+            row[:, 2 * k - 2 : 2 * k] = -np.eye(2) / Q
+            row[:, 2 * k : 2 * k + 2] = np.eye(2) / Q
+            a.append(row)
+            b.append(np.zeros(2))
+    a, b = np.concatenate(a), np.concatenate(b)
+    h = a.T @ a
+    return h, np.linalg.solve(h, a.T @ b)
+
+
+def _smoother(window, dense=False, **kw):
+    """``dense``: one (never valid) loop slot forces the dense window system instead of
+    the block-tridiagonal chain solver."""
+    x0 = {"p": jnp.zeros(2)}
+    d0 = {"z": jnp.zeros(2), "w": jnp.zeros(())}
+    if dense:
+        kw.update(loop=_motion, loop_data=d0, max_loops=1)
+    return FixedLagSmoother(x0, d0, window=window, motion=_motion, unary=_unary, **kw)
+
+
+@jax.jit
+def _run_linear(sm, data):
+    def body(s, d):
+        if s.chain:
+            s = s.update({"p": s.latest()["p"]}, d)
+        else:
+            ld = jax.tree.map(lambda a: a[None], d)
+            s = s.update({"p": s.latest()["p"]}, d, jnp.ones(1, int), jnp.zeros(1, bool), ld)
+        return s, (s.latest()["p"], s.marginal_covariances()[-1])
+
+    return jax.lax.scan(body, sm, data)
+
+
+@pytest.mark.parametrize("dense", [False, True], ids=["chain", "dense"])
+def test_linear_chain_equals_batch_marginals(dense):
+    t, k = 9, 4
+    data = _linear_stream(t)
+    sm, (latest, cov) = _run_linear(_smoother(k, dense), data)
+    assert sm.chain != dense
+    for j in range(1, t + 1):
+        h, mean = _batch(jax.tree.map(lambda a: a[:j], data), j)
+        np.testing.assert_allclose(latest[j - 1], mean[-2:], atol=1e-9)
+        np.testing.assert_allclose(cov[j - 1], np.linalg.inv(h)[-2:, -2:], atol=1e-9)
+    # the whole final window: the batch solution and marginal covariances of its states
+    h, mean = _batch(data, t)
+    np.testing.assert_allclose(sm.states["p"], mean.reshape(t, 2)[-k:], atol=1e-9)
+    full_cov = np.linalg.inv(h).reshape(t, 2, t, 2)
+    blocks = np.stack([full_cov[i, :, i, :] for i in range(t - k, t)])
+    np.testing.assert_allclose(sm.marginal_covariances(), blocks, atol=1e-9)
+    assert sm.count == k and bool(sm.frozen[0]) and not bool(sm.frozen[1:].any())
+
+
+def test_vmap_over_streams_equals_separate_runs():
+    t, k = 7, 3
+    datas = [_linear_stream(t, seed) for seed in (1, 2, 3)]
+    stacked = jax.tree.map(lambda *a: jnp.stack(a), *datas)
+    sms = eqx.filter_vmap(lambda _: _smoother(k), axis_size=3)(jnp.arange(3))
+    out, (latest, _) = jax.vmap(_run_linear.__wrapped__)(sms, stacked)
+    for i, data in enumerate(datas):
+        _, (ref, _) = _run_linear(_smoother(k), data)
+        np.testing.assert_allclose(latest[i], ref, atol=1e-12)
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="window"):
+        _smoother(1)
+    with pytest.raises(TypeError, match="motion"):
+        FixedLagSmoother({"p": jnp.zeros(2)}, {}, window=3, motion=None)
+    sm = _smoother(3)
+    with pytest.raises(TypeError, match="guess"):
+        sm.update({"q": jnp.zeros(2)}, {"z": jnp.zeros(2), "w": jnp.zeros(())})
+    with pytest.raises(ValueError, match="guess"):
+        sm.update({"p": jnp.zeros(3)}, {"z": jnp.zeros(2), "w": jnp.zeros(())})
+    with pytest.raises(Exception, match="non-finite"):
+        sm.update({"p": jnp.array([jnp.nan, 0.0])}, {"z": jnp.zeros(2), "w": jnp.zeros(())})
+
+
+DATA = os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data", "g2o")
+
+
+def test_pose_graph_replay_window_covering_the_graph_equals_batch():
+    """With a window as long as the stream nothing is marginalised: the final window is the
+    batch solution of the same graph (pose 0 under the same prior)."""
+    path = os.path.join(DATA, "intel.g2o")
+    if not os.path.exists(path):
+        pytest.skip("intel.g2o not available")
+    from jaxpose.graph import pgo
+    from jaxpose.io import read_g2o
+
+    n = 12
+    graph = read_g2o(path)
+    steps = ex.pose_graph_steps(graph, num_poses=n)
+    res = ex.run(ex.pose_graph_smoother(steps, n), steps)
+    keep = graph.edges.max(1) < n
+    sub = type(graph)(
+        kind="SE2",
+        vertex_ids=graph.vertex_ids[:n],
+        poses=graph.poses[:n],
+        edges=graph.edges[keep],
+        measurements=graph.measurements[keep],
+        information=graph.information[keep],
+    )
+    ref_poses, _ = pgo.optimize_pose_graph(sub, fix="first")
+    got = np.asarray(res.trajectory["pose"].data)
+    np.testing.assert_allclose(got, ref_poses, atol=1e-5)
+    assert isinstance(res.latest["pose"], SE2)
