@@ -1,5 +1,6 @@
 """Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM.
 
+Marginal covariances of a solution: :func:`marginals` (:mod:`jaxpose.graph.marginals`).
 Pose graphs: :mod:`jaxpose.graph.pgo`; bundle adjustment (BAL camera model, Schur
 elimination of the points): :mod:`jaxpose.graph.ba`.
 """
@@ -18,6 +19,7 @@ from .factor import (
     prior_residual,
     vector_prior_residual,
 )
+from .marginals import Marginals, marginals, se3_to_gtsam
 from .problem import FactorGraph, Linearization, cost, linearize
 from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STALLED, GraphSolution, solve, summary
 from .strategies import LambdaFactor, Nielsen
@@ -32,6 +34,7 @@ __all__ = [
     "GraphSolution",
     "LambdaFactor",
     "Linearization",
+    "Marginals",
     "Nielsen",
     "ba",
     "between_jacobian",
@@ -39,11 +42,13 @@ __all__ = [
     "bundle_adjustment_problem",
     "cost",
     "linearize",
+    "marginals",
     "optimize_bal",
     "pgo",
     "prior_residual",
     "reprojection_jacobian",
     "reprojection_residual",
+    "se3_to_gtsam",
     "solve",
     "summary",
     "vector_prior_residual",
