@@ -174,7 +174,7 @@ def pgo_command(args: argparse.Namespace) -> int:
         return 1
     print(f"{args.file}: {graph.kind}, {graph.n_poses} poses, {graph.n_edges} edges")
     dtype = jnp.float32 if args.float32 else jnp.float64
-    poses, _ = _run_pgo(graph, kernel=_kernel(args.kernel, args.kernel_delta),
+    poses, sol = _run_pgo(graph, kernel=_kernel(args.kernel, args.kernel_delta),
                         solver=args.solver, max_steps=args.max_steps,
                         verbose=not args.quiet, dtype=dtype)
     poses = np.asarray(poses, np.float64)
@@ -182,10 +182,22 @@ def pgo_command(args: argparse.Namespace) -> int:
         write_g2o(args.out, graph, poses=poses)
         print(f"wrote {args.out}")
     if args.plot:
+        import jax
+
+        from .graph import marginals, pgo
         from .plot import plot_pose_graphs
 
+        # pose marginals at the solution for the 2σ position ellipses
+        problem = pgo.pose_graph_problem(graph, kernel=_kernel(args.kernel, args.kernel_delta),
+                                         dtype=dtype)
+        cov = jax.jit(lambda p, s: marginals(p, s, "pose").covariances["pose"])(problem, sol)
+        cov = np.asarray(cov, np.float64)
+        if not np.all(np.isfinite(cov)):
+            print("jaxpose pgo: pose marginals are not finite; plotting without ellipses",
+                  file=sys.stderr)
+            cov = None
         plot_pose_graphs(args.plot, graph.kind, np.asarray(graph.poses), poses,
-                         np.asarray(graph.edges), title=str(args.file))
+                         np.asarray(graph.edges), title=str(args.file), covariances=cov)
         print(f"wrote {args.plot}")
     return 0
 
@@ -248,7 +260,8 @@ def build_parser() -> argparse.ArgumentParser:
     q = sub.add_parser("pgo", help="optimise a g2o pose graph")
     q.add_argument("file", help="input .g2o file (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or SE2)")
     q.add_argument("--out", help="write the optimised graph to this .g2o file")
-    q.add_argument("--plot", help="write a before/after plot (PNG; needs matplotlib)")
+    q.add_argument("--plot", help="write a before/after plot with 2σ position ellipses of the "
+                   "pose marginals (PNG; needs matplotlib)")
     q.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
     q.add_argument("--kernel-delta", type=float, default=1.0, help="kernel scale δ")
     q.add_argument("--solver", default="auto", choices=["auto", "sparse", "pcg", "dense"])

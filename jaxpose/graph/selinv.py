@@ -22,11 +22,10 @@ requested columns instead (correct, slower).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import struct
 import threading
-
-import contextlib
 from collections.abc import Iterator
 
 import numpy as np
@@ -204,7 +203,7 @@ def selected_inverse(f: Supernodal) -> np.ndarray:
 
 def _selected_inverse(f: Supernodal) -> np.ndarray:
     sigma = np.zeros_like(f.x)
-    sup, pi, px, rows = f.sup, f.pi, f.px, f.rows
+    sup, pi, rows = f.sup, f.pi, f.rows
     owner = np.repeat(np.arange(f.nsuper), np.diff(sup))  # supernode of each column
     for k in range(f.nsuper - 1, -1, -1):
         c0, c1 = sup[k], sup[k + 1]

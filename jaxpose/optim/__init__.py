@@ -11,6 +11,7 @@ solution in its tangent chart (Ceres' ``Covariance``). See the module docstrings
 """
 
 from .correctors import Corrector, FastTriggs, Triggs
+from .covariance import covariance
 from .implicit import ImplicitAdjoint, UnrolledAdjoint
 from .kernels import (
     Arctan,
@@ -26,7 +27,6 @@ from .kernels import (
     Tukey,
     Welsch,
 )
-from .covariance import covariance
 from .linear import CG, LU, QR, SVD, Cholesky, LinearSolver
 from .problem import Problem
 from .solution import Solution

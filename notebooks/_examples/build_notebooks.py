@@ -55,6 +55,7 @@ SPECS: dict[str, dict[str, Any]] = {
     "lie_groups": {"title": "Lie groups and manifold calculus", "format": "percent"},
     "least_squares": {"title": "Least squares and robust kernels", "format": "percent"},
     "pose_graph": {"title": "Pose-graph optimisation", "format": "percent"},
+    "uncertainty": {"title": "Uncertainty: marginal covariances", "format": "percent"},
     "mpc_imitation": {
         "title": "Differentiable MPC: imitation learning of linear dynamics",
         "run": SMOKE + """
