@@ -124,42 +124,54 @@ def test_schur_camera_marginals_match_full_system():
         marginals(graph, variables="point", method="schur")
 
 
+def _small_se2(dtype=jnp.float64):
+    from jaxpose import synthetic_pose_graph
+
+    pg, _ = synthetic_pose_graph("SE2", n_poses=8, noise=(0.05, 0.05), seed=0)
+    return pgo.pose_graph_problem(pg, dtype=dtype)
+
+
 def test_jit_vmap_and_float32():
-    graph, info = mixed_problem(seed=4, fixed={"pose3": [0], "pose2": [0], "sim3": [0]})
-    fn = _jit_marginals(variables="pose2", pairs=np.array([[1, 2], [0, 3]]), method="dense")
+    graph = _small_se2()
+    fn = jax.jit(lambda g, v: marginals(g, v, "pose", pairs=np.array([[1, 2], [0, 7]]),
+                                        method="dense"), compiler_options=FAST_COMPILE)
     m = fn(graph, graph.variables)
-    assert m.covariances["pose2"].shape == (4, 3, 3) and m.joint.shape == (2, 6, 6)
-    # vmap over two linearisation points
-    v2 = dict(graph.variables)
-    v2["pose2"] = type(v2["pose2"])(graph.variables["pose2"].data * jnp.array([1.1, 0.9, 1, 1]))
-    v2["pose2"] = v2["pose2"].normalize()
-    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), dict(graph.variables), v2)
-    mv = jax.vmap(lambda v: marginals(graph, v, "pose2", method="dense"))(both)
-    one = marginals(graph, v2, "pose2", method="dense")
-    np.testing.assert_allclose(mv.covariances["pose2"][1], one.covariances["pose2"], rtol=1e-10)
-    # float32: runs, close to float64
-    g32, _ = mixed_problem(seed=4, dtype=jnp.float32,
-                           fixed={"pose3": [0], "pose2": [0], "sim3": [0]})
-    for method in ("dense", "sparse"):
-        c32 = marginals(g32, None, "pose2", method=method).covariances["pose2"]
-        assert c32.dtype == jnp.float32
-        np.testing.assert_allclose(c32, m.covariances["pose2"], rtol=2e-3,
-                                   atol=2e-3 * float(jnp.abs(m.covariances["pose2"]).max()))
+    assert m.covariances["pose"].shape == (8, 3, 3) and m.joint.shape == (2, 6, 6)
+    # vmap over two linearisation points = one at a time
+    poses = graph.variables["pose"].data
+    moved = poses.at[:, :2].multiply(1.1)
+    both = {"pose": type(graph.variables["pose"])(jnp.stack([poses, moved]))}
+    mv = jax.jit(jax.vmap(lambda v: marginals(graph, v, "pose", method="dense")),
+                 compiler_options=FAST_COMPILE)(both)
+    one = fn(graph, {"pose": type(graph.variables["pose"])(moved)})
+    np.testing.assert_allclose(mv.covariances["pose"][1], one.covariances["pose"], rtol=1e-10)
+    np.testing.assert_allclose(mv.covariances["pose"][0], m.covariances["pose"], rtol=1e-10)
+    # float32: runs (dense and sparse), close to float64
+    g32 = _small_se2(jnp.float32)
+    c32 = jax.jit(lambda g: [marginals(g, None, "pose", method=k).covariances["pose"]
+                             for k in ("dense", "sparse")], compiler_options=FAST_COMPILE)(g32)
+    ref = np.asarray(m.covariances["pose"])
+    for c in c32:
+        assert c.dtype == jnp.float32
+        np.testing.assert_allclose(c, ref, rtol=2e-3, atol=2e-3 * np.abs(ref).max())
 
 
 def test_gradient_through_dense_marginals():
-    """d trace(Σ_pose2[1]) / d(measurement scale) vs central finite differences."""
-    graph, _ = mixed_problem(seed=5, fixed={"pose3": [0], "pose2": [0], "sim3": [0]})
+    """d trace(Σ_5) / d(scale of the positions) vs central finite differences."""
+    graph = _small_se2()
+    poses = graph.variables["pose"].data
+    group = type(graph.variables["pose"])
 
+    @jax.jit
     def f(scale):
-        v = dict(graph.variables)
-        v["point"] = v["point"] * scale
-        return jnp.trace(marginals(graph, v, "pose3", method="dense").covariances["pose3"][2])
+        v = {"pose": group(poses.at[:, :2].multiply(scale))}
+        return jnp.trace(marginals(graph, v, "pose", method="dense").covariances["pose"][5])
 
-    g = jax.grad(f)(1.0)
-    h = 1e-6
+    g = jax.jit(jax.grad(f))(1.0)
+    h = 1e-5
     fd = (f(1.0 + h) - f(1.0 - h)) / (2 * h)
     np.testing.assert_allclose(g, fd, rtol=1e-6)
+    assert abs(float(g)) > 1e-8
 
 
 def test_bad_input():
