@@ -237,7 +237,7 @@ def _to_gtsam_chart(cov, kind):
     return np.asarray(cov)[..., p, :][..., :, p]
 
 
-def _compare_with_gtsam(name, poses=None, method="auto", keys=None):
+def _compare_with_gtsam(name, poses=None, method="auto", keys=None, rtol=1e-9):
     gtsam = pytest.importorskip("gtsam")
     path = data_file(name)
     pg = read_g2o(path)
@@ -255,11 +255,11 @@ def _compare_with_gtsam(name, poses=None, method="auto", keys=None):
     for k in keys:
         g = ref.marginalCovariance(k)
         worst = max(worst, np.abs(cov[k] - g).max() / np.abs(g).max())
-    assert worst <= 1e-9, worst
+    assert worst <= rtol, worst
     joint = _to_gtsam_chart(m.joint, pg.kind)
     for (a, b), jm in zip(pairs, joint, strict=True):
         g = ref.jointMarginalCovariance(gtsam.KeyVector([int(a), int(b)])).fullMatrix()
-        assert np.abs(jm - g).max() <= 1e-9 * np.abs(g).max()
+        assert np.abs(jm - g).max() <= rtol * np.abs(g).max()
     return err
 
 
@@ -288,6 +288,13 @@ def test_fixed_gauge_vs_tight_gtsam_prior():
         np.testing.assert_allclose(cov[k], g, rtol=0, atol=1e-8 * np.abs(g).max())
 
 
+# intel (cond(H) ≈ 3.7e8 with the σ = 0.1 prior) and parking-garage are ill-conditioned:
+# κ·eps ≈ 1e-7, so the two libraries differ at that level. Measured for intel: jaxpose's
+# sparse result equals numpy's dense inverse of the same H to 3e-10, GTSAM's differs from it
+# by 1.2e-7 — the 1e-9 bar holds where the conditioning allows (sphere2500, smallGrid3D).
+GTSAM_RTOL = {"parking-garage.g2o": 1e-7, "sphere2500.g2o": 1e-9, "intel.g2o": 5e-7}
+
+
 @pytest.mark.slow
 @pytest.mark.peer
 @pytest.mark.parametrize("name", ["parking-garage.g2o", "sphere2500.g2o", "intel.g2o"])
@@ -296,7 +303,8 @@ def test_gtsam_marginals_at_solution(name):
     pg = read_g2o(data_file(name))
     sol = jit_solve(linear_solver="sparse", max_steps=200)(pgo.pose_graph_problem(pg))
     assert sol.status_name == "converged"
-    _compare_with_gtsam(name, poses=sol.variables["pose"].data, method="sparse")
+    _compare_with_gtsam(name, poses=sol.variables["pose"].data, method="sparse",
+                        rtol=GTSAM_RTOL[name])
 
 
 def test_position_ellipses_geometry():
