@@ -41,6 +41,7 @@ from matplotlib.collections import EllipseCollection
 
 import jaxpose as jp
 from jaxpose.graph import marginals, pgo, solve
+from jaxpose.lie import SE2
 from jaxpose.optim import covariance, least_squares
 from jaxpose.plot import ellipse_axes, position_covariances
 
@@ -100,8 +101,6 @@ plt.show()
 # either is absolutely.
 
 # %%
-from jaxpose.lie import SE2
-
 for (a, b), joint in zip([(0, n_poses - 1), (n_poses // 2, n_poses - 1)], m.joint):
     xa, xb = SE2(jnp.asarray(poses[a])), SE2(jnp.asarray(poses[b]))
     adj = np.asarray(xb.inv().compose(xa).adj_matrix())
