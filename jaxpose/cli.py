@@ -332,7 +332,7 @@ def pgo_command(args: argparse.Namespace) -> int:
     start, method = initial_poses(graph, args.init)
     init_s = time.perf_counter() - t0
     print(f"initialisation: {method} ({init_s:.3f} s), cost {pose_graph_cost(graph, start):.6e}")
-    poses, _ = _run_pgo(graph, kernel=kernel,
+    poses, sol = _run_pgo(graph, kernel=kernel,
                         solver=args.solver, max_steps=args.max_steps,
                         verbose=not args.quiet, dtype=dtype, poses=start)
     poses = np.asarray(poses, np.float64)
@@ -342,10 +342,22 @@ def pgo_command(args: argparse.Namespace) -> int:
         write_g2o(args.out, graph, poses=poses)
         print(f"wrote {args.out}")
     if args.plot:
+        import jax
+
+        from .graph import marginals, pgo
         from .plot import plot_pose_graphs
 
+        # pose marginals at the solution for the 2σ position ellipses
+        problem = pgo.pose_graph_problem(graph, kernel=_kernel(args.kernel, args.kernel_delta),
+                                         dtype=dtype)
+        cov = jax.jit(lambda p, s: marginals(p, s, "pose").covariances["pose"])(problem, sol)
+        cov = np.asarray(cov, np.float64)
+        if not np.all(np.isfinite(cov)):
+            print("jaxpose pgo: pose marginals are not finite; plotting without ellipses",
+                  file=sys.stderr)
+            cov = None
         plot_pose_graphs(args.plot, graph.kind, np.asarray(graph.poses), poses,
-                         np.asarray(graph.edges), title=str(args.file))
+                         np.asarray(graph.edges), title=str(args.file), covariances=cov)
         print(f"wrote {args.plot}")
     return 0
 
@@ -448,7 +460,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("file", help="input .g2o file (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or SE2)")
     q.add_argument("--out", help="write the optimised graph to this .g2o file (its directory "
                    "must exist; checked before solving)")
-    q.add_argument("--plot", help="write a before/after plot (PNG; needs matplotlib)")
+    q.add_argument("--plot", help="write a before/after plot with 2σ position ellipses of the "
+                   "pose marginals (PNG; needs matplotlib; directory checked before solving)")
     q.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
     q.add_argument("--kernel-delta", type=_positive_float, default=1.0, help="kernel scale δ")
     q.add_argument("--solver", default="auto", choices=["auto", "sparse", "pcg", "dense"])

@@ -1,5 +1,6 @@
 """Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM.
 
+Marginal covariances of a solution: :func:`marginals` (:mod:`jaxpose.graph.marginals`).
 Pose graphs: :mod:`jaxpose.graph.pgo` (global initialisation: :mod:`jaxpose.graph.init`);
 bundle adjustment (BAL camera model, Schur
 elimination of the points): :mod:`jaxpose.graph.ba`.
@@ -20,6 +21,7 @@ from .factor import (
     vector_prior_residual,
 )
 from .init import chordal_initialization, initial_poses, pose_graph_cost
+from .marginals import Marginals, marginals, se3_to_gtsam
 from .problem import FactorGraph, Linearization, cost, linearize
 from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STALLED, GraphSolution, solve, summary
 from .strategies import LambdaFactor, Nielsen
@@ -34,6 +36,7 @@ __all__ = [
     "GraphSolution",
     "LambdaFactor",
     "Linearization",
+    "Marginals",
     "Nielsen",
     "ba",
     "between_jacobian",
@@ -44,12 +47,14 @@ __all__ = [
     "init",
     "initial_poses",
     "linearize",
+    "marginals",
     "optimize_bal",
     "pgo",
     "pose_graph_cost",
     "prior_residual",
     "reprojection_jacobian",
     "reprojection_residual",
+    "se3_to_gtsam",
     "solve",
     "summary",
     "vector_prior_residual",

@@ -222,6 +222,45 @@ def schur_step(
     st = graph.structure
     sc: SchurStructure = st.schur
     e, kept = sc.eliminated, sc.kept
+    data, v_inv, w, y = reduced_system(graph, lin, diag_add)
+
+    # reduced right-hand side and back-substitution
+    g_blocks = split(graph, g)
+    g_e = g_blocks[e]
+    rhs = [-g_blocks[t] for t in kept]
+    for k in range(len(kept)):
+        yg = jnp.einsum("nie,ne->ni", y[k], g_e[sc.w_point[k]])
+        rhs[k] = rhs[k].at[sc.w_var[k]].add(yg)
+    rhs_flat = jnp.concatenate([r.reshape(-1) for r in rhs])
+    dk_flat = solve_reduced(data, sc.pattern.indices, sc.pattern.indptr, rhs_flat)
+    dk, start = [], 0
+    for t in kept:
+        n = st.counts[t] * st.dims[t]
+        dk.append(dk_flat[start : start + n].reshape(st.counts[t], st.dims[t]))
+        start += n
+    acc = -g_e
+    for k in range(len(kept)):
+        bt_dk = jnp.einsum("nie,ni->ne", w[k], dk[k][sc.w_var[k]])
+        acc = acc.at[sc.w_point[k]].add(-bt_dk)
+    de = jnp.einsum("nef,nf->ne", v_inv, acc)
+    blocks = []
+    for t in range(len(st.names)):
+        blocks.append(de if t == e else dk[kept.index(t)])
+    return jnp.concatenate([b.reshape(-1) for b in blocks])
+
+
+def reduced_system(
+    graph: Any, lin: Any, diag_add: Array
+) -> tuple[Array, Array, list[Array], list[Array]]:
+    """The reduced matrix S = U − W V⁻¹ Wᵀ of ``H + diag(diag_add)`` (module docstring).
+
+    Returns (S as CSR values in ``graph.structure.schur.pattern``, V⁻¹ (n_e, d, d), the
+    entries B per kept type, Y = B V⁻¹ per kept type)."""
+    from .problem import split
+
+    st = graph.structure
+    sc: SchurStructure = st.schur
+    e, kept = sc.eliminated, sc.kept
     dtype = lin.cost.dtype
     n_e, d_e = st.counts[e], st.dims[e]
 
@@ -275,26 +314,4 @@ def schur_step(
     data = data.at[sc.pattern.diag_pos].add(
         jnp.concatenate([add[t].reshape(-1) for t in kept]))
 
-    # reduced right-hand side and back-substitution
-    g_blocks = split(graph, g)
-    g_e = g_blocks[e]
-    rhs = [-g_blocks[t] for t in kept]
-    for k in range(len(kept)):
-        yg = jnp.einsum("nie,ne->ni", y[k], g_e[sc.w_point[k]])
-        rhs[k] = rhs[k].at[sc.w_var[k]].add(yg)
-    rhs_flat = jnp.concatenate([r.reshape(-1) for r in rhs])
-    dk_flat = solve_reduced(data, sc.pattern.indices, sc.pattern.indptr, rhs_flat)
-    dk, start = [], 0
-    for t in kept:
-        n = st.counts[t] * st.dims[t]
-        dk.append(dk_flat[start : start + n].reshape(st.counts[t], st.dims[t]))
-        start += n
-    acc = -g_e
-    for k in range(len(kept)):
-        bt_dk = jnp.einsum("nie,ni->ne", w[k], dk[k][sc.w_var[k]])
-        acc = acc.at[sc.w_point[k]].add(-bt_dk)
-    de = jnp.einsum("nef,nf->ne", v_inv, acc)
-    blocks = []
-    for t in range(len(st.names)):
-        blocks.append(de if t == e else dk[kept.index(t)])
-    return jnp.concatenate([b.reshape(-1) for b in blocks])
+    return data, v_inv, w, y

@@ -2,7 +2,8 @@
 
 ``least_squares(residual_fn, params, args, solver=LevenbergMarquardt(...))`` minimises
 ``0.5 · Σ ρ(rᵀ W r)`` and returns a :class:`Solution`. Solvers also expose
-``init``/``step`` for hand-driven iterations. See the module docstrings of
+``init``/``step`` for hand-driven iterations; :func:`covariance` gives the covariance of a
+solution in its tangent chart (Ceres' ``Covariance``). See the module docstrings of
 :mod:`~jaxpose.optim.problem` (conventions), :mod:`~jaxpose.optim.strategies`,
 :mod:`~jaxpose.optim.kernels`, :mod:`~jaxpose.optim.correctors`,
 :mod:`~jaxpose.optim.linear`, :mod:`~jaxpose.optim.stopping` and
@@ -10,6 +11,7 @@
 """
 
 from .correctors import Corrector, FastTriggs, Triggs
+from .covariance import covariance
 from .implicit import ImplicitAdjoint, UnrolledAdjoint
 from .kernels import (
     Arctan,
@@ -35,6 +37,7 @@ from .strategies import Adaptive, Constant, Dogleg, Strategy, TrustRegion
 
 __all__ = [
     "least_squares",
+    "covariance",
     "Solution",
     "Status",
     "Problem",

@@ -56,6 +56,7 @@ SPECS: dict[str, dict[str, Any]] = {
     "least_squares": {"title": "Least squares and robust kernels", "format": "percent"},
     "pose_graph": {"title": "Pose-graph optimisation", "format": "percent"},
     "fixed_lag_smoother": {"title": "Fixed-lag smoothing", "format": "percent"},
+    "uncertainty": {"title": "Uncertainty: marginal covariances", "format": "percent"},
     "mpc_imitation": {
         "title": "Differentiable MPC: imitation learning of linear dynamics",
         "run": SMOKE + """
