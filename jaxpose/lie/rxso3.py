@@ -48,6 +48,8 @@ class RxSO3(LieGroup):
     point_dim: ClassVar[int] = 3
     layout: ClassVar[str] = "[qx, qy, qz, qw, s]"
     algebra: ClassVar[type[LieAlgebra]] = rxso3
+    unit_slice: ClassVar[tuple[int, int]] = (0, 4)
+    scale_index: ClassVar[int | None] = 4
 
     @staticmethod
     def _identity_data() -> Array:

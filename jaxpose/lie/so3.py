@@ -29,6 +29,7 @@ class SO3(LieGroup):
     point_dim: ClassVar[int] = 3
     layout: ClassVar[str] = "[qx, qy, qz, qw]"
     algebra: ClassVar[type[LieAlgebra]] = so3
+    unit_slice: ClassVar[tuple[int, int]] = (0, 4)
 
     # -- raw array functions -----------------------------------------------------------
     @staticmethod
