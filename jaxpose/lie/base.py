@@ -211,6 +211,10 @@ class _Element(eqx.Module):
         """``np.asarray(X)`` is the stored ``data`` (…, k), as for a PyPose LieTensor."""
         return np.asarray(self.data, dtype=dtype)
 
+    # numpy ufuncs and operators (``array == X``, ``np.add(X, 1)``) do not treat an element
+    # as its data array: they defer to the element's own operators or raise TypeError
+    __array_ufunc__ = None
+
     def __repr__(self) -> str:
         name = type(self).__name__
         data = self.data
