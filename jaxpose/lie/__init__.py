@@ -46,7 +46,8 @@ GROUPS = (SO3, SE3, Sim3, RxSO3, SO2, SE2)
 ALGEBRAS = (so3, se3, sim3, rxso3, so2, se2)
 
 __all__ = [
-    "ALGEBRAS", "GROUPS", "InvalidValueError", "LieAlgebra", "LieGroup", "RxSO3", "SE2", "SE3", "SO2", "SO3",
+    "ALGEBRAS", "GROUPS", "InvalidValueError", "LieAlgebra", "LieGroup", "RxSO3", "SE2",
+    "SE3", "SO2", "SO3",
     "Sim3", "act", "adj", "adjT", "compose", "convert", "cumprod", "euler", "exp",
     "from_euler", "from_matrix", "hat", "identity", "interpolate", "inv", "jinvp", "jl",
     "jl_inv", "jr", "jr_inv", "log", "manifold", "matrix", "normalize", "random",

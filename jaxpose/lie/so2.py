@@ -86,6 +86,9 @@ class SO2(LieGroup):
         # returned there, so the result is always a valid element (double-where, NaN-free).
         c = m[..., 0, 0] + m[..., 1, 1]
         s = m[..., 1, 0] - m[..., 0, 1]
+        big = jnp.maximum(jnp.abs(c), jnp.abs(s))  # rescale: no overflow/underflow of n2
+        big = jnp.where(big > 0, big, 1.0)
+        c, s = c / big, s / big
         n2 = c * c + s * s
         ok = n2 > jnp.finfo(m.dtype).tiny
         inv = 1.0 / jnp.sqrt(jnp.where(ok, n2, 1.0))

@@ -659,3 +659,23 @@ def test_int_batch_shapes(cls):
         cls.identity("4")
     with pytest.raises(ValueError, match="negative dimension"):
         cls.identity(-1)
+
+
+@pytest.mark.parametrize("cls", [jp.Sim3, jp.RxSO3, SO2, SE2], ids=lambda g: g.__name__)
+def test_from_matrix_of_extreme_scales(cls):
+    """Same class in from_matrix: det(s·R) of a 1e200 scale overflowed (Sim3/RxSO3 scale
+    inf, rotation 0) and SE2/SO2's c² + s² overflowed to a [0, 0] rotation without check."""
+    x = _element(cls, (2,))
+    p = cls.point_dim
+    for f in (1e200, 1e-200):
+        m = np.array(x.matrix(), np.float64)
+        m[:, :p, :p] *= f
+        y = cls.from_matrix(m, check=cls in (jp.Sim3, jp.RxSO3))
+        np.testing.assert_allclose(
+            np.asarray(y.scale()),
+            np.asarray(x.scale()) * (f if cls in (jp.Sim3, jp.RxSO3) else 1.0),
+            rtol=1e-13,
+        )
+        np.testing.assert_allclose(
+            np.asarray(y.rotation().matrix()), np.asarray(x.rotation().matrix()), atol=1e-14
+        )
