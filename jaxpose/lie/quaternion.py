@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from . import series
+from .base import max_abs
 
 Array = jnp.ndarray
 
@@ -75,13 +76,6 @@ def _exp_smooth(phi: Array) -> Array:
     return jnp.concatenate([phi * s[..., None], w[..., None]], -1)
 
 
-def _max_abs(parts: list[Array]) -> Array:
-    out = jnp.abs(parts[0])
-    for p in parts[1:]:
-        out = jnp.maximum(out, jnp.abs(p))
-    return out
-
-
 def _exp_value(phi: Array) -> Array:
     """The exponential written for values: sin(h)/h and cos(h) at h = θ/2 are accurate
     to the dtype for every h > 0 (h = 0 gives the limit), so no series is needed.
@@ -91,7 +85,7 @@ def _exp_value(phi: Array) -> Array:
     finite input, although beyond |φ| ≈ 1/eps the angle modulo 2π is not determined by
     the input's digits."""
     x, y, z = _parts(phi)
-    m = _max_abs([x, y, z])
+    m = max_abs([x, y, z])
     r = 1.0 / jnp.where(m > 0, m, 1.0)
     xs, ys, zs = x * r, y * r, z * r
     h = m * jnp.sqrt(0.25 * (xs * xs + ys * ys + zs * zs))
@@ -114,7 +108,7 @@ def _log_value(q: Array) -> Array:
 
     The quaternion is first divided by m = max |qᵢ|, so any nonzero finite quaternion
     (×1e200 or ×1e-200 included) gives the rotation vector of its direction."""
-    m = _max_abs(_parts(q))
+    m = max_abs(_parts(q))
     q = q * (1.0 / jnp.where(m > 0, m, 1.0))[..., None]
     x, y, z, w = _parts(q)
     n = jnp.sqrt(x * x + y * y + z * z)
@@ -210,7 +204,7 @@ def normalize(q: Array) -> Array:
     """Project onto the unit sphere: q / |q|, computed as (q/m) / |q/m| with m = max |qᵢ|
     so that quaternions ×1e200 or ×1e-200 neither overflow nor underflow. The zero
     quaternion has no projection and gives NaN (``SO3(data, check=True)`` rejects it)."""
-    m = _max_abs(_parts(q))
+    m = max_abs(_parts(q))
     q = q * (1.0 / jnp.where(m > 0, m, 1.0))[..., None]
     return q / jnp.sqrt(series.safe_norm_sq(q))[..., None]
 
