@@ -33,6 +33,7 @@ from .lie import (
     SE3,
     SO2,
     SO3,
+    InvalidValueError,
     LieAlgebra,
     LieGroup,
     RxSO3,

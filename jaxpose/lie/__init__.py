@@ -7,7 +7,7 @@ that order. See ``docs/conventions.md`` for layouts and Jacobian conventions.
 """
 
 from . import convert, manifold, series
-from .base import LieAlgebra, LieGroup
+from .base import InvalidValueError, LieAlgebra, LieGroup
 from .batchops import cumops, identity_like, random_like
 from .functional import (
     act,
@@ -47,7 +47,8 @@ GROUPS = (SO3, SE3, Sim3, RxSO3, SO2, SE2)
 ALGEBRAS = (so3, se3, sim3, rxso3, so2, se2)
 
 __all__ = [
-    "ALGEBRAS", "GROUPS", "LieAlgebra", "LieGroup", "RxSO3", "SE2", "SE3", "SO2", "SO3",
+    "ALGEBRAS", "GROUPS", "InvalidValueError", "LieAlgebra", "LieGroup", "RxSO3", "SE2", "SE3",
+    "SO2", "SO3",
     "Sim3", "act", "adj", "adjT", "compose", "convert", "cumops", "cumprod", "euler", "exp",
     "from_euler", "from_matrix", "hat", "identity", "identity_like", "interpolate", "inv",
     "jinvp", "jl", "jl_inv", "jr", "jr_inv", "log", "manifold", "matrix", "normalize", "random",

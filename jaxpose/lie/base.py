@@ -17,7 +17,8 @@ Conventions (shared with PyPose, see ``docs/conventions.md``):
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import operator
+from collections.abc import Iterator, Sequence
 from typing import Any, ClassVar, TypeVar
 
 import equinox as eqx
@@ -27,6 +28,7 @@ import numpy as np
 
 Array = jax.Array
 G = TypeVar("G", bound="LieGroup")
+E = TypeVar("E", bound="_Element")
 A = TypeVar("A", bound="LieAlgebra")
 
 
@@ -75,6 +77,66 @@ def broadcast_batch(*shapes: tuple[int, ...], what: str) -> tuple[int, ...]:
         ) from err
 
 
+def as_batch_shape(shape: Any, argname: str) -> tuple[int, ...]:
+    """A batch shape from an int or a sequence of ints: ``4`` and ``(4,)`` are the same."""
+    if isinstance(shape, (int, np.integer)) and not isinstance(shape, bool):
+        shape = (shape,)
+    try:
+        out = tuple(operator.index(n) for n in shape)
+    except TypeError as err:
+        raise TypeError(
+            f"{argname}: expected an int or a sequence of ints, got {shape!r}"
+        ) from err
+    if any(n < 0 for n in out):
+        raise ValueError(f"{argname}: negative dimension in batch shape {out}")
+    return out
+
+
+def default_tol(dtype: Any) -> float:
+    """Default run-time check tolerance: 1e-5 for float32 (and narrower), 1e-9 for float64."""
+    return 1e-9 if jnp.dtype(dtype) == jnp.float64 else 1e-5
+
+
+def max_abs(parts: Sequence[Array]) -> Array:
+    """max |pᵢ| over a few (…,) arrays: the scale that makes norms overflow- and underflow-safe."""
+    out = jnp.abs(parts[0])
+    for p in parts[1:]:
+        out = jnp.maximum(out, jnp.abs(p))
+    return out
+
+
+def scaled_norm(v: Array) -> Array:
+    """Euclidean norm over the last (short) axis (…, k) → (…,) without overflow or
+    underflow: ``m·|v/m|`` with m = max |vᵢ| (0 for v = 0)."""
+    parts = [v[..., i] for i in range(v.shape[-1])]
+    m = max_abs(parts)
+    inv = 1.0 / jnp.where(m > 0, m, 1.0)
+    s = parts[0] * inv
+    acc = s * s
+    for p in parts[1:]:
+        s = p * inv
+        acc = acc + s * s
+    return m * jnp.sqrt(acc)
+
+
+class InvalidValueError(ValueError, RuntimeError):
+    """A run-time value check failed eagerly (``check=True`` options). Under ``jit`` the
+    same message arrives through :func:`equinox.error_if` as a ``RuntimeError``
+    (``equinox.EquinoxRuntimeError`` under ``eqx.filter_jit``), so ``except RuntimeError``
+    catches both."""
+
+
+def runtime_check(x: Any, bad: Array, msg: str) -> Any:
+    """Raise ``msg`` if ``bad`` (a bool array) is true: a one-line
+    :class:`InvalidValueError` when the value is known in Python (eager), otherwise
+    :func:`equinox.error_if` (under ``jit`` / ``vmap``). Returns ``x``."""
+    if isinstance(bad, jax.core.Tracer):
+        return eqx.error_if(x, bad, msg)
+    if bool(bad):
+        raise InvalidValueError(msg)
+    return x
+
+
 def _check_same_type(x: Any, y: Any, what: str) -> None:
     if type(x) is not type(y):
         raise TypeError(
@@ -111,23 +173,14 @@ GL_WEIGHTS = 0.5 * _gl_w
 
 
 # ----------------------------------------------------------------------------------
-# Lie algebra base
+# Shared element protocol: indexing, iteration, printing, equality
 # ----------------------------------------------------------------------------------
-class LieAlgebra(eqx.Module):
-    """Element of a Lie algebra in vector form: ``data`` has shape (*batch, tangent_dim)."""
+class _Element(eqx.Module):
+    """What group and algebra elements share: one array ``data`` (…, k) whose last axis is
+    the element's own (storage or tangent) axis and whose leading axes are the batch."""
 
     data: Array
 
-    tangent_dim: ClassVar[int]
-    layout: ClassVar[str]
-    group: ClassVar[type[LieGroup]]
-
-    def __init__(self, data: Any):
-        arr = as_float_array(data, f"{type(self).__name__}(data)")
-        check_last_dim(arr, self.tangent_dim, f"{type(self).__name__}(data)", self.layout)
-        self.data = arr
-
-    # -- shape helpers -------------------------------------------------------------
     @property
     def shape(self) -> tuple[int, ...]:
         """Batch shape (the data shape without the last axis)."""
@@ -138,14 +191,85 @@ class LieAlgebra(eqx.Module):
         """Floating dtype of ``data``."""
         return self.data.dtype
 
-    def __getitem__(self: A, idx: Any) -> A:
+    def __getitem__(self: E, idx: Any) -> E:
         return type(self)(self.data[_batch_index(idx, self)])
 
     def __len__(self) -> int:
         if not self.shape:
-            raise TypeError("len() of an unbatched element")
+            raise TypeError(f"len() of an unbatched {type(self).__name__} (batch shape ())")
         return self.shape[0]
 
+    def __iter__(self: E) -> Iterator[E]:
+        if not self.shape:
+            raise TypeError(
+                f"iteration over an unbatched {type(self).__name__} (batch shape ()), "
+                f"like a 0-d array"
+            )
+        return (self[i] for i in range(self.shape[0]))
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        """``np.asarray(X)`` is the stored ``data`` (…, k), as for a PyPose LieTensor."""
+        return np.asarray(self.data, dtype=dtype)
+
+    # numpy ufuncs and operators (``array == X``, ``np.add(X, 1)``) do not treat an element
+    # as its data array: they defer to the element's own operators or raise TypeError
+    __array_ufunc__ = None
+
+    def __repr__(self) -> str:
+        name = type(self).__name__
+        data = self.data
+        if isinstance(data, (np.ndarray, jax.Array)) and not isinstance(data, jax.core.Tracer):
+            try:
+                arr = np.asarray(data)
+            except Exception:  # noqa: BLE001 - printing must never fail
+                return super().__repr__()
+            body = np.array2string(arr, separator=", ", prefix=f"{name}(")
+            return f"{name}({body}, dtype={arr.dtype})"
+        return super().__repr__()
+
+    __str__ = __repr__
+
+    def __eq__(self, other: Any) -> Any:
+        """Elementwise equality of the stored data: a bool array of the broadcast batch
+        shape (q and −q are different data for the same rotation; compare with
+        ``rminus`` for geometric closeness)."""
+        if type(other) is not type(self):
+            return NotImplemented
+        broadcast_batch(self.shape, other.shape, what=f"{type(self).__name__} ==")
+        return jnp.all(self.data == other.data, axis=-1)
+
+    def __ne__(self, other: Any) -> Any:
+        eq = self.__eq__(other)
+        return eq if eq is NotImplemented else ~eq
+
+    __hash__ = eqx.Module.__hash__
+
+
+# ----------------------------------------------------------------------------------
+# Lie algebra base
+# ----------------------------------------------------------------------------------
+class LieAlgebra(_Element):
+    """Element of a Lie algebra in vector form: ``data`` has shape (*batch, tangent_dim).
+
+    ``check=True`` verifies at run time (``eqx.error_if``, also under ``jit``) that every
+    entry is finite."""
+
+    tangent_dim: ClassVar[int]
+    layout: ClassVar[str]
+    group: ClassVar[type[LieGroup]]
+
+    def __init__(self, data: Any, check: bool = False):
+        name = f"{type(self).__name__}(data)"
+        arr = as_float_array(data, name)
+        check_last_dim(arr, self.tangent_dim, name, self.layout)
+        if check:
+            arr = runtime_check(
+                arr, ~jnp.all(jnp.isfinite(arr)),
+                f"{type(self).__name__}(data, check=True): data has non-finite entries",
+            )
+        self.data = arr
+
+    # -- shape helpers -------------------------------------------------------------
     def reshape(self: A, *shape: int) -> A:
         """Reshape the batch axes (the tangent axis is kept): ``a.reshape(2, 3)``."""
         shape = _shape_args(shape)
@@ -212,15 +336,18 @@ class LieAlgebra(eqx.Module):
 # ----------------------------------------------------------------------------------
 # Lie group base
 # ----------------------------------------------------------------------------------
-class LieGroup(eqx.Module):
+class LieGroup(_Element):
     """Element of a matrix Lie group: ``data`` has shape (*batch, storage_dim).
+
+    ``G(data)`` checks the shape only; ``G(data, check=True)`` also verifies at run time
+    (``eqx.error_if``, eager and under ``jit``) that every entry is finite, the quaternion
+    or ``[cos θ, sin θ]`` has unit norm within ``tol`` (default 1e-9 float64, 1e-5
+    float32) and the scale of Sim3 / RxSO3 is positive.
 
     Subclasses set the class constants and implement the raw array functions
     ``_exp, _log, _compose, _inv, _act, _matrix, _from_matrix, _adj_matrix, _jl,
     _jl_inv, _hat, _identity_data`` (all on plain arrays with broadcasting).
     """
-
-    data: Array
 
     storage_dim: ClassVar[int]
     tangent_dim: ClassVar[int]
@@ -228,47 +355,59 @@ class LieGroup(eqx.Module):
     point_dim: ClassVar[int]  # 3 for 3D groups, 2 for planar ones
     layout: ClassVar[str]
     algebra: ClassVar[type[LieAlgebra]]
+    # where the unit quaternion / unit complex number and the scale sit in ``data``
+    unit_slice: ClassVar[tuple[int, int]]
+    scale_index: ClassVar[int | None] = None
 
-    def __init__(self, data: Any):
-        arr = as_float_array(data, f"{type(self).__name__}(data)")
-        check_last_dim(arr, self.storage_dim, f"{type(self).__name__}(data)", self.layout)
-        self.data = arr
+    def __init__(self, data: Any, check: bool = False, tol: float | None = None):
+        name = f"{type(self).__name__}(data)"
+        arr = as_float_array(data, name)
+        check_last_dim(arr, self.storage_dim, name, self.layout)
+        self.data = self._validate(arr, tol) if check else arr
+
+    def _validate(self, arr: Array, tol: float | None) -> Array:
+        """Run-time checks of ``check=True`` (``eqx.error_if``: eager and under ``jit``)."""
+        name = f"{type(self).__name__}(data, check=True)"
+        if arr.size == 0:
+            return arr
+        tol_ = default_tol(arr.dtype) if tol is None else tol
+        a, b = self.unit_slice
+        what = "quaternion [qx, qy, qz, qw]" if b - a == 4 else "[cos θ, sin θ]"
+        norm = scaled_norm(arr[..., a:b])
+        arr = runtime_check(arr, ~jnp.all(jnp.isfinite(arr)), f"{name}: non-finite entries")
+        arr = runtime_check(
+            arr, jnp.any(norm == 0), f"{name}: zero {what}, which is no rotation"
+        )
+        arr = runtime_check(
+            arr, ~jnp.all(jnp.abs(norm - 1) <= tol_),
+            f"{name}: {what} of non-unit norm (| |q| - 1 | > {tol_:g}); project with "
+            f"{type(self).__name__}(data).normalize() or pass a larger tol",
+        )
+        if self.scale_index is not None:
+            arr = runtime_check(
+                arr, ~jnp.all(arr[..., self.scale_index] > 0), f"{name}: scale s must be > 0"
+            )
+        return arr
 
     # -- shape helpers -------------------------------------------------------------
-    @property
-    def shape(self) -> tuple[int, ...]:
-        """Batch shape (the data shape without the storage axis)."""
-        return tuple(self.data.shape[:-1])
-
-    @property
-    def dtype(self) -> Any:
-        """Floating dtype of ``data``."""
-        return self.data.dtype
-
-    def __getitem__(self: G, idx: Any) -> G:
-        return type(self)(self.data[_batch_index(idx, self)])
-
-    def __len__(self) -> int:
-        if not self.shape:
-            raise TypeError("len() of an unbatched element")
-        return self.shape[0]
-
     def reshape(self: G, *shape: int) -> G:
         """Reshape the batch axes (the storage axis is kept): ``X.reshape(2, 3)``."""
         shape = _shape_args(shape)
         return type(self)(self.data.reshape(*shape, self.storage_dim))
 
-    def broadcast_to(self: G, shape: Sequence[int]) -> G:
+    def broadcast_to(self: G, shape: int | Sequence[int]) -> G:
         """Broadcast to batch ``shape`` (data shape ``(*shape, storage_dim)``)."""
+        shape = as_batch_shape(shape, f"{type(self).__name__}.broadcast_to(shape)")
         return type(self)(jnp.broadcast_to(self.data, (*shape, self.storage_dim)))
 
     # -- constructors ----------------------------------------------------------------
     @classmethod
-    def identity(cls: type[G], shape: Sequence[int] = (), dtype: Any = None) -> G:
-        """Identity element with batch ``shape``."""
+    def identity(cls: type[G], shape: int | Sequence[int] = (), dtype: Any = None) -> G:
+        """Identity element with batch ``shape`` (an int ``n`` means ``(n,)``)."""
+        shape = as_batch_shape(shape, f"{cls.__name__}.identity(shape)")
         dtype = jnp.result_type(float) if dtype is None else dtype
         ident = jnp.asarray(cls._identity_data(), dtype)
-        return cls(jnp.broadcast_to(ident, (*tuple(shape), cls.storage_dim)))
+        return cls(jnp.broadcast_to(ident, (*shape, cls.storage_dim)))
 
     @classmethod
     def exp(cls: type[G], a: Any) -> G:
@@ -280,22 +419,29 @@ class LieGroup(eqx.Module):
 
     @classmethod
     def random(
-        cls: type[G], key: Array, shape: Sequence[int] = (), sigma: float = 1.0,
+        cls: type[G], key: Array, shape: int | Sequence[int] = (), sigma: float = 1.0,
         dtype: Any = None,
     ) -> G:
-        """``Exp(σ·n)`` with n ~ N(0, I) in the tangent space (explicit PRNG ``key``)."""
+        """``Exp(σ·n)`` with n ~ N(0, I) in the tangent space (explicit PRNG ``key``); an
+        int ``shape`` ``n`` means ``(n,)``."""
         if not (isinstance(key, jax.Array) and (key.dtype == jnp.uint32 or
                                                  jnp.issubdtype(key.dtype, jax.dtypes.prng_key))):
             raise TypeError(f"{cls.__name__}.random(key): expected a jax.random key, got {key!r}")
+        shape = as_batch_shape(shape, f"{cls.__name__}.random(shape)")
         dtype = jnp.result_type(float) if dtype is None else dtype
-        n = jax.random.normal(key, (*tuple(shape), cls.tangent_dim), dtype)
+        n = jax.random.normal(key, (*shape, cls.tangent_dim), dtype)
         return cls(cls._exp(jnp.asarray(sigma, dtype) * n))
 
     @classmethod
     def from_matrix(cls: type[G], matrix: Any, check: bool = True, tol: float | None = None) -> G:
-        """From a (…, n, n) matrix. ``check`` verifies the rotation block is orthogonal
-        with determinant +1 (and the bottom row is [0…0 1]); values are checked at run time
-        through :func:`equinox.error_if`, so it also works under ``jit``."""
+        """From a (…, n, n) matrix.
+
+        ``check=True`` verifies, per element and at run time (:func:`equinox.error_if`, so
+        also under ``jit``), that the rotation block alone is a (scaled, for Sim3 / RxSO3)
+        rotation with det > 0 to ``tol`` relative to its own size (default 1e-9 float64,
+        1e-5 float32) — a large translation does not widen the tolerance — that the
+        bottom row is ``[0 … 0 1]`` and that every entry is finite. ``check=False``
+        projects onto the group instead."""
         m = as_float_array(matrix, f"{cls.__name__}.from_matrix(matrix)")
         n = cls.matrix_dim
         if m.ndim < 2 or m.shape[-2:] != (n, n):
@@ -304,15 +450,24 @@ class LieGroup(eqx.Module):
                 f"got {tuple(m.shape)}"
             )
         data = cls._from_matrix(m)
-        if check:
-            tol_ = (1e-5 if m.dtype == jnp.float32 else 1e-9) if tol is None else tol
-            err = jnp.max(jnp.abs(cls._matrix(data) - m)) if m.size else jnp.asarray(0.0)
-            bound = tol_ * jnp.maximum(1.0, jnp.max(jnp.abs(m)) if m.size else 1.0)
-            data = eqx.error_if(
-                data, ~(err <= bound),  # also true for NaN (non-finite input or result)
+        if check and m.size:
+            tol_ = default_tol(m.dtype) if tol is None else tol
+            p = cls.point_dim
+            block = m[..., :p, :p]
+            err = jnp.max(jnp.abs(cls._matrix(data)[..., :p, :p] - block), axis=(-2, -1))
+            size = jnp.max(jnp.abs(block), axis=(-2, -1))
+            bad = ~(err <= tol_ * size)  # also true for NaN; a zero block has size 0
+            if n == p + 1:
+                want = jnp.zeros(n, m.dtype).at[-1].set(1.0)
+                bad = bad | ~(jnp.max(jnp.abs(m[..., p, :] - want), -1) <= tol_)
+                bad = bad | ~jnp.all(jnp.isfinite(m[..., :p, p]), -1)
+            scaled = " up to a scale" if cls.scale_index is not None else ""
+            data = runtime_check(
+                data, jnp.any(bad),
                 f"{cls.__name__}.from_matrix(matrix): not a valid {cls.__name__} matrix "
-                f"(rotation block not orthonormal with det +1, or wrong structure); "
-                f"pass check=False to project instead",
+                f"(rotation block not orthonormal{scaled} with det +1 to a relative "
+                f"{tol_:g}, bottom row not [0 … 0 1], or non-finite entries); pass "
+                f"check=False to project instead",
             )
         return cls(data)
 
@@ -499,15 +654,68 @@ def _shape_args(shape: tuple[Any, ...]) -> tuple[int, ...]:
     return tuple(shape)
 
 
+def _axes_used(i: Any) -> int:
+    """How many batch axes one index entry consumes (numpy rules)."""
+    if i is None or i is Ellipsis or isinstance(i, (bool, np.bool_)):
+        return 0
+    dtype = getattr(i, "dtype", None)
+    if dtype is not None and jnp.issubdtype(dtype, jnp.bool_):
+        return max(np.ndim(i), 1) if np.ndim(i) else 0
+    return 1
+
+
+def _check_bounds(i: Any, axis: int, x: Any, idx: Any) -> None:
+    """IndexError for an out-of-range integer index known in Python (JAX would clamp)."""
+    if isinstance(i, (bool, np.bool_)):
+        return
+    if isinstance(i, (int, np.integer)) or (
+        isinstance(i, np.ndarray) and jnp.issubdtype(i.dtype, jnp.integer)
+    ):
+        vals = np.asarray(i)
+    elif isinstance(i, list) and i and all(
+        isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in i
+    ):
+        vals = np.asarray(i)
+    else:
+        return  # slices, JAX arrays (possibly traced), boolean masks
+    n = x.shape[axis]
+    if vals.size and not (vals.min() >= -n and vals.max() < n):
+        bad = vals[(vals < -n) | (vals >= n)].flat[0]
+        raise IndexError(
+            f"{type(x).__name__}[{idx!r}]: index {bad} is out of range for batch axis "
+            f"{axis} of size {n} (batch shape {x.shape})"
+        )
+
+
 def _batch_index(idx: Any, x: Any) -> Any:
-    """Index only the batch axes of ``data`` (never the storage axis)."""
+    """Index only the batch axes of ``data`` (never the storage axis). Integer indices
+    known in Python are bounds-checked (JAX clamps them silently), so iteration ends."""
     idx_t = idx if isinstance(idx, tuple) else (idx,)
     if not x.shape and any(i is not Ellipsis and i is not None for i in idx_t):
         raise IndexError(
             f"{type(x).__name__}[{idx!r}]: the element is unbatched (batch shape ()), "
             f"there is no batch axis to index"
         )
-    if any(i is Ellipsis for i in idx_t):
+    n_ell = sum(i is Ellipsis for i in idx_t)
+    if n_ell > 1:
+        raise IndexError(f"{type(x).__name__}[{idx!r}]: an index can only have one ellipsis")
+    pos = idx_t.index(Ellipsis) if n_ell else len(idx_t)
+    left, right = idx_t[:pos], idx_t[pos + 1:]
+    used = sum(_axes_used(i) for i in idx_t)
+    if used > len(x.shape):
+        raise IndexError(
+            f"{type(x).__name__}[{idx!r}]: too many indices for batch shape {x.shape} "
+            f"(the last data axis is the element itself and is not indexed)"
+        )
+    axis = 0
+    for i in left:
+        _check_bounds(i, axis, x, idx)
+        axis += _axes_used(i)
+    axis = len(x.shape) - sum(_axes_used(i) for i in right)
+    for i in right:
+        _check_bounds(i, axis, x, idx)
+        axis += _axes_used(i)
+    if n_ell:
         return (*idx_t, slice(None))
     return (*idx_t, Ellipsis)
 

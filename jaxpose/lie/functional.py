@@ -112,19 +112,24 @@ def matrix(x: LieGroup | LieAlgebra) -> Array:
 def from_matrix(group: type[LieGroup], m: Any, check: bool = True) -> LieGroup:
     """Group element of type ``group`` from matrices (…, n, n).
 
-    ``check=True`` verifies at run time (``eqx.error_if``) that the rotation block is
-    orthonormal with det +1; ``check=False`` projects onto the group instead.
+    ``check=True`` verifies at run time (eagerly, or ``eqx.error_if`` under ``jit``) that
+    the rotation block alone is orthonormal (up to the scale of Sim3 / RxSO3) with det +1
+    relative to its own size, that the bottom row is ``[0 … 0 1]`` and that the entries are
+    finite; ``check=False`` projects onto the group instead.
     """
     return _group_type(group, "from_matrix").from_matrix(m, check=check)
 
 
-def identity(group: type[LieGroup], shape: Sequence[int] = (), dtype: Any = None) -> LieGroup:
-    """Identity element of ``group`` with batch ``shape`` (data shape ``(*shape, storage_dim)``)."""
+def identity(
+    group: type[LieGroup], shape: int | Sequence[int] = (), dtype: Any = None
+) -> LieGroup:
+    """Identity element of ``group`` with batch ``shape`` (data shape ``(*shape, storage_dim)``;
+    an int ``n`` means ``(n,)``)."""
     return _group_type(group, "identity").identity(shape, dtype)
 
 
 def random(
-    group: type[LieGroup], key: Array, shape: Sequence[int] = (), sigma: float = 1.0,
+    group: type[LieGroup], key: Array, shape: int | Sequence[int] = (), sigma: float = 1.0,
     dtype: Any = None,
 ) -> LieGroup:
     """Random elements ``Exp(σ·n)``, n ~ N(0, I) in the tangent space, batch ``shape``.

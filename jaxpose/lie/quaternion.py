@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from . import series
+from .base import max_abs
 
 Array = jnp.ndarray
 
@@ -77,9 +78,17 @@ def _exp_smooth(phi: Array) -> Array:
 
 def _exp_value(phi: Array) -> Array:
     """The exponential written for values: sin(h)/h and cos(h) at h = θ/2 are accurate
-    to the dtype for every h > 0 (h = 0 gives the limit), so no series is needed."""
+    to the dtype for every h > 0 (h = 0 gives the limit), so no series is needed.
+
+    h is computed as m·|φ/m|/2 with m = max |φᵢ|, so it does not overflow for any finite
+    φ (|φ| ≳ 1e154 in float64, 1e19 in float32): the result is a unit quaternion for every
+    finite input, although beyond |φ| ≈ 1/eps the angle modulo 2π is not determined by
+    the input's digits."""
     x, y, z = _parts(phi)
-    h = jnp.sqrt(0.25 * (x * x + y * y + z * z))
+    m = max_abs([x, y, z])
+    r = 1.0 / jnp.where(m > 0, m, 1.0)
+    xs, ys, zs = x * r, y * r, z * r
+    h = m * jnp.sqrt(0.25 * (xs * xs + ys * ys + zs * zs))
     positive = h > 0
     h_safe = jnp.where(positive, h, 1.0)
     s = jnp.where(positive, 0.5 * jnp.sin(h_safe) / h_safe, 0.5)
@@ -95,7 +104,12 @@ def _log_smooth(q: Array) -> Array:
 
 
 def _log_value(q: Array) -> Array:
-    """The logarithm written for values: 2·atan2(n, |w|)/n, accurate for every n > 0."""
+    """The logarithm written for values: 2·atan2(n, |w|)/n, accurate for every n > 0.
+
+    The quaternion is first divided by m = max |qᵢ|, so any nonzero finite quaternion
+    (×1e200 or ×1e-200 included) gives the rotation vector of its direction."""
+    m = max_abs(_parts(q))
+    q = q * (1.0 / jnp.where(m > 0, m, 1.0))[..., None]
     x, y, z, w = _parts(q)
     n = jnp.sqrt(x * x + y * y + z * z)
     positive = n > 0
@@ -187,7 +201,11 @@ def from_matrix(m: Array) -> Array:
 
 
 def normalize(q: Array) -> Array:
-    """Project onto the unit sphere."""
+    """Project onto the unit sphere: q / |q|, computed as (q/m) / |q/m| with m = max |qᵢ|
+    so that quaternions ×1e200 or ×1e-200 neither overflow nor underflow. The zero
+    quaternion has no projection and gives NaN (``SO3(data, check=True)`` rejects it)."""
+    m = max_abs(_parts(q))
+    q = q * (1.0 / jnp.where(m > 0, m, 1.0))[..., None]
     return q / jnp.sqrt(series.safe_norm_sq(q))[..., None]
 
 

@@ -35,8 +35,12 @@ def cbrt_det(m: Array) -> Array:
     """Scale s = |det M|^(1/3) of a scaled rotation M = sR (…, 3, 3) → (…,).
 
     The absolute value keeps s > 0 for an improper M (a reflection), which then fails the
-    ``from_matrix`` check instead of producing an element with a negative scale."""
-    return jnp.cbrt(jnp.abs(jnp.linalg.det(m)))
+    ``from_matrix`` check instead of producing an element with a negative scale. The
+    determinant is taken of M / max |Mᵢⱼ| (then rescaled), so scales of 1e±200 neither
+    overflow nor underflow."""
+    big = jnp.max(jnp.abs(m), axis=(-2, -1))
+    big = jnp.where(big > 0, big, 1.0)
+    return big * jnp.cbrt(jnp.abs(jnp.linalg.det(m / big[..., None, None])))
 
 
 class RxSO3(LieGroup):
@@ -48,6 +52,8 @@ class RxSO3(LieGroup):
     point_dim: ClassVar[int] = 3
     layout: ClassVar[str] = "[qx, qy, qz, qw, s]"
     algebra: ClassVar[type[LieAlgebra]] = rxso3
+    unit_slice: ClassVar[tuple[int, int]] = (0, 4)
+    scale_index: ClassVar[int | None] = 4
 
     @staticmethod
     def _identity_data() -> Array:

@@ -42,6 +42,7 @@ class SE2(LieGroup):
     point_dim: ClassVar[int] = 2
     layout: ClassVar[str] = "[tx, ty, cos θ, sin θ]"
     algebra: ClassVar[type[LieAlgebra]] = se2
+    unit_slice: ClassVar[tuple[int, int]] = (2, 4)
 
     @staticmethod
     def _identity_data() -> Array:

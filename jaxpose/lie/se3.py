@@ -52,6 +52,7 @@ class SE3(LieGroup):
     point_dim: ClassVar[int] = 3
     layout: ClassVar[str] = "[tx, ty, tz, qx, qy, qz, qw]"
     algebra: ClassVar[type[LieAlgebra]] = se3
+    unit_slice: ClassVar[tuple[int, int]] = (3, 7)
 
     @staticmethod
     def _identity_data() -> Array:

@@ -52,6 +52,8 @@ class Sim3(LieGroup):
     point_dim: ClassVar[int] = 3
     layout: ClassVar[str] = "[tx, ty, tz, qx, qy, qz, qw, s]"
     algebra: ClassVar[type[LieAlgebra]] = sim3
+    unit_slice: ClassVar[tuple[int, int]] = (3, 7)
+    scale_index: ClassVar[int | None] = 7
 
     @staticmethod
     def _identity_data() -> Array:

@@ -43,7 +43,11 @@ def angle(cs: Array) -> Array:
 
 
 def normalize2(cs: Array) -> Array:
-    return cs / jnp.sqrt(jnp.sum(cs * cs, -1, keepdims=True))
+    """``[cos, sin]`` (…, 2) divided by its norm, without overflow or underflow (the pair
+    is first divided by its larger magnitude); ``[0, 0]`` gives NaN."""
+    m = jnp.maximum(jnp.abs(cs[..., :1]), jnp.abs(cs[..., 1:]))
+    cs = cs * (1.0 / jnp.where(m > 0, m, 1.0))
+    return cs / jnp.sqrt(cs[..., :1] * cs[..., :1] + cs[..., 1:] * cs[..., 1:])
 
 
 class SO2(LieGroup):
@@ -55,6 +59,7 @@ class SO2(LieGroup):
     point_dim: ClassVar[int] = 2
     layout: ClassVar[str] = "[cos θ, sin θ]"
     algebra: ClassVar[type[LieAlgebra]] = so2
+    unit_slice: ClassVar[tuple[int, int]] = (0, 2)
 
     @staticmethod
     def _identity_data() -> Array:
@@ -81,6 +86,9 @@ class SO2(LieGroup):
         # returned there, so the result is always a valid element (double-where, NaN-free).
         c = m[..., 0, 0] + m[..., 1, 1]
         s = m[..., 1, 0] - m[..., 0, 1]
+        big = jnp.maximum(jnp.abs(c), jnp.abs(s))  # rescale: no overflow/underflow of n2
+        big = jnp.where(big > 0, big, 1.0)
+        c, s = c / big, s / big
         n2 = c * c + s * s
         ok = n2 > jnp.finfo(m.dtype).tiny
         inv = 1.0 / jnp.sqrt(jnp.where(ok, n2, 1.0))

@@ -29,6 +29,7 @@ class SO3(LieGroup):
     point_dim: ClassVar[int] = 3
     layout: ClassVar[str] = "[qx, qy, qz, qw]"
     algebra: ClassVar[type[LieAlgebra]] = so3
+    unit_slice: ClassVar[tuple[int, int]] = (0, 4)
 
     # -- raw array functions -----------------------------------------------------------
     @staticmethod
@@ -73,16 +74,18 @@ class SO3(LieGroup):
         return jnp.concatenate([self.data[..., 3:], self.data[..., :3]], -1)
 
     @classmethod
-    def from_wxyz(cls, q: Any) -> SO3:
-        """From a scalar-first quaternion ``[qw, qx, qy, qz]`` (…, 4)."""
+    def from_wxyz(cls, q: Any, check: bool = False) -> SO3:
+        """From a scalar-first quaternion ``[qw, qx, qy, qz]`` (…, 4); ``check`` as in
+        ``SO3(data, check=True)``."""
         arr = as_float_array(q, "SO3.from_wxyz(q)")
         check_last_dim(arr, 4, "SO3.from_wxyz(q)", "[qw, qx, qy, qz]")
-        return cls(jnp.concatenate([arr[..., 1:], arr[..., :1]], -1))
+        return cls(jnp.concatenate([arr[..., 1:], arr[..., :1]], -1), check=check)
 
     @classmethod
-    def from_xyzw(cls, q: Any) -> SO3:
-        """From a scalar-last quaternion (the storage order itself)."""
-        return cls(q)
+    def from_xyzw(cls, q: Any, check: bool = False) -> SO3:
+        """From a scalar-last quaternion (the storage order itself); ``check`` as in
+        ``SO3(data, check=True)``."""
+        return cls(q, check=check)
 
 
 so3.group = SO3

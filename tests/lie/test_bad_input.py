@@ -17,7 +17,14 @@ import pytest
 import jaxpose as jp
 from jaxpose.lie import SE2, SE3, SO2, SO3, se3, so3
 
-from .conftest import ALGEBRAS, GROUPS, fast_jit, random_group_data
+from .conftest import (
+    ALGEBRAS,
+    DATA_SCALE_INDEX,
+    GROUPS,
+    QUAT_SLICE,
+    fast_jit,
+    random_group_data,
+)
 
 by_group = pytest.mark.parametrize("cls", GROUPS, ids=lambda g: g.__name__)
 by_algebra = pytest.mark.parametrize("alg", ALGEBRAS, ids=lambda a: a.__name__)
@@ -416,3 +423,259 @@ def test_indexing_unbatched_element(cls):
         _element(cls)[0]
     x = _element(cls, (2,))
     assert x[0].shape == () and x[..., 1].shape == () and x[None].shape == (1, 2)
+
+
+# ------------------------------------------------------------------------------------
+# issue 19: fault-injection findings (one regression test per class)
+# ------------------------------------------------------------------------------------
+UNIT_SLICE = {**QUAT_SLICE, SO2: slice(0, 2), SE2: slice(2, 4)}  # quaternion / (cos, sin)
+_JIT_FROM_MATRIX = {cls: fast_jit(lambda m, cls=cls: cls.from_matrix(m).data) for cls in GROUPS}
+_JIT_CHECKED = {cls: fast_jit(lambda d, cls=cls: cls(d, check=True).data) for cls in GROUPS}
+
+
+def _scaled_rotation_matrix(cls, shear, translation, scale=1.0):
+    """A ``cls`` matrix whose rotation block is sheared by ``shear`` (relative), with a
+    translation of ``translation`` in every coordinate and (Sim3 / RxSO3) a scale."""
+    m = np.array(jp.matrix(_element(cls)), np.float64)
+    p = cls.point_dim
+    s = scale if cls in (jp.Sim3, jp.RxSO3) else 1.0
+    rot = m[:p, :p] / np.cbrt(np.linalg.det(m[:p, :p])) if p == 3 else m[:p, :p]
+    rot = rot / abs(np.linalg.det(rot)) ** (1 / p)
+    rot[0, 1] += shear
+    m[:p, :p] = s * rot
+    if cls.matrix_dim == p + 1:
+        m[:p, p] = translation
+    return m
+
+
+@by_group
+def test_from_matrix_check_looks_at_the_rotation_block_alone(cls):
+    """Defect 4: the tolerance once included the translation (1e-9·max|M|), so a rotation
+    sheared by 5e-3 with a UTM-sized translation of 5e6 passed and was silently projected."""
+    jitted = _JIT_FROM_MATRIX[cls]
+    for scale in (1e-3, 1.0, 1e3):
+        bad = _scaled_rotation_matrix(cls, 5e-3, 5e6, scale)
+        with pytest.raises(RuntimeError, match=rf"not a valid {cls.__name__} matrix"):
+            cls.from_matrix(bad)
+        with pytest.raises(RuntimeError, match=rf"not a valid {cls.__name__} matrix"):
+            np.asarray(jitted(bad))
+        good = _scaled_rotation_matrix(cls, 0.0, 5e6, scale)
+        out = np.asarray(jitted(good))
+        np.testing.assert_allclose(np.asarray(cls(out).matrix()), good, rtol=1e-12, atol=1e-9)
+    # the tolerance is relative to the rotation block's own size (Sim3: the scaled rotation)
+    tiny = _scaled_rotation_matrix(cls, 1e-4, 0.0, 1e-6)
+    if cls in (jp.Sim3, jp.RxSO3):
+        with pytest.raises(RuntimeError, match="relative 1e-09"):
+            cls.from_matrix(tiny)
+    # float32 with a 5e6 translation: a valid matrix is accepted
+    good32 = np.asarray(_scaled_rotation_matrix(cls, 0.0, 5e6), np.float32)
+    assert cls.from_matrix(good32).dtype == np.float32
+
+
+@pytest.mark.parametrize("kind", [*GROUPS, *ALGEBRAS], ids=lambda c: c.__name__)
+def test_out_of_range_indices_raise_and_iteration_ends(kind):
+    """Defect 5: JAX clamps out-of-range indices, so X[5] returned X[1] and list(X),
+    ``for x in X`` and np.asarray(X) never ended."""
+    import itertools
+
+    dim = kind.storage_dim if issubclass(kind, jp.LieGroup) else kind.tangent_dim
+    data = np.arange(2 * 3 * dim, dtype=np.float64).reshape(2, 3, dim)
+    x = kind(data)
+    for idx in (2, -3, 5, (0, 3), (1, -4), (..., 3), (Ellipsis, -4), [0, 2], (0, [1, 3])):
+        with pytest.raises(IndexError, match=r"out of range for batch axis"):
+            x[idx]
+    with pytest.raises(IndexError, match="too many indices"):
+        x[0, 0, 0]
+    np.testing.assert_array_equal(np.asarray(x[1, -1].data), data[1, -1])
+    np.testing.assert_array_equal(np.asarray(x[..., 2].data), data[:, 2])
+    np.testing.assert_array_equal(np.asarray(x[-2].data), data[0])
+    items = list(itertools.islice(iter(x), 10))
+    assert len(items) == 2 == len(x)
+    np.testing.assert_array_equal(np.asarray(items[1].data), data[1])
+    assert len([y for y in x[0]]) == 3
+    assert np.asarray(x).shape == data.shape  # np.asarray(X) is the stored data
+    np.testing.assert_array_equal(np.asarray(x), data)
+    with pytest.raises(TypeError, match=rf"iteration over an unbatched {kind.__name__}"):
+        iter(x[0, 0])
+    with pytest.raises(TypeError, match=r"len\(\) of an unbatched"):
+        len(x[0, 0])
+
+
+def _invalid_data(cls, kind):
+    d = random_group_data(np.random.default_rng(5), cls, (2,))
+    u = UNIT_SLICE[cls]
+    if kind == "zero":
+        d[1, u] = 0.0
+    elif kind == "nan":
+        d[0, 0] = np.nan
+    elif kind == "inf":
+        d[1, -1] = np.inf
+    elif kind == "non-unit":
+        d[0, u] *= 1.001
+    elif kind == "scale-zero":
+        d[1, DATA_SCALE_INDEX[cls]] = 0.0
+    elif kind == "scale-negative":
+        d[0, DATA_SCALE_INDEX[cls]] = -2.0
+    return d
+
+
+CHECK_KINDS = {
+    "zero": r"zero (quaternion|\[cos θ, sin θ\])",
+    "nan": "non-finite",
+    "inf": "non-finite",
+    "non-unit": r"non-unit norm.*normalize\(\)",
+    "scale-zero": r"scale s must be > 0",
+    "scale-negative": r"scale s must be > 0",
+}
+CHECK_CASES = [
+    pytest.param(cls, kind, id=f"{cls.__name__}-{kind}")
+    for cls in GROUPS
+    for kind in CHECK_KINDS
+    if not kind.startswith("scale") or cls in DATA_SCALE_INDEX
+]
+
+
+@pytest.mark.parametrize("cls,kind", CHECK_CASES)
+def test_checked_constructor_rejects_invalid_elements(cls, kind):
+    """Decide-and-document: G(data) checks shapes only (a zero quaternion gives NaN from
+    log/normalize/rminus, a scale ≤ 0 NaN from log/inv); G(data, check=True) rejects them,
+    eagerly with a one-line message and under jit through eqx.error_if."""
+    bad = _invalid_data(cls, kind)
+    msg = rf"{cls.__name__}\(data, check=True\): .*{CHECK_KINDS[kind]}"
+    with pytest.raises(jp.InvalidValueError, match=msg) as err:
+        cls(bad, check=True)
+    assert "\n" not in str(err.value) and isinstance(err.value, (ValueError, RuntimeError))
+    with pytest.raises(RuntimeError, match=msg):
+        np.asarray(_JIT_CHECKED[cls](bad))
+
+
+@by_group
+def test_checked_constructor_accepts_valid_elements(cls):
+    good = random_group_data(np.random.default_rng(6), cls, (2,))
+    np.testing.assert_array_equal(np.asarray(_JIT_CHECKED[cls](good)), good)
+    np.testing.assert_array_equal(np.asarray(cls(good, check=True).data), good)
+    cls(np.asarray(good, np.float32), check=True)
+    cls(np.zeros((0, cls.storage_dim)), check=True)  # an empty batch has nothing to check
+    # a slightly non-unit rotation passes with a looser tolerance
+    off = good.copy()
+    off[:, UNIT_SLICE[cls]] *= 1 + 1e-7
+    with pytest.raises(jp.InvalidValueError):
+        cls(off, check=True)
+    cls(off, check=True, tol=1e-6)
+
+
+@by_algebra
+def test_checked_algebra_rejects_non_finite(alg):
+    a = np.zeros((2, alg.tangent_dim))
+    alg(a, check=True)
+    a[1, 0] = np.nan
+    with pytest.raises(jp.InvalidValueError, match=rf"{alg.__name__}\(data, check=True\)"):
+        alg(a, check=True)
+
+
+@pytest.mark.parametrize("cls", GROUPS, ids=lambda g: g.__name__)
+@pytest.mark.parametrize("factor", [1e200, 1e-200], ids=["x1e200", "x1e-200"])
+def test_extreme_quaternion_magnitudes(cls, factor):
+    """Extreme magnitudes: q·1e200 overflowed |q|² (normalize gave 0, log 0) and q·1e-200
+    underflowed it (log took the small-angle branch); normalize and log of any nonzero
+    finite quaternion / (cos, sin) pair now act on its direction."""
+    good = random_group_data(np.random.default_rng(7), cls, (3,))
+    big = good.copy()
+    big[:, UNIT_SLICE[cls]] *= factor
+    x, ref = cls(big), cls(good)
+    n = x.normalize()
+    np.testing.assert_allclose(np.asarray(n.data), good, rtol=1e-13, atol=1e-15)
+    if cls in (jp.SO3, jp.RxSO3, jp.SO2):  # log is invariant under scaling the rotation
+        np.testing.assert_allclose(
+            np.asarray(x.log().data), np.asarray(ref.log().data), rtol=1e-12, atol=1e-15
+        )
+    np.testing.assert_allclose(
+        np.asarray(n.rminus(ref)), np.zeros((3, cls.tangent_dim)), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.asarray(n.interpolate(ref, 0.5).data), good, rtol=1e-12, atol=1e-12
+    )
+
+
+def test_so3_exp_of_huge_and_tiny_rotation_vectors():
+    """so3.exp of 1e200 once overflowed θ² and returned NaN; any finite rotation vector now
+    gives a unit quaternion about its axis (the angle modulo 2π carries no information there:
+    documented)."""
+    phis = np.array([[1e200, 0, 0], [1e200, -1e200, 3e199], [0, 0, 1e300], [1e-200, 0, 2e-200]])
+    q = np.asarray(SO3.exp(phis).data)
+    assert np.all(np.isfinite(q))
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, rtol=1e-14)
+    axes = phis / np.abs(phis).max(-1, keepdims=True)
+    np.testing.assert_allclose(np.cross(q[:, :3], axes), 0, atol=1e-15)  # along the axis
+    np.testing.assert_allclose(q[3], [5e-201, 0, 1e-200, 1.0], rtol=1e-15)
+    q32 = np.asarray(SO3.exp(np.array([3e30, 1e30, 0], np.float32)).data)
+    assert q32.dtype == np.float32 and abs(np.linalg.norm(q32) - 1) < 1e-6
+
+
+def test_series_sincos_stays_bounded_far_beyond_its_range():
+    """The Cody–Waite reduction of series.sincos is exact to |x| ≈ 1.6e6; far beyond, the
+    polynomials once returned values of 1e300 (sinc(1e300) = -inf, feeding SE3.exp)."""
+    from jaxpose.lie import series
+
+    x = np.array([1e7, 1e10, 1e20, 1e100, 1e300])
+    s, c = (np.asarray(v) for v in series.sincos(x))
+    assert np.all(np.abs(s) <= 1) and np.all(np.abs(c) <= 1)
+    np.testing.assert_allclose(s[:2], np.sin(x[:2]), atol=1e-6)
+    assert np.isfinite(np.asarray(series.sinc(1e300)))
+
+
+# ------------------------------------------------------------------------------------
+# issue 15: what a new user tripped on (printing, identity(4), ==)
+# ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", [*GROUPS, *ALGEBRAS], ids=lambda c: c.__name__)
+def test_repr_shows_values_and_eq_is_elementwise(kind):
+    dim = kind.storage_dim if issubclass(kind, jp.LieGroup) else kind.tangent_dim
+    data = np.arange(3 * dim, dtype=np.float64).reshape(3, dim) + 0.25
+    x = kind(data)
+    text = repr(x)
+    assert text.startswith(f"{kind.__name__}([[") and "0.25" in text and "float64" in text
+    row = np.array2string(data[0], separator=", ")
+    assert str(x[0]) == f"{kind.__name__}({row}, dtype=float64)"
+    seen = []
+    fast_jit(lambda d: seen.append(repr(kind(d))) or d)(data)  # traced: no values, no error
+    assert seen and seen[0].startswith(f"{kind.__name__}(")
+    other = data.copy()
+    other[1, -1] += 1
+    eq = x == kind(other)
+    np.testing.assert_array_equal(np.asarray(eq), [True, False, True])
+    np.testing.assert_array_equal(np.asarray(x != kind(other)), [False, True, False])
+    assert np.asarray(x[0] == x[0]).shape == () and bool(x[0] == x[0])
+    assert (x == data) is False  # another type: not equal (no elementwise array comparison)
+    with pytest.raises(ValueError, match="do not broadcast"):
+        x == kind(np.zeros((2, dim)))
+
+
+@by_group
+def test_int_batch_shapes(cls):
+    assert cls.identity(4).shape == (4,) == jp.identity(cls, 4).shape
+    assert cls.random(jax.random.key(0), 3).shape == (3,)
+    assert cls.identity().broadcast_to(2).shape == (2,)
+    with pytest.raises(TypeError, match=rf"{cls.__name__}\.identity\(shape\): expected an int"):
+        cls.identity("4")
+    with pytest.raises(ValueError, match="negative dimension"):
+        cls.identity(-1)
+
+
+@pytest.mark.parametrize("cls", [jp.Sim3, jp.RxSO3, SO2, SE2], ids=lambda g: g.__name__)
+def test_from_matrix_of_extreme_scales(cls):
+    """Same class in from_matrix: det(s·R) of a 1e200 scale overflowed (Sim3/RxSO3 scale
+    inf, rotation 0) and SE2/SO2's c² + s² overflowed to a [0, 0] rotation without check."""
+    x = _element(cls, (2,))
+    p = cls.point_dim
+    for f in (1e200, 1e-200):
+        m = np.array(x.matrix(), np.float64)
+        m[:, :p, :p] *= f
+        y = cls.from_matrix(m, check=cls in (jp.Sim3, jp.RxSO3))
+        np.testing.assert_allclose(
+            np.asarray(y.scale()),
+            np.asarray(x.scale()) * (f if cls in (jp.Sim3, jp.RxSO3) else 1.0),
+            rtol=1e-13,
+        )
+        np.testing.assert_allclose(
+            np.asarray(y.rotation().matrix()), np.asarray(x.rotation().matrix()), atol=1e-14
+        )
