@@ -1,10 +1,11 @@
 """Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM.
 
-Pose graphs: :mod:`jaxpose.graph.pgo`; bundle adjustment (BAL camera model, Schur
+Pose graphs: :mod:`jaxpose.graph.pgo`; outlier-robust solves by graduated non-convexity:
+:mod:`jaxpose.graph.robust`; bundle adjustment (BAL camera model, Schur
 elimination of the points): :mod:`jaxpose.graph.ba`.
 """
 
-from . import ba, pgo
+from . import ba, pgo, robust
 from .ba import (
     bundle_adjustment_problem,
     optimize_bal,
@@ -19,6 +20,7 @@ from .factor import (
     vector_prior_residual,
 )
 from .problem import FactorGraph, Linearization, cost, linearize
+from .robust import GNCSolution, gm_weights, gnc, tls_weights, weighted_graph
 from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STALLED, GraphSolution, solve, summary
 from .strategies import LambdaFactor, Nielsen
 
@@ -28,6 +30,7 @@ __all__ = [
     "NON_FINITE",
     "STALLED",
     "Factor",
+    "GNCSolution",
     "FactorGraph",
     "GraphSolution",
     "LambdaFactor",
@@ -38,13 +41,18 @@ __all__ = [
     "between_residual",
     "bundle_adjustment_problem",
     "cost",
+    "gm_weights",
+    "gnc",
     "linearize",
     "optimize_bal",
     "pgo",
     "prior_residual",
     "reprojection_jacobian",
     "reprojection_residual",
+    "robust",
     "solve",
     "summary",
+    "tls_weights",
     "vector_prior_residual",
+    "weighted_graph",
 ]
