@@ -283,3 +283,23 @@ def test_bad_input_is_named():
         pgo.optimize_pose_graph(bad, robust="ransac")
     with pytest.raises(ValueError, match="weights"):
         weighted_graph(problem, [np.ones(2)])
+
+
+@pytest.mark.slow
+def test_cli_robust_gnc_rejects_the_outliers(tmp_path, capsys):
+    from jaxpose import read_g2o, write_g2o
+    from jaxpose.cli import main
+
+    clean, bad, outliers = _graph()
+    src, out = tmp_path / "bad.g2o", tmp_path / "out.g2o"
+    write_g2o(src, bad)
+    assert main(["pgo", str(src), "--robust", "gnc", "--out", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    loops = int(np.sum(~pgo.odometry_edges(bad)))
+    assert f"{loops - outliers.size} inliers, {outliers.size} rejected" in text, text
+    assert "status converged" in text
+    keep = np.ones(bad.n_edges, bool)
+    keep[outliers] = False
+    _same_poses(read_g2o(out).poses, _scipy_inlier_solution(bad, keep), atol=1e-6)
+    with pytest.raises(SystemExit, match="drop --kernel"):
+        main(["pgo", str(src), "--robust", "gnc", "--kernel", "huber"])
