@@ -149,7 +149,8 @@ class GNCSolution(eqx.Module):
     * ``cost``: weighted cost ``0.5·Σ w s`` at ``variables``; ``robust_cost``: the
       surrogate's limit ``0.5·Σ ρ(s)`` (TLS ``min(s, c̄²)``, GM ``c̄² s/(c̄² + s)``);
       ``initial_cost``: ``0.5·Σ s`` at the initial variables;
-    * ``mu``: the last control parameter; ``iterations``: outer GNC iterations;
+    * ``mu``: the last control parameter (−1: nothing to reject, one plain weighted solve);
+      ``iterations``: outer GNC iterations;
       ``inner_iterations``: inner solver iterations summed over all solves;
     * ``status``: 0 converged (binary weights, μ at its limit, cost plateau, or nothing
       to reject), 1 max_steps (``max_iterations`` ran out), 3 non_finite (best estimate
@@ -402,9 +403,14 @@ def _run(
         x1, ist, iits = x0, jnp.asarray(CONVERGED), jnp.asarray(0)
     cost1 = 0.5 * jnp.sum(w_init * _squared_norms(graph, x1))
     mu0 = initial_mu(surrogate, s0, barc_sq, unknown).astype(dtype)
+    # nothing to decide (no unknown factor, or none above the threshold): the plain
+    # weighted solve is the answer (already done with initial_solve; else one iteration
+    # with the initial weights, marked by μ = −1)
     nothing = (mu0 <= 0) | ~jnp.any(unknown)
+    mu0 = jnp.where(nothing, -1.0, mu0).astype(dtype)
+    solved = nothing & config["initial_solve"]
     status0 = jnp.where(
-        ~jnp.isfinite(cost1), NON_FINITE, jnp.where(nothing, CONVERGED, int(Status.RUNNING))
+        ~jnp.isfinite(cost1), NON_FINITE, jnp.where(solved, CONVERGED, int(Status.RUNNING))
     ).astype(jnp.int32)
     init = dict(
         x=x1,
@@ -420,7 +426,10 @@ def _run(
 
     def body(state: dict[str, Any]) -> dict[str, Any]:
         mu, x = state["mu"], state["x"]
-        w = fix_known(weight_fn(_squared_norms(graph, x), mu, barc_sq))
+        plain = mu <= 0
+        w = jnp.where(
+            plain, w_init, fix_known(weight_fn(_squared_norms(graph, x), jnp.abs(mu), barc_sq))
+        )
         start = x if config["warm_start"] else x0
         x_new, ist, iits = inner(start, _split(w, counts))
         cost_new = 0.5 * jnp.sum(w * _squared_norms(graph, x_new))
@@ -436,7 +445,7 @@ def _run(
             mu_conv = jnp.abs(mu - 1.0) < 1e-9
             mu_next = jnp.maximum(1.0, mu / config["mu_step"])
         k = state["k"] + 1
-        done = cost_conv | weights_conv | mu_conv
+        done = cost_conv | weights_conv | mu_conv | plain
         status = jnp.where(
             ~finite,
             NON_FINITE,
