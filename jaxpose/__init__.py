@@ -4,7 +4,7 @@ Public API: ``jaxpose.lie`` (groups, algebras, manifold calculus), re-exported h
 ``jp.SO3``, ``jp.SE3``, ... and the functional ops ``jp.exp``, ``jp.log``, ...; the
 subpackages ``optim`` (dense least squares), ``graph`` (sparse factor graphs, PGO, BA),
 ``io`` (g2o, BAL), ``dynamics``, ``filters``, ``control``, ``imu``, ``geometry``,
-``sharding`` and ``interop``.
+``sharding``, ``interop`` and ``testing`` (a Lie-aware ``assert_close``).
 """
 
 from . import (
@@ -20,6 +20,7 @@ from . import (
     lie,
     optim,
     sharding,
+    testing,
 )
 from .datasets import synthetic_bal, synthetic_pose_graph
 from .io import BALProblem, FormatError, PoseGraph, read_bal, read_g2o, write_bal, write_g2o
@@ -39,6 +40,7 @@ from .lie import (
     adjT,
     compose,
     convert,
+    cumops,
     cumprod,
     euler,
     exp,
@@ -46,6 +48,7 @@ from .lie import (
     from_matrix,
     hat,
     identity,
+    identity_like,
     interpolate,
     inv,
     jinvp,
@@ -58,6 +61,7 @@ from .lie import (
     matrix,
     normalize,
     random,
+    random_like,
     rotation,
     rxso3,
     scale,
@@ -75,6 +79,7 @@ __version__ = "0.1.0"
 __all__ = [
     "BALProblem", "FormatError", "PoseGraph", "__version__", "control", "datasets", "dynamics",
     "filters", "geometry", "graph", "imu", "interop", "io", "lie", "optim", "read_bal",
-    "read_g2o", "sharding", "synthetic_bal", "synthetic_pose_graph", "write_bal", "write_g2o",
+    "read_g2o", "sharding", "synthetic_bal", "synthetic_pose_graph", "testing", "write_bal",
+    "write_g2o",
     *lie.__all__,
 ]

@@ -11,14 +11,91 @@ table and a summary, and optionally writes the optimised graph and a before/afte
 ``jaxpose ba FILE.txt`` bundle-adjusts a BAL problem (Schur elimination of the points),
 prints the per-iteration table, a summary with the reprojection RMSE, and optionally
 writes the optimised problem in BAL format.
+
+Errors: every failure (a malformed file, an output directory that does not exist, a
+non-finite cost, a bad option) prints one line ``jaxpose COMMAND: message`` to stderr and
+exits with status 1 (2 for a bad command line), without a traceback; ``--debug`` prints the
+traceback too. Output paths are checked before the input is solved, and nothing is written
+when the optimised values are not finite.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import math
+import os
+import re
 import sys
 import time
+import traceback
+import warnings
 from collections.abc import Sequence
+
+EPILOG = (
+    "Any failure prints one line 'jaxpose COMMAND: message' to stderr and exits with status 1 "
+    "(2 for a bad command line); --debug adds the traceback."
+)
+
+
+class CLIError(Exception):
+    """A failure the command reports as one line (no traceback)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (exit status 2)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def _int_at_least(low: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
+        return value
+
+    return parse
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    return value
+
+
+def _check_output(path: str | None, option: str) -> None:
+    """Fail before any work if ``path`` cannot be written: its directory must exist and be
+    writable, and ``path`` itself must not be a directory."""
+    if not path:
+        if path is not None:
+            raise CLIError(f"{option}: expected a file name, got an empty string")
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise CLIError(f"{option} {path}: the directory {folder} does not exist")
+    if os.path.isdir(path):
+        raise CLIError(f"{option} {path}: is a directory, expected a file name")
+    if not os.access(folder, os.W_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+        raise CLIError(f"{option} {path}: not writable")
+
+
+def _check_float32_range(arrays, what: str) -> None:
+    """--float32: values beyond the float32 range would become inf."""
+    import numpy as np
+
+    big = max((float(np.max(np.abs(a))) for a in arrays if a.size), default=0.0)
+    if big > float(np.finfo(np.float32).max):
+        raise CLIError(f"--float32: {what} holds values up to {big:.3g}, beyond the float32 "
+                       "range; run without --float32")
 
 
 def _enable_x64(enable: bool) -> None:
@@ -134,8 +211,61 @@ def _kernel(name: str | None, delta: float):
                "softlone": optim.SoftLOne, "arctan": optim.Arctan, "tukey": optim.Tukey,
                "gemanmcclure": optim.GemanMcClure, "welsch": optim.Welsch}
     if name not in kernels:
-        raise SystemExit(f"--kernel: expected one of {sorted(kernels)}, got {name!r}")
+        raise CLIError(f"--kernel: expected one of {sorted(kernels)}, got {name!r}")
     return kernels[name](delta)
+
+
+def _pose_graph_edge_costs(graph):
+    """(m,) float64 ``0.5·rᵀΩr`` per edge at the initial poses, ``r = Log(Z⁻¹·Xi⁻¹·Xj)``
+    (translation first), in numpy: checks the start point before anything is compiled."""
+    import numpy as np
+
+    from .datasets import _rotvec_from_quat
+    from .io.g2o import _compose, _inverse
+
+    kind = graph.kind
+    with np.errstate(all="ignore"):
+        xi, xj = graph.poses[graph.edges[:, 0]], graph.poses[graph.edges[:, 1]]
+        e = _compose(kind, _inverse(kind, xi), xj)
+        e = _compose(kind, _inverse(kind, graph.measurements), e)
+        if kind == "SE3":
+            phi, t = _rotvec_from_quat(e[:, 3:]), e[:, :3]
+            th = np.linalg.norm(phi, axis=1, keepdims=True)
+            small = th < 1e-6
+            safe = np.where(small, 1.0, th)
+            # V⁻¹ = I − K/2 + c·K², c = (1 − (θ/2)·cot(θ/2))/θ² (→ 1/12)
+            c = np.where(small, 1 / 12, (1 - (safe / 2) / np.tan(safe / 2)) / safe**2)
+            k_t = np.cross(phi, t)
+            rho = t - 0.5 * k_t + c * np.cross(phi, k_t)
+            r = np.concatenate([rho, phi], 1)
+        else:
+            th = np.arctan2(e[:, 3], e[:, 2])
+            half = th / 2
+            small = np.abs(half) < 1e-8
+            a = np.where(small, 1.0, half / np.sin(np.where(small, 1.0, half)))  # (θ/2)/sin(θ/2)
+            c, s = np.cos(-half), np.sin(-half)  # V⁻¹ = a·R(−θ/2)
+            rho = a[:, None] * np.stack([c * e[:, 0] - s * e[:, 1], s * e[:, 0] + c * e[:, 1]], 1)
+            r = np.concatenate([rho, th[:, None]], 1)
+        return 0.5 * np.einsum("mi,mij,mj->m", r, graph.information, r)
+
+
+def _check_initial_cost(costs, dtype, what, unit: str) -> None:
+    """CLIError if the initial cost (per-item ``costs``) is not finite in ``dtype``;
+    ``what(k)`` names item k in the message."""
+    import numpy as np
+
+    top = float(np.finfo(dtype).max)
+    with np.errstate(all="ignore"):
+        bad = np.flatnonzero(~(np.abs(costs) <= top))
+        total = float(np.sum(costs, dtype=np.float64))
+    name = np.dtype(dtype).name
+    if bad.size:
+        k = int(bad[0])
+        raise CLIError(f"the initial cost of {unit} {what(k)} is not finite in {name} "
+                       f"({costs[k]:.3g}): its values are too large")
+    if not abs(total) <= top:
+        raise CLIError(f"the initial cost ({total:.3g}) is not finite in {name}: values too "
+                       "large")
 
 
 def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype):
@@ -169,7 +299,7 @@ def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate):
     from .graph import pgo
 
     if kernel is not None:
-        raise SystemExit("--robust gnc: GNC supplies its own robust loss; drop --kernel")
+        raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
     t0 = time.perf_counter()
     poses, sol = pgo.optimize_pose_graph(
         graph, robust="gnc", dtype=dtype, gnc_options={"surrogate": surrogate},
@@ -198,22 +328,48 @@ def pgo_command(args: argparse.Namespace) -> int:
 
     from .io import FormatError, read_g2o, write_g2o
 
+    _check_output(args.out, "--out")
+    _check_output(args.plot, "--plot")
+    if args.plot:
+        import importlib.util
+
+        if importlib.util.find_spec("matplotlib") is None:
+            raise CLIError("--plot needs matplotlib: pip install 'jaxpose[plot]'")
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        ext = os.path.splitext(args.plot)[1].lower().lstrip(".")
+        formats = FigureCanvasBase.get_supported_filetypes()
+        if ext and ext not in formats:
+            raise CLIError(f"--plot {args.plot}: expected one of the extensions "
+                           f"{sorted(formats)}, got {ext!r}")
+    kernel = _kernel(args.kernel, args.kernel_delta)
+    if getattr(args, "robust", None) == "gnc" and kernel is not None:
+        raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
     try:
         graph = read_g2o(args.file)
     except (FormatError, OSError) as err:
         print(f"jaxpose pgo: {err}", file=sys.stderr)
         return 1
     print(f"{args.file}: {graph.kind}, {graph.n_poses} poses, {graph.n_edges} edges")
+    if graph.n_edges == 0:
+        raise CLIError(f"{args.file}: the graph has no edges, nothing to optimise")
+    if args.float32:
+        _check_float32_range([graph.poses, graph.measurements, graph.information], args.file)
     dtype = jnp.float32 if args.float32 else jnp.float64
+    ids = graph.vertex_ids[graph.edges]
+    _check_initial_cost(_pose_graph_edge_costs(graph), dtype, lambda e: (
+        f"{e} ({ids[e, 0]} -> {ids[e, 1]})"), "edge")
     if getattr(args, "robust", None) == "gnc":
-        poses, _ = _run_pgo_gnc(graph, kernel=_kernel(args.kernel, args.kernel_delta),
-                                solver=args.solver, max_steps=args.max_steps, dtype=dtype,
+        poses, _ = _run_pgo_gnc(graph, kernel=kernel, solver=args.solver,
+                                max_steps=args.max_steps, dtype=dtype,
                                 surrogate=args.gnc_surrogate)
     else:
-        poses, _ = _run_pgo(graph, kernel=_kernel(args.kernel, args.kernel_delta),
+        poses, _ = _run_pgo(graph, kernel=kernel,
                             solver=args.solver, max_steps=args.max_steps,
                             verbose=not args.quiet, dtype=dtype)
     poses = np.asarray(poses, np.float64)
+    if not np.isfinite(poses).all():
+        raise CLIError("the optimised poses are not finite; nothing written")
     if args.out:
         write_g2o(args.out, graph, poses=poses)
         print(f"wrote {args.out}")
@@ -230,10 +386,13 @@ def ba_command(args: argparse.Namespace) -> int:
     _enable_x64(not args.float32)
     import jax
     import jax.numpy as jnp
+    import numpy as np
 
     from .graph import ba, solve
-    from .io import BALProblem, FormatError, read_bal, write_bal
+    from .io import BALProblem, FormatError, project_bal, read_bal, write_bal
 
+    _check_output(args.out, "--out")
+    kernel = _kernel(args.kernel, args.kernel_delta)
     try:
         problem = read_bal(args.file)
     except (FormatError, OSError) as err:
@@ -241,9 +400,29 @@ def ba_command(args: argparse.Namespace) -> int:
         return 1
     print(f"{args.file}: {problem.n_cameras} cameras, {problem.n_points} points, "
           f"{problem.n_observations} observations")
+    if problem.n_observations == 0:
+        raise CLIError(f"{args.file}: the problem has no observations, nothing to optimise")
+    with np.errstate(all="ignore"):
+        pred = project_bal(problem.cameras, problem.points, problem.camera_index,
+                           problem.point_index)
+    bad = np.flatnonzero(~np.isfinite(pred - problem.observations).all(axis=1))
+    if bad.size:
+        k = int(bad[0])
+        raise CLIError(
+            f"{args.file}: observation {k} (camera {problem.camera_index[k]}, point "
+            f"{problem.point_index[k]}) projects to a non-finite pixel {pred[k].tolist()} (the "
+            "point is at depth 0: at the camera centre or in its focal plane; or the values "
+            "overflow)")
+    if args.float32:
+        _check_float32_range([problem.cameras, problem.points, problem.observations], args.file)
     dtype = jnp.float32 if args.float32 else jnp.float64
+    with np.errstate(all="ignore"):
+        costs = 0.5 * np.sum((pred - problem.observations) ** 2, axis=1)
+    _check_initial_cost(costs, dtype, lambda k: (
+        f"{k} (camera {problem.camera_index[k]}, point {problem.point_index[k]})"),
+        "observation")
     graph = ba.bundle_adjustment_problem(
-        problem, kernel=_kernel(args.kernel, args.kernel_delta),
+        problem, kernel=kernel,
         eliminate=args.solver == "schur", fix_intrinsics=args.fix_intrinsics, dtype=dtype)
     run = jax.jit(lambda g: solve(g, linear_solver=args.solver, damping="diagonal",
                                   lambda_init=1e-4, lambda_factor=None,
@@ -262,6 +441,8 @@ def ba_command(args: argparse.Namespace) -> int:
     print(f"reprojection RMSE {ba.reprojection_rmse(problem):.4g} -> "
           f"{ba.reprojection_rmse(out):.4g} px")
     print(f"time: solve {solve_s:.3f} s, compile {compile_s:.2f} s")
+    if not (np.isfinite(out.cameras).all() and np.isfinite(out.points).all()):
+        raise CLIError("the optimised cameras or points are not finite; nothing written")
     if args.out:
         write_bal(args.out, out)
         print(f"wrote {args.out}")
@@ -269,56 +450,120 @@ def ba_command(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jaxpose", description=__doc__.splitlines()[0])
+    """The ``jaxpose`` argument parser (subcommands demo, pgo, ba)."""
+    parser = _Parser(prog="jaxpose", description=__doc__.splitlines()[0], epilog=EPILOG)
+    debug_help = "on failure, print the traceback as well as the one-line message"
+    parser.add_argument("--debug", action="store_true", help=debug_help)
     sub = parser.add_subparsers(dest="command")
-    p = sub.add_parser("demo", help="run the built-in demo (no data needed)")
+
+    def add(name: str, **kw) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, epilog=EPILOG, **kw)
+        # SUPPRESS: `jaxpose --debug pgo ...` is not reset by the subcommand's default
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                       help=debug_help)
+        return p
+
+    p = add("demo", help="run the built-in demo (no data needed)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--batch", type=int, default=1000, help="batch size for identity checks")
-    p.add_argument("--throughput-batch", type=int, default=100_000)
-    p.add_argument("--poses", type=int, default=200, help="samples in the averaging problem")
-    p.add_argument("--steps", type=int, default=200, help="Adam steps")
-    p.add_argument("--pgo-poses", type=int, default=400, help="poses in the synthetic graph")
+    p.add_argument("--batch", type=_int_at_least(1), default=1000,
+                   help="batch size for identity checks")
+    p.add_argument("--throughput-batch", type=_int_at_least(1), default=100_000)
+    p.add_argument("--poses", type=_int_at_least(1), default=200,
+                   help="samples in the averaging problem")
+    p.add_argument("--steps", type=_int_at_least(1), default=200, help="Adam steps")
+    p.add_argument("--pgo-poses", type=_int_at_least(2), default=400,
+                   help="poses in the synthetic graph")
     p.add_argument("--float32", action="store_true", help="run in float32 instead of float64")
     p.set_defaults(func=demo)
 
-    q = sub.add_parser("pgo", help="optimise a g2o pose graph")
+    q = add("pgo", help="optimise a g2o pose graph")
     q.add_argument("file", help="input .g2o file (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or SE2)")
-    q.add_argument("--out", help="write the optimised graph to this .g2o file")
+    q.add_argument("--out", help="write the optimised graph to this .g2o file (its directory "
+                   "must exist; checked before solving)")
     q.add_argument("--plot", help="write a before/after plot (PNG; needs matplotlib)")
     q.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
-    q.add_argument("--kernel-delta", type=float, default=1.0, help="kernel scale δ")
+    q.add_argument("--kernel-delta", type=_positive_float, default=1.0, help="kernel scale δ")
     q.add_argument("--robust", default=None, choices=["gnc"],
                    help="outlier-robust solve: graduated non-convexity (odometry edges are "
                         "known inliers; loop closures get inlier weights)")
     q.add_argument("--gnc-surrogate", default="tls", choices=["tls", "gm"],
                    help="GNC loss: truncated least squares or Geman-McClure")
     q.add_argument("--solver", default="auto", choices=["auto", "sparse", "pcg", "dense"])
-    q.add_argument("--max-steps", type=int, default=100)
+    q.add_argument("--max-steps", type=_int_at_least(0), default=100)
     q.add_argument("--float32", action="store_true")
     q.add_argument("--quiet", action="store_true", help="no per-iteration table")
     q.set_defaults(func=pgo_command)
 
-    b = sub.add_parser("ba", help="bundle-adjust a BAL problem")
+    b = add("ba", help="bundle-adjust a BAL problem")
     b.add_argument("file", help="input BAL problem file (.txt)")
-    b.add_argument("--out", help="write the optimised problem to this BAL file")
+    b.add_argument("--out", help="write the optimised problem to this BAL file (its directory "
+                   "must exist; checked before solving)")
     b.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
-    b.add_argument("--kernel-delta", type=float, default=1.0, help="kernel scale δ (pixels)")
+    b.add_argument("--kernel-delta", type=_positive_float, default=1.0,
+                   help="kernel scale δ (pixels)")
     b.add_argument("--solver", default="schur", choices=["schur", "sparse", "pcg", "dense"])
     b.add_argument("--fix-intrinsics", action="store_true", help="hold f, k1, k2 constant")
-    b.add_argument("--max-steps", type=int, default=100)
+    b.add_argument("--max-steps", type=_int_at_least(0), default=100)
     b.add_argument("--float32", action="store_true")
     b.add_argument("--quiet", action="store_true", help="no per-iteration table")
     b.set_defaults(func=ba_command)
     return parser
 
 
+def _message(err: BaseException) -> str:
+    """One line for ``err``: an equinox runtime check's own message rather than JAX's
+    wrapping; the exception type for anything that is not a known user-facing error."""
+    from .io import FormatError
+
+    text = str(err)
+    m = re.search(r"EquinoxRuntimeError: (.+)", text)
+    if m:
+        return m.group(1).strip()
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    first = lines[0] if lines else ""
+    if isinstance(err, (CLIError, FormatError, OSError)):
+        return first
+    hint = "" if isinstance(err, (ValueError, TypeError, ImportError)) else (
+        " (unexpected: rerun with --debug for the traceback)")
+    return f"{type(err).__name__}: {first}{hint}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``jaxpose`` command line; returns the exit status (0 success, 1 failure, 2 bad
+    command line). Failures print one line to stderr, no traceback unless ``--debug``."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit_:  # --help (0) or a one-line usage error (2), already printed
+        return exit_.code if isinstance(exit_.code, int) else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    return int(args.func(args))
+    prog = f"jaxpose {args.command}"
+    # JAX logs a callback's exception (an equinox check) with its traceback before raising it
+    callback_log = logging.getLogger("jax._src.callback")
+    level = callback_log.level
+    if not args.debug:
+        callback_log.setLevel(logging.CRITICAL)
+
+    def show_warning(message, category, filename, lineno, file=None, line=None):
+        print(f"{prog}: warning: {message}", file=sys.stderr)  # one line, no source excerpt
+
+    try:
+        with warnings.catch_warnings():
+            if not args.debug:
+                warnings.showwarning = show_warning
+            return int(args.func(args))
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:
+        if args.debug:
+            traceback.print_exc()
+        print(f"{prog}: {_message(err)}", file=sys.stderr)
+        return 1
+    finally:
+        callback_log.setLevel(level)
 
 
 if __name__ == "__main__":  # pragma: no cover

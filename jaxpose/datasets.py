@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .io.bal import BALProblem, project_bal
-from .io.g2o import PoseGraph, _compose, _compose1, _inverse, _quat_mul
+from .io.g2o import PoseGraph, _compose, _compose1, _inverse, _normalize, _quat_mul
 
 __all__ = ["corrupt_loop_closures", "synthetic_bal", "synthetic_pose_graph"]
 
@@ -82,7 +82,7 @@ def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
     pivots = np.stack([1 + tr, *(1 + 2 * m(k, k) - tr for k in range(3))])
     best = np.argmax(pivots, 0)
     q = np.moveaxis(np.take_along_axis(cands, best[None, None], 0)[0], 0, -1)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    q = _normalize(q)
     return q * np.where(q[..., 3:] < 0, -1.0, 1.0)
 
 
@@ -97,8 +97,7 @@ def _rotvec_from_quat(q: np.ndarray) -> np.ndarray:
 
 
 def _random_quat(rng: np.random.Generator, n: int) -> np.ndarray:
-    q = rng.normal(size=(n, 4))
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return _normalize(rng.normal(size=(n, 4)))
 
 
 def _yaw_quat(yaw: np.ndarray) -> np.ndarray:
@@ -213,8 +212,10 @@ def synthetic_pose_graph(
     if int(n_poses) < 2:
         raise ValueError(f"synthetic_pose_graph: n_poses must be at least 2, got {n_poses}")
     rot_sigma, trans_sigma = (float(v) for v in noise)
-    if not (rot_sigma >= 0 and trans_sigma >= 0):
-        raise ValueError(f"synthetic_pose_graph: noise sigmas must be >= 0, got {tuple(noise)}")
+    if not (0 <= rot_sigma < np.inf and 0 <= trans_sigma < np.inf):
+        raise ValueError(
+            f"synthetic_pose_graph: noise sigmas must be finite and >= 0, got {tuple(noise)}"
+        )
     n = int(n_poses)
     rng = np.random.default_rng(seed)
     gt, candidates = _trajectory(kind, shape, n, rng)
@@ -354,6 +355,14 @@ def synthetic_bal(
     if not 1 <= k <= n_cam:
         raise ValueError(f"synthetic_bal: obs_per_point must be in [1, {n_cam}], got {k}")
     rot_sigma, trans_sigma, point_sigma = (float(v) for v in init_noise)
+    for name, value in (
+        ("pixel_noise", float(pixel_noise)),
+        ("init_noise[0] (rot_sigma)", rot_sigma),
+        ("init_noise[1] (trans_sigma)", trans_sigma),
+        ("init_noise[2] (point_sigma)", point_sigma),
+    ):
+        if not 0 <= value < np.inf:
+            raise ValueError(f"synthetic_bal: {name} must be finite and >= 0, got {value}")
     rng = np.random.default_rng(seed)
 
     # points: uniform in the unit ball

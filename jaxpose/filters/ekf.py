@@ -5,10 +5,12 @@ Model (a :class:`~jaxpose.dynamics.System`)::
     x_{k+1} = f(x_k, u_k, t) ⊕ w,  w ~ N(0, Q)        y = h(x_{k+1}, u_k, t) + v,  v ~ N(0, R)
 
 One :meth:`EKF.step` predicts through ``f`` and corrects with the measurement ``y`` of the
-predicted state (PyPose's convention). For group states (``X ⊕ δ = X·Exp(δ)``) the
-covariance lives in the right tangent space: ``F = ∂[f(x ⊕ δ) ⊖ f(x)]/∂δ``, the update
-is ``x⁺ = x⁻ ⊕ K r`` (error-state form). Covariance updates use the Joseph form
-``(I − KH) P (I − KH)ᵀ + K R Kᵀ`` (``joseph=False``: ``P − K S Kᵀ``, symmetrised).
+predicted state (the textbook EKF; PyPose's ``EKF.forward`` evaluates ``h`` at the previous
+state instead — docs/pypose-migration.md compares the two). For group states
+(``X ⊕ δ = X·Exp(δ)``) the covariance lives in the right tangent space:
+``F = ∂[f(x ⊕ δ) ⊖ f(x)]/∂δ``, the update is ``x⁺ = x⁻ ⊕ K r`` (error-state form).
+Covariance updates use the Joseph form ``(I − KH) P (I − KH)ᵀ + K R Kᵀ``
+(``joseph=False``: ``P − K S Kᵀ``, symmetrised).
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ from .camera import (
     radial_distort,
     reprojerr,
 )
-from .downsample import Downsampled, random_filter, voxel_filter
+from .downsample import Downsampled, Filtered, knn_filter, nbr_filter, random_filter, voxel_filter
 from .icp import ICPResult, estimate_normals, icp  # the function shadows the module
 from .kdtree import KDTree, build_kdtree, query_kdtree
 from .knn import KNNResult, knn  # the function shadows the module
@@ -36,12 +36,12 @@ from .registration import svdstf, svdtf, umeyama
 from .spline import bspline, bspline_se3, bspline_se3_fit, chspline, hermite
 
 __all__ = [
-    "Downsampled", "ErrorStats", "ICPResult", "KDTree", "KNNResult", "PnPResult", "Status",
-    "TrajectoryError", "ape", "associate", "bal_project", "bspline", "bspline_se3",
+    "Downsampled", "ErrorStats", "Filtered", "ICPResult", "KDTree", "KNNResult", "PnPResult",
+    "Status", "TrajectoryError", "ape", "associate", "bal_project", "bspline", "bspline_se3",
     "bspline_se3_fit", "build_kdtree", "camera", "cart2homo", "chspline", "downsample",
     "epnp", "error_stats", "estimate_normals", "geodesic_angle", "geodesic_loss",
-    "hermite", "homo2cart", "icp", "intrinsics_matrix", "kdtree", "knn", "losses",
-    "metrics", "pixel2point", "pnp", "point2pixel", "query_kdtree", "radial_distort",
+    "hermite", "homo2cart", "icp", "intrinsics_matrix", "kdtree", "knn", "knn_filter", "losses",
+    "metrics", "nbr_filter", "pixel2point", "pnp", "point2pixel", "query_kdtree", "radial_distort",
     "random_filter", "registration", "reprojerr", "rpe", "spline", "svdstf", "svdtf",
     "umeyama", "voxel_filter",
 ]

@@ -1,4 +1,6 @@
-"""Point-cloud down-sampling with static output shapes: voxel grid and random subset.
+"""Point-cloud down-sampling and outlier removal with static output shapes: voxel grid,
+random subset, neighbour-count (``nbr_filter``) and neighbour-average (``knn_filter``)
+filters.
 
 ``voxel_filter`` groups points by voxel ``floor((p − min) / size)`` (as PyPose's
 ``voxel_filter``) and returns one point per occupied voxel — the centroid, or a random
@@ -7,6 +9,11 @@ is data dependent, the output has a fixed capacity ``max_voxels``: the result ca
 points (max_voxels, D), a ``valid`` mask and the true ``count`` (voxels beyond the
 capacity are dropped and ``count > max_voxels`` tells so). With ``max_voxels=None`` the
 capacity is computed from the data, which needs concrete values (not under ``jit``).
+
+``nbr_filter`` and ``knn_filter`` (PyPose's names) keep the input's shape: the kept points
+come first in their input order, the result's ``valid`` marks them and ``inlier`` is the
+per-input-point mask (PyPose's ``return_mask``). Neighbours are Euclidean, searched with
+:func:`~jaxpose.geometry.knn` on the first ``pdim`` coordinates (default: all).
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ import numpy as np
 
 from ..lie.base import as_float_array
 from ._util import Array, points_array
+from .knn import knn
 
 
 class Downsampled(NamedTuple):
@@ -104,4 +112,87 @@ def random_filter(points: Any, num: int, key: Any) -> Array:
     return jnp.take(p, idx, axis=-2)
 
 
-__all__ = ["Downsampled", "random_filter", "voxel_filter"]
+class Filtered(NamedTuple):
+    """``points`` (..., N, D): the kept points first, in input order (padding rows are
+    zero); ``valid`` (..., N) bool marks them; ``count`` (...) int32 kept points;
+    ``inlier`` (..., N) bool: which input points were kept."""
+
+    points: Array
+    valid: Array
+    count: Array
+    inlier: Array
+
+
+def _compact(p: Array, keep: Array) -> Filtered:
+    """Move the rows of ``p`` (..., N, D) with ``keep`` to the front (stable order)."""
+    order = jnp.argsort(~keep, axis=-1, stable=True)
+    count = jnp.sum(keep, -1).astype(jnp.int32)
+    valid = jnp.arange(keep.shape[-1]) < count[..., None]
+    out = jnp.take_along_axis(p, order[..., None], axis=-2)
+    return Filtered(jnp.where(valid[..., None], out, 0.0), valid, count, keep)
+
+
+def _neighbour_args(fn: str, points: Any, count_name: str, count: Any, pdim: Any
+                    ) -> tuple[Array, int]:
+    p = points_array(points, f"{fn}(points)", None, min_points=1)
+    d = p.shape[-1]
+    if pdim is None:
+        pdim = d
+    if not isinstance(pdim, int) or isinstance(pdim, bool) or not 1 <= pdim <= d:
+        raise ValueError(f"{fn}(pdim): expected an int with 1 ≤ pdim ≤ D = {d}, got {pdim!r}")
+    if not isinstance(count, int) or isinstance(count, bool) or count < 1:
+        raise ValueError(f"{fn}({count_name}): expected a positive int, got {count!r}")
+    return p, pdim
+
+
+def _radius_inliers(fn: str, p: Array, pdim: int, nbr: int, radius: Any) -> Array:
+    """(..., N) bool: at least ``nbr`` other points within ``radius`` (inclusive)."""
+    r = as_float_array(radius, f"{fn}(radius)").astype(p.dtype)
+    if r.ndim != 0:
+        raise ValueError(f"{fn}(radius): expected a scalar, got shape {tuple(r.shape)}")
+    if not isinstance(r, jax.core.Tracer) and not bool(r >= 0):
+        raise ValueError(f"{fn}(radius): expected a non-negative radius, got {float(r)}")
+    n = p.shape[-2]
+    if nbr + 1 > n:  # fewer points than nbr + 1: nobody has nbr neighbours
+        return jnp.zeros(p.shape[:-1], bool)
+    x = jax.lax.stop_gradient(p[..., :pdim])
+    # the (nbr+1)-th nearest point, counting the point itself, lies within the radius
+    # exactly when at least nbr others do
+    return knn(x, x, nbr + 1).distances[..., nbr] <= r
+
+
+def nbr_filter(points: Any, nbr: int, radius: Any, pdim: int | None = None) -> Filtered:
+    """Radius outlier removal: keep the points of a cloud (..., N, D) that have at least
+    ``nbr`` other points within ``radius`` (distance on the first ``pdim`` coordinates).
+
+    Returns :class:`Filtered` (static shapes; see the module docstring)."""
+    p, pdim = _neighbour_args("nbr_filter", points, "nbr", nbr, pdim)
+    return _compact(p, _radius_inliers("nbr_filter", p, pdim, nbr, radius))
+
+
+def knn_filter(points: Any, k: int, radius: Any = None, pdim: int | None = None
+               ) -> Filtered:
+    """Statistical smoothing of a cloud (..., N, D): each point is replaced by the mean of
+    itself and its ``k`` nearest neighbours (all D columns averaged, neighbours found on
+    the first ``pdim`` coordinates among all input points). With ``radius``, points with
+    fewer than ``k`` neighbours within it are dropped (as :func:`nbr_filter`).
+
+    Returns :class:`Filtered`; differentiable with respect to the coordinates (the
+    neighbour selection is piecewise constant)."""
+    p, pdim = _neighbour_args("knn_filter", points, "k", k, pdim)
+    n = p.shape[-2]
+    if k + 1 > n:
+        raise ValueError(f"knn_filter(k): k = {k} needs at least k + 1 = {k + 1} points, got "
+                         f"N = {n}")
+    x = jax.lax.stop_gradient(p[..., :pdim])
+    idx = knn(x, x, k + 1).indices  # (..., N, k+1), the point itself included
+    flat = idx.reshape(*idx.shape[:-2], -1)[..., None]  # (..., N·(k+1), 1)
+    nb = jnp.take_along_axis(p, flat, axis=-2).reshape(*idx.shape, p.shape[-1])
+    smoothed = jnp.mean(nb, axis=-2)
+    keep = (jnp.ones(p.shape[:-1], bool) if radius is None
+            else _radius_inliers("knn_filter", p, pdim, k, radius))
+    return _compact(smoothed, keep)
+
+
+__all__ = ["Downsampled", "Filtered", "knn_filter", "nbr_filter", "random_filter",
+           "voxel_filter"]

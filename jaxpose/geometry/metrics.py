@@ -14,7 +14,13 @@ Semantics follow PyPose's ``pp.metric.ape`` / ``rpe`` (which follow evo):
   ‖T_Δ − I‖_F; ``"radian"`` / ``"degree"`` the angle of R_Δ; with T_Δ = T_e⁻¹ T_r (APE) or
   (T_r,i⁻¹ T_r,j)⁻¹ (T_e,i⁻¹ T_e,j) (RPE, translation error ‖t_Δ‖).
 * RPE pairs frames k and k + ``delta`` of the associated sequence: every k
-  (``all_pairs=True``) or k = 0, delta, 2·delta, … (PyPose's default).
+  (``all_pairs=True``) or k = 0, delta, 2·delta, … (PyPose's default). With
+  ``pair_by="distance"`` (PyPose's ``associate='distance'``), ``delta`` is a path length
+  measured along the aligned estimate (``pairs_from="est"``, PyPose's default) or the
+  reference: ``all_pairs=False`` takes the frames where the path walked since the last
+  chosen frame first reaches ``delta`` (consecutive such frames are paired);
+  ``all_pairs=True`` pairs every frame i with the later frame whose path distance from i
+  is nearest to ``delta``, kept when within ``rtol·delta`` of it.
 * statistics over the valid errors: max, min, mean, median (mean of the two middle values
   for an even count, as numpy/evo; PyPose's torch.median takes the lower one), RMSE, SSE
   and the population std (numpy/evo; PyPose's torch.std divides by n − 1).
@@ -257,38 +263,119 @@ def rpe(
     est_stamps: Any = None,
     *,
     etype: str = "translation",
-    delta: int = 1,
+    delta: float = 1,
     all_pairs: bool = False,
     align: str | None = None,
     max_diff: float = 0.01,
     offset: float = 0.0,
+    pair_by: str = "frame",
+    rtol: float = 0.1,
+    pairs_from: str = "est",
 ) -> TrajectoryError:
     """Relative pose error between frames ``delta`` apart (in the associated sequence).
 
-    ``all_pairs=False`` uses frames 0, delta, 2·delta, … (consecutive pairs of them), as
-    PyPose; ``True`` every frame k with k + delta. See the module docstring."""
+    ``pair_by="frame"``: ``delta`` is a positive int frame count; ``all_pairs=False`` uses
+    frames 0, delta, 2·delta, … (consecutive pairs of them), as PyPose; ``True`` every
+    frame k with k + delta. ``pair_by="distance"``: ``delta`` > 0 is a path length (see
+    the module docstring for ``rtol`` and ``pairs_from``)."""
     fn = "rpe"
     _check_options(fn, etype, align)
-    if not isinstance(delta, int) or delta < 1:
-        raise ValueError(f"{fn}(delta): expected a positive int, got {delta!r}")
+    if pair_by not in ("frame", "distance"):
+        raise ValueError(f"{fn}(pair_by): expected 'frame' or 'distance', got {pair_by!r}")
+    if pairs_from not in ("est", "ref"):
+        raise ValueError(f"{fn}(pairs_from): expected 'est' or 'ref', got {pairs_from!r}")
+    if pair_by == "frame" and (not isinstance(delta, int) or isinstance(delta, bool)
+                               or delta < 1):
+        raise ValueError(f"{fn}(delta): expected a positive int frame count, got {delta!r}")
+    if pair_by == "distance":
+        if not isinstance(delta, int | float) or isinstance(delta, bool) or \
+                not np.isfinite(delta) or delta <= 0:
+            raise ValueError(f"{fn}(delta): expected a positive finite path length, got "
+                             f"{delta!r}")
+        if not isinstance(rtol, int | float) or not np.isfinite(rtol) or rtol < 0:
+            raise ValueError(f"{fn}(rtol): expected a non-negative finite number, got "
+                             f"{rtol!r}")
     _check_trajectories(ref, est, ref_stamps, est_stamps, fn)
+    if pair_by == "distance":
+        return _rpe_distance(ref.data, est.data, ref_stamps, est_stamps, max_diff, offset,
+                             float(delta), float(rtol), etype=etype, align=align,
+                             all_pairs=bool(all_pairs), from_ref=pairs_from == "ref")
     return _rpe(ref.data, est.data, ref_stamps, est_stamps, max_diff, offset, etype=etype,
                 align=align, delta=delta, all_pairs=bool(all_pairs))
+
+
+def _relative_error(r: SE3, e: SE3, i: Array, j: Array, ok: Array, s: Sim3, etype: str
+                    ) -> TrajectoryError:
+    """RPE of the pairs (i, j) of the compacted, aligned sequences ``r``, ``e``."""
+    rel_r = SE3(r.data[i]).inv().compose(SE3(r.data[j]))
+    rel_e = SE3(e.data[i]).inv().compose(SE3(e.data[j]))
+    err = _errors(rel_r.inv().compose(rel_e), etype)
+    return TrajectoryError(err, ok, error_stats(err, ok), s, jnp.stack([i, j], -1))
+
+
+def _aligned_compacted(ref: Array, est: Array, ref_stamps: Any, est_stamps: Any,
+                       max_diff: Any, offset: Any, align: str | None
+                       ) -> tuple[SE3, SE3, Array, Sim3]:
+    """Associate, align, and move the valid associations to the front (stable)."""
+    r, e, valid, _ = _pair_poses(SE3(ref), SE3(est), ref_stamps, est_stamps, max_diff,
+                                 offset)
+    s = _alignment(r, e, valid, align)
+    e = _apply(s, e)
+    order = jnp.argsort(~valid, stable=True)
+    return SE3(r.data[order]), SE3(e.data[order]), jnp.sum(valid), s
+
+
+@functools.partial(jax.jit, static_argnames=("etype", "align", "all_pairs", "from_ref"))
+def _rpe_distance(ref: Array, est: Array, ref_stamps: Any, est_stamps: Any, max_diff: Any,
+                  offset: Any, delta: Any, rtol: Any, *, etype: str, align: str | None,
+                  all_pairs: bool, from_ref: bool) -> TrajectoryError:
+    r, e, count, s = _aligned_compacted(ref, est, ref_stamps, est_stamps, max_diff, offset,
+                                        align)
+    k = r.shape[0]
+    pos = (r if from_ref else e).translation()
+    step = safe_norm(pos[1:] - pos[:-1])
+    idx = jnp.arange(k, dtype=jnp.int32)
+    if all_pairs:
+        # path distance travelled up to each frame (non-decreasing), frames beyond the
+        # valid count pushed to +inf so they are never chosen
+        d = jnp.concatenate([jnp.zeros((1,), step.dtype), jnp.cumsum(step)])
+        d = jnp.where(idx < count, d, jnp.inf)
+        target = d + delta
+        right = jnp.searchsorted(d, target, side="left").astype(jnp.int32)  # first ≥ target
+        left_val = d[jnp.clip(right - 1, 0, k - 1)]
+        # the first frame after i with the largest distance below the target
+        left = jnp.maximum(jnp.searchsorted(d, left_val, side="left").astype(jnp.int32),
+                           idx + 1)
+        has_left = right - 1 > idx
+        has_right = right < count
+        err_l = jnp.where(has_left, jnp.abs(left_val - target), jnp.inf)
+        err_r = jnp.where(has_right, jnp.abs(d[jnp.minimum(right, k - 1)] - target), jnp.inf)
+        j = jnp.where(err_l <= err_r, left, right)
+        ok = (idx < count) & (jnp.minimum(err_l, err_r) <= rtol * delta)
+        return _relative_error(r, e, idx, jnp.minimum(j, k - 1), ok, s, etype)
+
+    def walk(path: Array, x: tuple[Array, Array]) -> tuple[Array, Array]:
+        length, live = x
+        path = path + jnp.where(live, length, 0.0)
+        hit = live & (path >= delta)
+        return jnp.where(hit, 0.0, path), hit
+
+    lengths = jnp.concatenate([jnp.zeros((1,), step.dtype), step])
+    _, chosen = jax.lax.scan(walk, jnp.zeros((), step.dtype), (lengths, idx < count))
+    order = jnp.argsort(~chosen, stable=True).astype(jnp.int32)
+    n_chosen = jnp.sum(chosen)
+    i, j = order, jnp.roll(order, -1)
+    ok = idx + 1 < n_chosen
+    return _relative_error(r, e, i, jnp.where(ok, j, i), ok, s, etype)
 
 
 @functools.partial(jax.jit, static_argnames=("etype", "align", "delta", "all_pairs"))
 def _rpe(ref: Array, est: Array, ref_stamps: Any, est_stamps: Any, max_diff: Any,
          offset: Any, *, etype: str, align: str | None, delta: int, all_pairs: bool
          ) -> TrajectoryError:
-    r, e, valid, _ = _pair_poses(SE3(ref), SE3(est), ref_stamps, est_stamps, max_diff,
-                                 offset)
-    s = _alignment(r, e, valid, align)
-    e = _apply(s, e)
-    k = valid.shape[0]
-    # compact the valid associations to the front (stable), keep the count
-    order = jnp.argsort(~valid, stable=True)
-    count = jnp.sum(valid)
-    r, e = SE3(r.data[order]), SE3(e.data[order])
+    r, e, count, s = _aligned_compacted(ref, est, ref_stamps, est_stamps, max_diff, offset,
+                                        align)
+    k = r.shape[0]
     if all_pairs:
         i = jnp.arange(k, dtype=jnp.int32)
         j = i + delta
@@ -297,12 +384,7 @@ def _rpe(ref: Array, est: Array, ref_stamps: Any, est_stamps: Any, max_diff: Any
         i = jnp.arange(0, k, delta, dtype=jnp.int32)
         j = i + delta
         ok = j < count
-    j = jnp.minimum(j, k - 1)
-    rel_r = SE3(r.data[i]).inv().compose(SE3(r.data[j]))
-    rel_e = SE3(e.data[i]).inv().compose(SE3(e.data[j]))
-    d = rel_r.inv().compose(rel_e)
-    err = _errors(d, etype)
-    return TrajectoryError(err, ok, error_stats(err, ok), s, jnp.stack([i, j], -1))
+    return _relative_error(r, e, i, jnp.minimum(j, k - 1), ok, s, etype)
 
 
 __all__ = ["ErrorStats", "TrajectoryError", "ape", "associate", "error_stats", "rpe"]

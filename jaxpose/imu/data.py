@@ -23,11 +23,13 @@ quaternion has unit norm and ``[p, v, q]`` when only that one does, and records 
 
 from __future__ import annotations
 
+import math
 import os
 from typing import NamedTuple
 
 import numpy as np
 
+from ..io._text import describe_bad_char, first_bad_char, read_text
 from ..io.errors import FormatError
 
 DT = 0.005  # sample period used by GTSAM's ImuFactorsExample for this stream [s]
@@ -69,37 +71,53 @@ def _floats(path: str, line: int, fields: list[str], count: int, kind: str) -> l
 
 
 def _unit(q: np.ndarray) -> bool:
-    return abs(float(np.linalg.norm(q)) - 1.0) < 1e-6
+    return abs(math.hypot(*(float(v) for v in q)) - 1.0) < 1e-6  # no overflow warning
 
 
 def read_imu_gps(path: str | os.PathLike[str]) -> ImuGpsData:
-    """Parse an IMU + GPS stream in GTSAM's example format (module docstring)."""
+    """Parse an IMU + GPS stream in GTSAM's example format (module docstring).
+
+    The text is UTF-8 (a leading byte-order mark is dropped) and must be ASCII: ``1_0``,
+    non-ASCII digits and non-ASCII spaces are rejected although Python's ``float`` accepts
+    them. Blank lines are skipped.
+
+    Raises:
+        FormatError: ``"FILE:LINE: ..."`` for invalid UTF-8, non-ASCII or ``_`` characters,
+            an unknown row type, a wrong number of values, non-numeric or non-finite values,
+            a GPS quaternion without unit norm, a misplaced or missing initial-state row, or
+            no IMU rows.
+        OSError: the file cannot be read.
+    """
     path = os.fspath(path)
     imu: list[list[float]] = []
     gps: list[list[float]] = []
     gps_index: list[int] = []
     init: list[float] | None = None
-    with open(path, encoding="utf-8") as fh:
-        for k, raw in enumerate(fh, start=1):
-            line = raw.strip()
-            if not line:
-                continue
-            kind, *fields = line.split(",")
-            if kind == "i":
-                if init is not None or imu or gps:
-                    raise FormatError(path, k, "initial-state row 'i' must come first, once")
-                init = _floats(path, k, fields, 10, "initial-state")
-            elif kind == "0":
-                imu.append(_floats(path, k, fields, 6, "IMU"))
-            elif kind == "1":
-                fix = _floats(path, k, fields, 7, "GPS")
-                if not _unit(np.asarray(fix[3:7])):
-                    raise FormatError(path, k, "GPS row: quaternion [qx, qy, qz, qw] must "
-                                      "have unit norm")
-                gps.append(fix)
-                gps_index.append(len(imu))
-            else:
-                raise FormatError(path, k, f"unknown row type {kind!r} (expected i, 0 or 1)")
+    init_line = 1
+    for k, raw in enumerate(read_text(path).split("\n"), start=1):
+        line = raw.strip()
+        if not line:
+            continue
+        bad = first_bad_char(line)
+        if bad >= 0:
+            _, found = describe_bad_char(line.replace(",", " "), bad)
+            raise FormatError(path, k, f"expected ASCII numbers separated by commas, {found}")
+        kind, *fields = line.split(",")
+        if kind == "i":
+            if init is not None or imu or gps:
+                raise FormatError(path, k, "initial-state row 'i' must come first, once")
+            init, init_line = _floats(path, k, fields, 10, "initial-state"), k
+        elif kind == "0":
+            imu.append(_floats(path, k, fields, 6, "IMU"))
+        elif kind == "1":
+            fix = _floats(path, k, fields, 7, "GPS")
+            if not _unit(np.asarray(fix[3:7])):
+                raise FormatError(path, k, "GPS row: quaternion [qx, qy, qz, qw] must "
+                                  "have unit norm")
+            gps.append(fix)
+            gps_index.append(len(imu))
+        else:
+            raise FormatError(path, k, f"unknown row type {kind!r} (expected i, 0 or 1)")
     if init is None:
         raise FormatError(path, 1, "missing the initial-state row 'i'")
     if not imu:
@@ -110,7 +128,7 @@ def read_imu_gps(path: str | os.PathLike[str]) -> ImuGpsData:
     elif _unit(row[6:10]):
         layout, q, v = "p,v,q", row[6:10], row[3:6]
     else:
-        raise FormatError(path, 1, "initial-state row: no unit quaternion at [3:7] "
+        raise FormatError(path, init_line, "initial-state row: no unit quaternion at [3:7] "
                           "(N,E,D,qx,qy,qz,qw,vN,vE,vD) or [6:10] (N,E,D,vN,vE,vD,q)")
     imu_arr = np.asarray(imu)
     gps_arr = np.asarray(gps).reshape(-1, 7)

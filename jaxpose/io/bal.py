@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ._text import describe_bad_char, first_bad_char, read_text
 from .errors import FormatError
 
 __all__ = ["BALProblem", "project_bal", "read_bal", "write_bal"]
@@ -189,13 +190,26 @@ def read_bal(path: PathLike) -> BALProblem:
     Returns:
         A :class:`BALProblem` with float64 parameters and int64 indices.
 
+    The text is UTF-8 (a leading byte-order mark is dropped) and must be ASCII: ``1_0``,
+    non-ASCII digits and non-ASCII spaces are rejected although Python's ``int``/``float``
+    accept them. A point at a camera centre (depth 0) is read as it is; its projection is
+    not finite (``jaxpose ba`` reports it before solving).
+
     Raises:
         FormatError: ``"FILE:LINE: ..."`` for a bad header, non-integer or out-of-range
-            indices, non-numeric or non-finite values, too few values for the counts in the
-            header, or values left over after them; the line is that of the offending token.
+            indices, non-numeric or non-finite values, non-ASCII or ``_`` characters, invalid
+            UTF-8, too few values for the counts in the header, or values left over after
+            them; the line is that of the offending token.
+        OSError: the file cannot be read.
     """
-    text = Path(path).read_text(encoding="utf-8", errors="replace")
+    text = read_text(path)
     lines = text.split("\n")
+    bad = first_bad_char(text)
+    if bad >= 0:
+        line = text.count("\n", 0, bad) + 1
+        start = text.rfind("\n", 0, bad) + 1
+        _, found = describe_bad_char(lines[line - 1], bad - start)
+        raise FormatError(path, line, f"expected ASCII numbers separated by spaces, {found}")
     tokens = text.split()
     if len(tokens) < 3:
         raise FormatError(
@@ -318,7 +332,24 @@ def _finite(
 
 
 def write_bal(path: PathLike, problem: BALProblem) -> None:
-    """Write ``problem`` in BAL layout (full float precision: reading it back is exact)."""
+    """Write ``problem`` in BAL layout (full float precision: reading it back is exact).
+
+    Raises:
+        ValueError: before the file is opened, if a camera, point or observation is not
+            finite (:func:`read_bal` would reject the file).
+    """
+    for name, arr in (
+        ("cameras", problem.cameras),
+        ("points", problem.points),
+        ("observations", problem.observations),
+    ):
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        if bad.size:
+            k = int(bad[0])
+            raise ValueError(
+                f"write_bal(problem.{name}): row {k} is not finite: {arr[k].tolist()}; "
+                "read_bal would reject the file"
+            )
     out = [f"{problem.n_cameras} {problem.n_points} {problem.n_observations}"]
     out += [
         f"{c} {p} {u!r} {v!r}"

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from ._text import describe_bad_char, first_bad_char, read_text
 from .errors import FormatError
 
 __all__ = ["PoseGraph", "connected_components", "read_g2o", "write_g2o"]
@@ -40,7 +41,7 @@ PathLike = str | os.PathLike[str]
 _DIMS = {"SE3": (7, 6), "SE2": (4, 3)}
 _VERTEX_TAG = {"SE3": "VERTEX_SE3:QUAT", "SE2": "VERTEX_SE2"}
 _EDGE_TAG = {"SE3": "EDGE_SE3:QUAT", "SE2": "EDGE_SE2"}
-_MIN_QUAT_NORM = 1e-6  # below this a quaternion is treated as zero (no rotation defined)
+_TINY = float(np.finfo(np.float64).tiny)  # a quaternion with no component this large is zero
 
 
 def _info_names(axes: tuple[str, ...]) -> list[str]:
@@ -151,6 +152,14 @@ def _checked(value: Any, dtype: Any, shape: tuple[int | None, ...], name: str) -
 # generators run before any device is involved and must not depend on jax_enable_x64).
 
 
+def _normalize(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` (..., k) scaled to unit norm without overflow or underflow: divided by
+    their largest magnitude first (‖v‖ of a 1e200 quaternion is inf, of a 1e-200 one is 0)."""
+    scale = np.max(np.abs(v), axis=-1, keepdims=True)
+    u = v / np.where(scale > 0, scale, 1.0)
+    return u / np.linalg.norm(u, axis=-1, keepdims=True)
+
+
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product of (..., 4) ``[x, y, z, w]`` quaternions."""
     ax, ay, az, aw = np.moveaxis(a, -1, 0)
@@ -180,13 +189,12 @@ def _conj(q: np.ndarray) -> np.ndarray:
 def _compose(kind: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a · b`` for (..., 7) SE3 or (..., 4) SE2 storage."""
     if kind == "SE3":
-        q = _quat_mul(a[..., 3:], b[..., 3:])
-        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        q = _normalize(_quat_mul(a[..., 3:], b[..., 3:]))
         return np.concatenate([a[..., :3] + _quat_rotate(a[..., 3:], b[..., :3]), q], -1)
     c, s = a[..., 2], a[..., 3]
     bx, by = b[..., 0], b[..., 1]
     cs = np.stack([c * b[..., 2] - s * b[..., 3], s * b[..., 2] + c * b[..., 3]], -1)
-    cs = cs / np.linalg.norm(cs, axis=-1, keepdims=True)
+    cs = _normalize(cs)
     t = np.stack([a[..., 0] + c * bx - s * by, a[..., 1] + s * bx + c * by], -1)
     return np.concatenate([t, cs], -1)
 
@@ -210,7 +218,7 @@ def _compose1(kind: str, a: list[float], b: list[float]) -> list[float]:
         qy = aw * by - ax * bz + ay * bw + az * bx
         qz = aw * bz + ax * by - ay * bx + az * bw
         qw = aw * bw - ax * bx - ay * by - az * bz
-        n = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        n = math.hypot(qx, qy, qz, qw)  # scale-safe; ≈ 1 for the unit quaternions read
         vx, vy, vz = b[:3]  # rotate b's translation by a's rotation: v + w·t + u × t
         tx, ty, tz = 2 * (ay * vz - az * vy), 2 * (az * vx - ax * vz), 2 * (ax * vy - ay * vx)
         return [
@@ -269,17 +277,18 @@ def _check_finite(
 
 
 def _unit_quaternions(path: PathLike, q: np.ndarray, lines: list[int], tag: str) -> np.ndarray:
-    norm = np.linalg.norm(q, axis=-1)
-    bad = np.flatnonzero(norm < _MIN_QUAT_NORM)
+    """Finite (k, 4) quaternions normalised scale-safely (1e200 and 1e-200 ones included);
+    one whose components are all zero (or subnormal: no direction) raises FormatError."""
+    bad = np.flatnonzero(np.max(np.abs(q), axis=-1) < _TINY)
     if bad.size:
         r = bad[0]
         raise FormatError(
             path,
             lines[r],
             f"{tag}: expected a non-zero quaternion (qx qy qz qw; it is normalised on read), "
-            f"found {q[r].tolist()} with norm {norm[r]:.3g}",
+            f"found {q[r].tolist()}",
         )
-    return q / norm[:, None]
+    return _normalize(q)
 
 
 def _poses_from_values(kind: str, v: np.ndarray) -> np.ndarray:
@@ -343,8 +352,14 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
             tags (a file mixing SE2 and SE3 tags is an error).
 
     Returns:
-        A :class:`PoseGraph`. Quaternions are normalised (zero ones are rejected); SE2 angles
-        become ``(cos θ, sin θ)``; ``FIX id`` lines are collected in ``fixed``.
+        A :class:`PoseGraph`. Quaternions are normalised scale-safely (``1e200`` or ``1e-200``
+        times a unit quaternion reads as that unit quaternion; all-zero ones are rejected); SE2
+        angles become ``(cos θ, sin θ)``; ``FIX id`` lines are collected in ``fixed``.
+
+    The text is UTF-8; a byte-order mark at the start is dropped. Numbers on pose-graph lines
+    must be spelled in ASCII: ``1_0``, non-ASCII digits (``١``, ``１``) and non-ASCII spaces
+    are rejected, although Python's ``int``/``float`` would accept them. Comment lines
+    (``#``) and skipped lines may hold any text.
 
     Files with edges but no ``VERTEX`` lines (e.g. manhattan.g2o) get vertices for every id
     named by an edge (``vertex_ids`` sorted ascending) and initial poses from the measurements:
@@ -357,13 +372,17 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
 
     Raises:
         FormatError: ``"FILE:LINE: ..."`` for a wrong number of values, non-numeric or
-            non-finite values, zero quaternions, duplicate vertex ids, edges or FIX lines
-            naming missing vertices, information matrices that are not positive definite,
-            SE2/SE3 tags mixed (or not the requested ``kind``), or no pose-graph lines.
+            non-finite values, non-ASCII or ``_`` characters in them, invalid UTF-8, zero
+            quaternions, duplicate vertex ids, self-loop edges (``i == j``), edges or FIX
+            lines naming missing vertices, information matrices that are not positive
+            definite, SE2/SE3 tags mixed (or not the requested ``kind``), a byte-order mark
+            after the first line, edges-only initial poses beyond the float64 range, or no
+            pose-graph lines.
+        OSError: the file cannot be read.
     """
     if kind is not None and kind not in _DIMS:
         raise ValueError(f"read_g2o: kind must be 'SE3', 'SE2' or None, got {kind!r}")
-    text = Path(path).read_text(encoding="utf-8", errors="replace")
+    text = read_text(path)  # a leading byte-order mark is dropped
     lines = text.split("\n")
     rows: dict[str, list[list[str]]] = {"vertex": [], "edge": []}
     row_lines: dict[str, list[int]] = {"vertex": [], "edge": []}
@@ -376,10 +395,22 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
             continue
         tag = toks[0]
         spec = _SPECS.get(tag)
+        if spec is None and tag.startswith("\ufeff"):
+            raise FormatError(
+                path,
+                ln,
+                f"expected a tag, found a byte-order mark U+FEFF before {tag[1:]!r} "
+                "(only the first line may start with one: concatenated files?)",
+            )
         if spec is None:
             if tag == "FIX":
                 if len(toks) < 2:
                     raise FormatError(path, ln, "FIX: expected 'FIX id [id ...]', found no id")
+                body = raw.lstrip()[len(tag) :]
+                bad = first_bad_char(body)
+                if bad >= 0:
+                    found = describe_bad_char(body, bad)[1]
+                    raise FormatError(path, ln, f"FIX: expected an integer id, {found}")
                 fix_rows.append((ln, toks[1:]))
             elif tag.startswith(("VERTEX", "EDGE")):
                 first, count = unknown.get(tag, (ln, 0))
@@ -400,6 +431,17 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
                 ln,
                 f"expected {n_ids + len(names)} values after {tag} ({_LAYOUT[tag]}), "
                 f"found {len(toks) - 1}",
+            )
+        body = raw.lstrip()[len(tag) :]
+        bad = first_bad_char(body)
+        if bad >= 0:
+            field, found = describe_bad_char(body, bad)
+            fields = ["id"] if role == "vertex" else ["i", "j"]
+            fields += names
+            raise FormatError(
+                path,
+                ln,
+                f"{tag}: expected a number for {fields[min(field, len(fields) - 1)]}, {found}",
             )
         rows[role].append(toks[1:])
         row_lines[role].append(ln)
@@ -443,6 +485,15 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
     # edges
     erows, elines = rows["edge"], row_lines["edge"]
     eids = _convert(path, [r[:2] for r in erows], elines, np.int64, etag, ["i", "j"])
+    loops = np.flatnonzero(eids[:, 0] == eids[:, 1])
+    if loops.size:
+        e = int(loops[0])
+        raise FormatError(
+            path,
+            elines[e],
+            f"{etag} {eids[e, 0]} {eids[e, 1]}: expected an edge between two different "
+            "vertices, found a self-loop (its residual Log(Z⁻¹) does not depend on the pose)",
+        )
     evals = _convert(path, [r[2:] for r in erows], elines, np.float64, etag, enames)
     _check_finite(path, evals, elines, etag, enames)
     meas = evals[:, :n_meas]
@@ -490,7 +541,18 @@ def read_g2o(path: PathLike, *, kind: str | None = None) -> PoseGraph:
     info = _information(path, evals[:, n_meas:], elines, etag, eids)
 
     if poses is None:
-        poses, n_components = _initialise(kind, vertex_ids, edges, meas)
+        with np.errstate(over="ignore", invalid="ignore"):
+            poses, n_components, via = _initialise(kind, vertex_ids, edges, meas)
+        bad = np.flatnonzero(~np.isfinite(poses).all(axis=1))
+        if bad.size:  # huge translations chained past the float64 range
+            e = int(via[bad[0]])
+            raise FormatError(
+                path,
+                elines[e],
+                f"{etag} {eids[e, 0]} {eids[e, 1]}: chaining the measurements to vertex "
+                f"{vertex_ids[bad[0]]} gives a non-finite initial pose (translations beyond the "
+                "float64 range); give VERTEX lines with initial poses",
+            )
         if n_components > 1:
             warnings.warn(
                 f"{os.fspath(path)}: the edges form {n_components} disconnected pieces; each "
@@ -520,8 +582,9 @@ def _adjacency(n: int, edges: np.ndarray) -> list[list[tuple[int, int, bool]]]:
 
 def _initialise(
     kind: str, vertex_ids: np.ndarray, edges: np.ndarray, meas: np.ndarray
-) -> tuple[np.ndarray, int]:
-    """Initial poses for an edges-only graph (see :func:`read_g2o`); returns (poses, pieces)."""
+) -> tuple[np.ndarray, int, np.ndarray]:
+    """Initial poses for an edges-only graph (see :func:`read_g2o`); returns (poses, pieces,
+    via): ``via[v]`` is the edge that set vertex v (-1 for the start of a piece)."""
     n = len(vertex_ids)
     ids = vertex_ids.tolist()
     ends = edges.tolist()
@@ -533,29 +596,31 @@ def _initialise(
     forward = meas.tolist()
     backward = _inverse(kind, meas).tolist()
     poses: list[list[float] | None] = [None] * n
+    via = np.full(n, -1, np.int64)
     queue: deque[int] = deque()
 
-    def settle(v: int, pose: list[float]) -> None:
+    def settle(v: int, pose: list[float], edge: int) -> None:
         while True:
             poses[v] = pose
+            via[v] = edge
             queue.append(v)
             e = odometry.get(v)
             if e is None or poses[ends[e][1]] is not None:
                 return
-            v, pose = ends[e][1], _compose1(kind, pose, forward[e])
+            v, pose, edge = ends[e][1], _compose1(kind, pose, forward[e]), e
 
     pieces = 0
     for start in range(n):  # vertex_ids is sorted, so this is smallest id first
         if poses[start] is not None:
             continue
         pieces += 1
-        settle(start, _identity(kind).tolist())
+        settle(start, _identity(kind).tolist(), -1)
         while queue:
             v = queue.popleft()
             for e, w, fwd in adj[v]:
                 if poses[w] is None:
-                    settle(w, _compose1(kind, poses[v], forward[e] if fwd else backward[e]))
-    return np.asarray(poses, np.float64).reshape(n, _DIMS[kind][0]), pieces
+                    settle(w, _compose1(kind, poses[v], forward[e] if fwd else backward[e]), e)
+    return np.asarray(poses, np.float64).reshape(n, _DIMS[kind][0]), pieces, via
 
 
 def connected_components(graph: PoseGraph) -> np.ndarray:
@@ -591,6 +656,68 @@ def _fmt(values: list[float]) -> str:
     return " ".join(map(repr, values))  # shortest text that reads back to the same float
 
 
+def _check_writable_graph(graph: PoseGraph, poses: np.ndarray) -> None:
+    """Raise ValueError for what read_g2o would reject (see write_g2o)."""
+    ids = graph.vertex_ids
+    rot = slice(3, 7) if graph.kind == "SE3" else slice(2, 4)
+    what = "quaternion" if graph.kind == "SE3" else "(cos θ, sin θ)"
+    for name, arr, label in (
+        ("poses", poses, lambda k: f"vertex id {ids[k]}"),
+        ("graph.measurements", graph.measurements, lambda k: f"edge {k}"),
+    ):
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        if bad.size:
+            k = int(bad[0])
+            raise ValueError(
+                f"write_g2o({name}): row {k} ({label(k)}) is not finite: {arr[k].tolist()}; "
+                "read_g2o would reject the file"
+            )
+        bad = np.flatnonzero(np.max(np.abs(arr[:, rot]), axis=1) < _TINY)
+        if bad.size:
+            k = int(bad[0])
+            raise ValueError(
+                f"write_g2o({name}): row {k} ({label(k)}) has a zero {what} "
+                f"{arr[k, rot].tolist()}; read_g2o would reject the file"
+            )
+    # the file holds the upper triangle: check the symmetric matrix read_g2o will rebuild
+    t = graph.information.shape[-1]
+    r, c = np.triu_indices(t)
+    info = np.zeros_like(graph.information)
+    info[:, r, c] = graph.information[:, r, c]
+    info[:, c, r] = graph.information[:, r, c]
+    if not _all_spd(info):
+        e = next(e for e in range(len(info)) if not _all_spd(info[e : e + 1]))
+        raise ValueError(
+            f"write_g2o(graph.information): matrix {e} (its upper triangle, as written) is not "
+            f"finite positive definite: {graph.information[e].tolist()}; read_g2o would reject "
+            "the file"
+        )
+    loops = np.flatnonzero(graph.edges[:, 0] == graph.edges[:, 1])
+    if loops.size:
+        e = int(loops[0])
+        raise ValueError(
+            f"write_g2o(graph.edges): edge {e} is a self-loop on vertex id "
+            f"{ids[graph.edges[e, 0]]}; read_g2o would reject the file"
+        )
+    uniq, counts = np.unique(ids, return_counts=True)
+    if (counts > 1).any():
+        raise ValueError(
+            f"write_g2o(graph.vertex_ids): id {uniq[counts > 1][0]} appears more than once; "
+            "read_g2o would reject the file"
+        )
+
+
+def _all_spd(m: np.ndarray) -> bool:
+    """Whether every (…, t, t) symmetric matrix is finite and positive definite."""
+    if not np.isfinite(m).all():
+        return False
+    try:
+        np.linalg.cholesky(m)
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
 def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
     """Write ``graph`` as a g2o file (full float precision, so reading it back is exact).
 
@@ -603,6 +730,12 @@ def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
 
     SE2 angles are written as ``atan2(sin, cos)``; information matrices as their upper
     triangle. Vertices come first, then ``FIX`` lines, then edges.
+
+    Raises:
+        ValueError: before the file is opened, for anything :func:`read_g2o` would reject:
+            non-finite poses, measurements or information, zero quaternions (SE3) or
+            ``(cos θ, sin θ) = (0, 0)`` (SE2), information matrices that are not positive
+            definite, self-loop edges or duplicate vertex ids.
     """
     t = _DIMS[graph.kind][1]
     if poses is None:
@@ -614,6 +747,7 @@ def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
                 f"write_g2o: poses must have shape {graph.poses.shape} like graph.poses "
                 f"({graph.kind} storage), got {poses.shape}"
             )
+    _check_writable_graph(graph, poses)
     if graph.kind == "SE2":
         poses = np.stack([poses[:, 0], poses[:, 1], np.arctan2(poses[:, 3], poses[:, 2])], -1)
         meas = graph.measurements

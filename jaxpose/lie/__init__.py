@@ -8,6 +8,7 @@ that order. See ``docs/conventions.md`` for layouts and Jacobian conventions.
 
 from . import convert, manifold, series
 from .base import LieAlgebra, LieGroup
+from .batchops import cumops, identity_like, random_like
 from .functional import (
     act,
     adj,
@@ -47,9 +48,9 @@ ALGEBRAS = (so3, se3, sim3, rxso3, so2, se2)
 
 __all__ = [
     "ALGEBRAS", "GROUPS", "LieAlgebra", "LieGroup", "RxSO3", "SE2", "SE3", "SO2", "SO3",
-    "Sim3", "act", "adj", "adjT", "compose", "convert", "cumprod", "euler", "exp",
-    "from_euler", "from_matrix", "hat", "identity", "interpolate", "inv", "jinvp", "jl",
-    "jl_inv", "jr", "jr_inv", "log", "manifold", "matrix", "normalize", "random",
-    "rotation", "rxso3", "scale", "se2", "se3", "series", "sim3", "so2", "so3",
+    "Sim3", "act", "adj", "adjT", "compose", "convert", "cumops", "cumprod", "euler", "exp",
+    "from_euler", "from_matrix", "hat", "identity", "identity_like", "interpolate", "inv",
+    "jinvp", "jl", "jl_inv", "jr", "jr_inv", "log", "manifold", "matrix", "normalize", "random",
+    "random_like", "rotation", "rxso3", "scale", "se2", "se3", "series", "sim3", "so2", "so3",
     "translation",
 ]

@@ -146,6 +146,11 @@ def implicit_solve(
 ) -> Solution:
     """Run ``run(problem, params0, args)`` with implicit gradients w.r.t. ``args`` and
     the problem's arrays (weights, kernel parameters, closed-over values)."""
+    # Python numbers in ``args`` become arrays on their way through the custom rule below;
+    # convert them first so the closure-converted function sees the same arguments
+    args = jax.tree.map(
+        lambda x: jnp.asarray(x) if isinstance(x, int | float | complex) else x, args
+    )
     fn = eqx.filter_closure_convert(problem.residual_fn, params0, args)
     problem = eqx.tree_at(lambda p: p.residual_fn, problem, fn)
     if callable(problem.jacobian):

@@ -151,3 +151,91 @@ def test_bad_input():
         ape(p, np.zeros((4, 7)))
     with pytest.raises(ValueError, match=r"associate\(ref_stamps, est_stamps\)"):
         associate(np.zeros(0), np.zeros(3))
+
+
+def _pairs_by_distance(t: np.ndarray, delta: float, tol: float, all_pairs: bool):
+    """evo/PyPose path-distance pairing, written out in plain Python."""
+    steps = np.linalg.norm(np.diff(t, axis=0), axis=1)
+    if all_pairs:
+        d = np.concatenate([[0.0], np.cumsum(steps)])
+        pairs = []
+        for i in range(len(d) - 1):
+            rest = np.abs(d[i + 1:] - d[i] - delta)
+            j = int(np.argmin(rest))
+            if rest[j] <= tol:
+                pairs.append((i, i + 1 + j))
+        return pairs
+    chosen, path = [], 0.0
+    for i, s in enumerate(np.concatenate([[0.0], steps])):
+        path += s
+        if path >= delta:
+            chosen.append(i)
+            path = 0.0
+    return list(zip(chosen[:-1], chosen[1:], strict=True))
+
+
+@pytest.mark.parametrize("all_pairs", [False, True])
+def test_rpe_by_distance_matches_plain_python_pairing(rng, all_pairs):
+    n = 60
+    t = np.cumsum(rng.uniform(0.05, 0.4, size=(n, 3)), 0)
+    t[10:14] = t[10]  # standing still: ties in the path distance
+    yaw = rng.uniform(-1, 1, n)
+    ref = _poses(t, yaw)
+    est_t = t + rng.normal(scale=0.05, size=t.shape)
+    est = _poses(est_t, yaw + rng.normal(scale=0.01, size=n))
+    out = rpe(ref, est, pair_by="distance", delta=1.5, all_pairs=all_pairs, etype="translation")
+    pairs = _pairs_by_distance(est_t, 1.5, 0.15, all_pairs)
+    got = [tuple(p) for p, ok in zip(np.asarray(out.pairs), np.asarray(out.valid)) if ok]
+    assert got == pairs and len(pairs) > 5
+    r, e = np.asarray(ref.data), np.asarray(est.data)
+
+    def rel(x: np.ndarray, i: int, j: int) -> np.ndarray:  # 4x4 of x_i^-1 x_j (numpy)
+        m = [np.asarray(SE3(x[k]).matrix()) for k in (i, j)]
+        return np.linalg.inv(m[0]) @ m[1]
+
+    expect = [np.linalg.norm((np.linalg.inv(rel(r, i, j)) @ rel(e, i, j))[:3, 3])
+              for i, j in pairs]
+    assert float(out.stats.mean) == pytest.approx(np.mean(expect), rel=1e-12)
+    # pairs on the reference path instead
+    by_ref = rpe(ref, est, pair_by="distance", delta=1.5, all_pairs=all_pairs,
+                 pairs_from="ref")
+    got = [tuple(p) for p, ok in zip(np.asarray(by_ref.pairs), np.asarray(by_ref.valid)) if ok]
+    assert got == _pairs_by_distance(t, 1.5, 0.15, all_pairs)
+
+
+def test_rpe_by_distance_bad_input():
+    ref = _poses(np.arange(12.0)[:, None] * np.ones(3))
+    with pytest.raises(ValueError, match=r"rpe\(pair_by\)"):
+        rpe(ref, ref, pair_by="time")
+    with pytest.raises(ValueError, match=r"rpe\(delta\)"):
+        rpe(ref, ref, pair_by="distance", delta=0.0)
+    with pytest.raises(ValueError, match=r"rpe\(delta\)"):
+        rpe(ref, ref, delta=1.5)  # frame pairing needs an int
+    with pytest.raises(ValueError, match=r"rpe\(pairs_from\)"):
+        rpe(ref, ref, pair_by="distance", pairs_from="gt")
+    # a path shorter than delta: no valid pair, NaN statistics (nothing to average)
+    out = rpe(ref, ref, pair_by="distance", delta=1e3)
+    assert not bool(out.valid.any()) and np.isnan(float(out.stats.mean))
+
+
+@pytest.mark.peer
+def test_rpe_by_distance_matches_pypose(rng):
+    pp = pypose()
+    import torch
+
+    n = 40
+    t = np.cumsum(rng.uniform(0.05, 0.4, size=(n, 3)), 0)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    ref = np.concatenate([t, q], 1)
+    est = ref.copy()
+    est[:, :3] += rng.normal(scale=0.05, size=(n, 3))
+    stamps = np.arange(n, dtype=float)
+    for all_pairs in (False, True):
+        theirs = pp.metric.rpe(torch.tensor(stamps), pp.SE3(torch.tensor(ref)),
+                               torch.tensor(stamps), pp.SE3(torch.tensor(est)),
+                               associate="distance", delta=1.5, all=all_pairs)
+        ours = rpe(SE3(ref), SE3(est), stamps, stamps, pair_by="distance", delta=1.5,
+                   all_pairs=all_pairs)
+        assert float(ours.stats.mean) == pytest.approx(float(theirs["Mean"]), rel=1e-10)
+        assert float(ours.stats.rmse) == pytest.approx(float(theirs["RMSE"]), rel=1e-10)

@@ -314,5 +314,5 @@ def test_cli_robust_gnc_rejects_the_outliers(tmp_path, capsys):
     keep = np.ones(bad.n_edges, bool)
     keep[outliers] = False
     _same_poses(read_g2o(out).poses, _scipy_inlier_solution(bad, keep), atol=1e-6)
-    with pytest.raises(SystemExit, match="drop --kernel"):
-        main(["pgo", str(src), "--robust", "gnc", "--kernel", "huber"])
+    assert main(["pgo", str(src), "--robust", "gnc", "--kernel", "huber"]) != 0
+    assert "drop --kernel" in capsys.readouterr().err

@@ -325,3 +325,29 @@ def test_gauss_newton_cost_increase_is_not_convergence():
     lm = run_steps(jo.LM(), res, x0, (t, y))
     assert int(lm.status) == jo.Status.CONVERGED
     np.testing.assert_allclose(np.asarray(lm.best_params), [2.0, 1.3], rtol=1e-6)
+
+
+def test_repeated_eager_calls_reuse_the_compiled_solve():
+    """least_squares is filter_jit-compiled: new data of the same shapes never retraces."""
+    traces = []
+
+    def counted(x, a):
+        traces.append(1)  # runs only while tracing
+        return exp_residual(x, a)
+
+    first = jo.least_squares(counted, X0, EXP_ARGS)
+    n = len(traces)
+    assert n > 0
+    again = jo.least_squares(counted, X0 + 0.1, (EXP_ARGS[0], EXP_ARGS[1] * 1.0))
+    assert len(traces) == n  # no retrace for new values
+    np.testing.assert_allclose(again.params, first.params, atol=1e-6)
+    jo.least_squares(counted, X0, EXP_ARGS, max_steps=7)  # a new option compiles anew
+    assert len(traces) > n
+
+
+def test_integer_parameters_and_python_number_args_are_promoted():
+    sol = jo.least_squares(lambda p, a: p - a, jnp.array([1, 2, 3]), jnp.array([0.5, 0.5, 1.5]))
+    assert jnp.issubdtype(sol.params.dtype, jnp.floating) and int(sol.status) == 0
+    np.testing.assert_allclose(sol.params, [0.5, 0.5, 1.5], atol=1e-12)
+    sol = jo.least_squares(lambda p, a: p["x"] - a, {"x": 3}, 0.25)
+    assert float(sol.params["x"]) == pytest.approx(0.25)
