@@ -290,6 +290,37 @@ def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, poses=None):
     return sol.variables["pose"].data, sol
 
 
+def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
+    """Outlier-robust solve (``--robust gnc``): graduated non-convexity with the odometry
+    edges as known inliers; prints the summary and the rejected loop closures."""
+    import jax
+    import numpy as np
+
+    from .graph import pgo
+
+    if kernel is not None:
+        raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
+    t0 = time.perf_counter()
+    poses, sol = pgo.optimize_pose_graph(
+        graph, robust="gnc", init=init, dtype=dtype, gnc_options={"surrogate": surrogate},
+        linear_solver=solver, max_steps=max_steps,
+    )
+    jax.block_until_ready(sol.cost)
+    total_s = time.perf_counter() - t0
+    w = np.asarray(sol.weights[0])
+    loops = ~pgo.odometry_edges(graph)
+    rejected = np.flatnonzero(loops & (w <= 0.5))
+    print(f"GNC ({surrogate}): initial cost {float(sol.initial_cost):.6e}  weighted cost "
+          f"{float(sol.cost):.6e}  robust cost {float(sol.robust_cost):.6e}  "
+          f"GNC iterations {int(sol.iterations)}  LM iterations {int(sol.inner_iterations)}  "
+          f"mu {float(sol.mu):.3g}  status {sol.status_name}")
+    print(f"loop closures: {int(loops.sum()) - rejected.size} inliers, {rejected.size} "
+          f"rejected" + (f" (edges {', '.join(map(str, rejected[:10]))}"
+                         f"{', ...' if rejected.size > 10 else ''})" if rejected.size else ""))
+    print(f"time: {total_s:.3f} s (including compilation)")
+    return poses, sol
+
+
 def pgo_command(args: argparse.Namespace) -> int:
     _enable_x64(not args.float32)
     import jax.numpy as jnp
@@ -312,6 +343,8 @@ def pgo_command(args: argparse.Namespace) -> int:
             raise CLIError(f"--plot {args.plot}: expected one of the extensions "
                            f"{sorted(formats)}, got {ext!r}")
     kernel = _kernel(args.kernel, args.kernel_delta)
+    if getattr(args, "robust", None) == "gnc" and kernel is not None:
+        raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
     try:
         graph = read_g2o(args.file, information=args.information)
     except (FormatError, OSError) as err:
@@ -326,15 +359,21 @@ def pgo_command(args: argparse.Namespace) -> int:
     ids = graph.vertex_ids[graph.edges]
     _check_initial_cost(_pose_graph_edge_costs(graph), dtype, lambda e: (
         f"{e} ({ids[e, 0]} -> {ids[e, 1]})"), "edge")
-    from .graph.init import initial_poses, pose_graph_cost
+    if getattr(args, "robust", None) == "gnc":
+        poses, sol = _run_pgo_gnc(graph, kernel=kernel, solver=args.solver,
+                                  max_steps=args.max_steps, dtype=dtype,
+                                  surrogate=args.gnc_surrogate, init=args.init)
+    else:
+        from .graph.init import initial_poses, pose_graph_cost
 
-    t0 = time.perf_counter()
-    start, method = initial_poses(graph, args.init)
-    init_s = time.perf_counter() - t0
-    print(f"initialisation: {method} ({init_s:.3f} s), cost {pose_graph_cost(graph, start):.6e}")
-    poses, sol = _run_pgo(graph, kernel=kernel,
-                        solver=args.solver, max_steps=args.max_steps,
-                        verbose=not args.quiet, dtype=dtype, poses=start)
+        t0 = time.perf_counter()
+        start, method = initial_poses(graph, args.init)
+        init_s = time.perf_counter() - t0
+        print(f"initialisation: {method} ({init_s:.3f} s), cost "
+              f"{pose_graph_cost(graph, start):.6e}")
+        poses, sol = _run_pgo(graph, kernel=kernel,
+                              solver=args.solver, max_steps=args.max_steps,
+                              verbose=not args.quiet, dtype=dtype, poses=start)
     poses = np.asarray(poses, np.float64)
     if not np.isfinite(poses).all():
         raise CLIError("the optimised poses are not finite; nothing written")
@@ -348,9 +387,13 @@ def pgo_command(args: argparse.Namespace) -> int:
         from .plot import plot_pose_graphs
 
         # pose marginals at the solution for the 2σ position ellipses
-        problem = pgo.pose_graph_problem(graph, kernel=_kernel(args.kernel, args.kernel_delta),
-                                         dtype=dtype)
-        cov = jax.jit(lambda p, s: marginals(p, s, "pose").covariances["pose"])(problem, sol)
+        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype)
+        if hasattr(sol, "weights"):  # GNC: the graph as weighted at the solution
+            from .graph.robust import weighted_graph
+
+            problem = weighted_graph(problem, sol.weights)
+        cov = jax.jit(lambda p, v: marginals(p, v, "pose").covariances["pose"])(
+            problem, sol.variables)
         cov = np.asarray(cov, np.float64)
         if not np.all(np.isfinite(cov)):
             print("jaxpose pgo: pose marginals are not finite; plotting without ellipses",
@@ -464,6 +507,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "pose marginals (PNG; needs matplotlib; directory checked before solving)")
     q.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
     q.add_argument("--kernel-delta", type=_positive_float, default=1.0, help="kernel scale δ")
+    q.add_argument("--robust", default=None, choices=["gnc"],
+                   help="outlier-robust solve: graduated non-convexity (odometry edges are "
+                        "known inliers; loop closures get inlier weights)")
+    q.add_argument("--gnc-surrogate", default="tls", choices=["tls", "gm"],
+                   help="GNC loss: truncated least squares or Geman-McClure")
     q.add_argument("--solver", default="auto", choices=["auto", "sparse", "pcg", "dense"])
     q.add_argument("--max-steps", type=_int_at_least(0), default=100)
     q.add_argument("--init", default="auto", choices=["auto", "chordal", "odometry"],

@@ -15,7 +15,7 @@ import numpy as np
 from .io.bal import BALProblem, project_bal
 from .io.g2o import PoseGraph, _compose, _compose1, _inverse, _normalize, _quat_mul
 
-__all__ = ["synthetic_bal", "synthetic_pose_graph"]
+__all__ = ["corrupt_loop_closures", "synthetic_bal", "synthetic_pose_graph"]
 
 # ----------------------------------------------------------------------------- numpy Lie helpers
 
@@ -260,6 +260,59 @@ def synthetic_pose_graph(
         fixed=np.zeros(1, np.int64),
     )
     return graph, gt
+
+
+def corrupt_loop_closures(
+    graph: PoseGraph, fraction: float, seed: int = 0
+) -> tuple[PoseGraph, np.ndarray]:
+    """Replace a fraction of a pose graph's loop closures by random (outlier) edges.
+
+    Loop closures are the edges that do not join consecutive poses (``|i − j| ≠ 1``).
+    ``round(fraction · count)`` of them, drawn without replacement, are replaced by an edge
+    between two random non-consecutive poses with a random measurement: a uniformly random
+    rotation (a random yaw for SE2) and a translation uniform in the box spanned by the
+    graph's initial poses (at least ±1 per axis); the edge keeps the replaced edge's
+    information matrix. Seeded (``numpy.random.default_rng(seed)``).
+
+    Returns:
+        ``(graph, outliers)``: the corrupted copy (same edge count and order) and the sorted
+        indices of the replaced edges.
+    """
+    if not 0.0 <= float(fraction) <= 1.0:
+        raise ValueError(f"corrupt_loop_closures(fraction={fraction!r}): expected 0 ≤ f ≤ 1")
+    n = graph.n_poses
+    if n < 3:
+        raise ValueError(f"corrupt_loop_closures(graph): needs at least 3 poses, got {n}")
+    rng = np.random.default_rng(seed)
+    edges = graph.edges.copy()
+    loops = np.flatnonzero(np.abs(edges[:, 1] - edges[:, 0]) != 1)
+    count = int(round(float(fraction) * loops.size))
+    out = np.sort(rng.choice(loops, count, replace=False)) if count else np.zeros(0, np.int64)
+    i = rng.integers(0, n, count)
+    gap = rng.integers(2, n - 1, count) if n > 3 else np.full(count, 2)
+    j = (i + gap) % n  # never i or i ± 1
+    edges[out] = np.stack([i, j], 1)
+    meas = graph.measurements.copy()
+    dim = 3 if graph.kind == "SE3" else 2
+    pos = graph.poses[:, :dim]
+    half = np.maximum(0.5 * (pos.max(0) - pos.min(0)), 1.0)
+    trans = rng.uniform(-half, half, (count, dim))
+    if graph.kind == "SE3":
+        meas[out] = np.concatenate([trans, _random_quat(rng, count)], 1)
+    else:
+        yaw = rng.uniform(-np.pi, np.pi, count)
+        meas[out] = np.concatenate([trans, np.cos(yaw)[:, None], np.sin(yaw)[:, None]], 1)
+    corrupted = PoseGraph(
+        kind=graph.kind,
+        vertex_ids=graph.vertex_ids,
+        poses=graph.poses,
+        edges=edges,
+        measurements=meas,
+        information=graph.information,
+        path=None,
+        fixed=graph.fixed,
+    )
+    return corrupted, out
 
 
 # ----------------------------------------------------------------------------- BAL

@@ -2,11 +2,11 @@
 
 Marginal covariances of a solution: :func:`marginals` (:mod:`jaxpose.graph.marginals`).
 Pose graphs: :mod:`jaxpose.graph.pgo` (global initialisation: :mod:`jaxpose.graph.init`);
-bundle adjustment (BAL camera model, Schur
-elimination of the points): :mod:`jaxpose.graph.ba`.
+outlier-robust solves by graduated non-convexity: :mod:`jaxpose.graph.robust`; bundle
+adjustment (BAL camera model, Schur elimination of the points): :mod:`jaxpose.graph.ba`.
 """
 
-from . import ba, init, pgo
+from . import ba, init, pgo, robust
 from .ba import (
     bundle_adjustment_problem,
     optimize_bal,
@@ -23,6 +23,7 @@ from .factor import (
 from .init import chordal_initialization, initial_poses, pose_graph_cost
 from .marginals import Marginals, marginals, se3_to_gtsam
 from .problem import FactorGraph, Linearization, cost, linearize
+from .robust import GNCSolution, gm_weights, gnc, tls_weights, weighted_graph
 from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STALLED, GraphSolution, solve, summary
 from .strategies import LambdaFactor, Nielsen
 
@@ -32,6 +33,7 @@ __all__ = [
     "NON_FINITE",
     "STALLED",
     "Factor",
+    "GNCSolution",
     "FactorGraph",
     "GraphSolution",
     "LambdaFactor",
@@ -46,6 +48,8 @@ __all__ = [
     "cost",
     "init",
     "initial_poses",
+    "gm_weights",
+    "gnc",
     "linearize",
     "marginals",
     "optimize_bal",
@@ -55,7 +59,10 @@ __all__ = [
     "reprojection_jacobian",
     "reprojection_residual",
     "se3_to_gtsam",
+    "robust",
     "solve",
     "summary",
+    "tls_weights",
     "vector_prior_residual",
+    "weighted_graph",
 ]

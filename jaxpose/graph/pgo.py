@@ -25,7 +25,7 @@ from ..lie import SE2, SE3
 from .factor import Factor, between_jacobian, between_residual
 from .init import initial_poses
 from .problem import FactorGraph
-from .solve import GraphSolution, solve
+from .solve import solve
 
 _GROUPS = {"SE3": SE3, "SE2": SE2}
 
@@ -105,6 +105,13 @@ def gauge_anchors(graph: Any, held: Any) -> np.ndarray:
     return np.union1d(held, firsts[free_pieces])
 
 
+def odometry_edges(graph: Any) -> np.ndarray:
+    """(m,) booleans: edges joining consecutive poses (``|i − j| = 1``), the odometry
+    (known inliers for :func:`~jaxpose.graph.gnc`); the others are loop closures."""
+    edges = np.asarray(graph.edges)
+    return np.abs(edges[:, 1] - edges[:, 0]) == 1
+
+
 def optimize_pose_graph(
     graph: Any,
     *,
@@ -113,17 +120,39 @@ def optimize_pose_graph(
     dtype: Any = None,
     init: str = "auto",
     information: str | None = None,
+    robust: str | None = None,
+    gnc_options: dict[str, Any] | None = None,
     **solve_kwargs: Any,
-) -> tuple[np.ndarray, GraphSolution]:
+) -> tuple[np.ndarray, Any]:
     """Optimise a pose graph; returns (poses as numpy (n, storage), solution).
 
     ``init``: ``"auto"`` (default), ``"chordal"`` or ``"odometry"``, the starting poses of
-    :func:`jaxpose.graph.init.initial_poses`; ``information``: as in
-    :func:`pose_graph_problem`; other keywords go to :func:`jaxpose.graph.solve`."""
+    :func:`jaxpose.graph.init.initial_poses` (with ``robust="gnc"``, ``"auto"`` starts from
+    the file's/odometry poses: outliers corrupt the chordal relaxation); ``information``:
+    as in :func:`pose_graph_problem`; other keywords go to :func:`jaxpose.graph.solve`.
+
+    ``robust="gnc"``: graduated non-convexity (:func:`~jaxpose.graph.gnc`, TLS by default)
+    with the odometry edges as known inliers; ``gnc_options`` are its keywords
+    (``surrogate``, ``barc_sq``, ...), ``solve_kwargs`` those of the inner solve; the
+    solution is a :class:`~jaxpose.graph.GNCSolution` (``weights[0]``: per-edge inlier
+    weights). ``robust=None``: one LM solve (:func:`~jaxpose.graph.solve`)."""
+    if robust not in (None, "gnc"):
+        raise ValueError(f"optimize_pose_graph(robust={robust!r}): expected None or 'gnc'")
+    if robust == "gnc" and kernel is not None:
+        raise ValueError("optimize_pose_graph(kernel, robust='gnc'): give one, not both")
     if information is not None:
         info, _ = _apply_policy(graph.information, information, "optimize_pose_graph")
         graph = replace(graph, information=info)
+    if robust == "gnc" and init == "auto":
+        init = "odometry"
     start, _ = initial_poses(graph, init, fix=fix)  # after the policy: chordal uses Ω
     problem = pose_graph_problem(graph, kernel=kernel, fix=fix, dtype=dtype, poses=start)
-    sol = solve(problem, **solve_kwargs)
+    if robust == "gnc":
+        from .robust import gnc
+
+        options = dict(gnc_options or {})
+        options.setdefault("known_inliers", odometry_edges(graph))
+        sol = gnc(problem, **options, **solve_kwargs)
+    else:
+        sol = solve(problem, **solve_kwargs)
     return np.asarray(sol.variables["pose"].data), sol
