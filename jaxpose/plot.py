@@ -49,6 +49,9 @@ def _draw_ellipses(ax: Any, centers: np.ndarray, cov2: np.ndarray, max_count: in
     ax.add_collection(EllipseCollection(
         width, height, angle, units="xy", offsets=centers[sel], offset_transform=ax.transData,
         facecolors="none", edgecolors="tab:red", linewidths=0.6))
+    reach = np.maximum(width, height)[:, None] / 2  # keep whole ellipses in view
+    ax.update_datalim(np.concatenate([centers[sel] - reach, centers[sel] + reach]))
+    ax.autoscale_view()
 
 
 def plot_pose_graphs(path: str, kind: str, before: np.ndarray, after: np.ndarray,
