@@ -122,6 +122,7 @@ def test_jit_vmap_grad_implicit_derivative(rng):
 
 
 
+@pytest.mark.slow  # ~60 s on the shared 2-core CI box (EPnP + LM compiled three times)
 def test_second_derivative_matches_finite_differences(rng):
     """jax.hessian (fwd over rev) and jacrev(grad) (rev over rev) of a loss on the refined
     pose with respect to pixels and points against central differences of the gradient
