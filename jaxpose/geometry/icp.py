@@ -19,10 +19,12 @@ no iteration runs when an input is non-finite).
 
 Derivatives. ``lax.while_loop`` is not reverse-differentiable, so the returned transform
 is recomputed after the loop from its converged correspondences (which are piecewise
-constant): one more Kabsch solve (point-to-point), or Exp(δ − sg δ)·T with δ the Newton
-step of the point-to-plane cost (exact Hessian). Its value is the loop's; its derivative
-with respect to ``source``, ``target`` (and ``target_normals``) is the implicit-function
-derivative of the fixed point (exact once converged). The derivative with respect to
+constant): one more Kabsch solve (point-to-point), or the loop's T carrying a custom JVP
+dT = Exp(δ̇)·T, δ̇ = −H⁻¹ġ (point-to-plane, exact Hessian H of the cost). Its value is the
+loop's; its derivative with respect to ``source``, ``target`` (and ``target_normals``) is
+the implicit-function derivative of the fixed point (exact once converged), and both rules
+are differentiable functions of the optimum, so second derivatives (``jax.hessian``,
+``jacfwd(jacrev)``, ``grad(grad)``) are exact as well. The derivative with respect to
 ``init`` is zero.
 """
 
@@ -78,24 +80,41 @@ def _plane_step(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
     return SE3.exp(delta).compose(SE3(t)).data
 
 
+@jax.custom_jvp
 def _plane_implicit(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
-    """Exp(δ − sg δ)·T with δ = −H⁻¹g the Newton step of the point-to-plane cost (exact
-    Hessian held constant): the value of T, the implicit-function derivative."""
-    data_sg = jax.lax.stop_gradient((src, q, nrm, w))
+    """``t`` itself (SE3 data); its derivative w.r.t. (src, q, nrm) is the implicit-function
+    one of the point-to-plane optimum: dT = Exp(δ̇)·T with δ̇ = −H⁻¹ġ, g the gradient of
+    the cost in the left chart δ ↦ Exp(δ)·T and H its exact Hessian at δ = 0. No derivative
+    flows to ``t`` or ``w`` (piecewise-constant inlier mask)."""
+    return t
+
+
+@_plane_implicit.defjvp
+def _plane_implicit_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
+                        ) -> tuple[Array, Array]:
+    t, src, q, nrm, w = primals
+    _, dsrc, dq, dnrm, _ = tangents
+    # the optimum itself, carrying this rule when the rule is differentiated again: the
+    # tangent is then a differentiable function of (T*(θ), θ), so higher orders are exact
+    ts = _plane_implicit(t, src, q, nrm, w)
 
     def cost(delta: Array) -> Array:  # Exp(δ)·T·p to second order (exact Hessian at 0)
-        s_, q_, n_, w_ = data_sg
-        moved = exp_act2(delta, SE3(t).act(s_))
-        return 0.5 * jnp.sum(w_ * jnp.square(jnp.sum(n_ * (moved - q_), -1)))
+        moved = exp_act2(delta, SE3(ts).act(src))
+        return 0.5 * jnp.sum(w * jnp.square(jnp.sum(nrm * (moved - q), -1)))
 
-    h = jax.hessian(cost)(jnp.zeros((6,), t.dtype))
-    moved = SE3(t).act(src)
-    r = jnp.sum(nrm * (moved - q), -1)
-    jac = jnp.concatenate([nrm, jnp.cross(moved, nrm)], -1)
-    g = jnp.einsum("n,ni,n->i", w, jac, r)
+    def grad(src: Array, q: Array, nrm: Array) -> Array:
+        moved = SE3(ts).act(src)
+        r = jnp.sum(nrm * (moved - q), -1)
+        jac = jnp.concatenate([nrm, jnp.cross(moved, nrm)], -1)
+        return jnp.einsum("n,ni,n->i", w, jac, r)
+
+    zero = jnp.zeros((6,), t.dtype)
+    h = jax.hessian(cost)(zero)
+    dg = jax.jvp(grad, (src, q, nrm), (dsrc, dq, dnrm))[1]
     damp = jnp.finfo(t.dtype).eps * (jnp.trace(jnp.abs(h)) + 1.0)
-    delta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), g)
-    return SE3.exp(delta - jax.lax.stop_gradient(delta)).compose(SE3(t)).data
+    ddelta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), dg)
+    dt = jax.jvp(lambda d: SE3.exp(d).compose(SE3(ts)).data, (zero,), (ddelta,))[1]
+    return ts, dt
 
 
 def _plane_rmse(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:

@@ -30,9 +30,11 @@ only one of many; NON_FINITE when the inputs or the estimate contain NaN/Inf. Fe
 Derivatives. EPnP's algebra is not differentiated (eigenvector derivatives are undefined
 for repeated eigenvalues, which planar targets always produce). Instead the returned pose
 carries the implicit-function derivative of the reprojection least-squares optimum at
-that pose: T ⊕ (δ − sg(δ)) with δ = −H⁻¹g the Newton step (exact Hessian H), so the value
+that pose (a custom JVP: dT = T·Exp(δ̇), δ̇ = −H⁻¹ġ with the exact Hessian H), so the value
 is unchanged and d pose / d(points, pixels, intrinsics) is exact at a refined (optimal)
-pose and a first-order approximation for an unrefined one.
+pose and a first-order approximation for an unrefined one. The rule is written as a
+differentiable function of the optimum (which carries the same rule), so second
+derivatives (``jax.hessian``, ``jacfwd(jacrev)``, ``grad(grad)``) are exact as well.
 """
 
 from __future__ import annotations
@@ -285,7 +287,8 @@ def _implicit_tangent(t: Array, pw: Array, uv: Array, k: Array) -> Array:
     one of the reprojection least-squares optimum: dT = T·Exp(δ̇) with δ̇ = −H⁻¹ ġ, where
     g = Jᵀr is the gradient of the cost in the chart δ ↦ T·Exp(δ) and H its exact Hessian
     at δ = 0 (exact when T is an optimum). No derivative flows to ``t`` (an EPnP/LM
-    estimate); the forward pass costs nothing."""
+    estimate); the forward pass costs nothing. The rule is itself differentiable in
+    (T*, θ), so derivatives of any order are exact at an optimum."""
     return t
 
 
@@ -294,7 +297,10 @@ def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
                           ) -> tuple[Array, Array]:
     t, pw, uv, k = primals
     _, dpw, duv, dk = tangents
-    ts = SE3(t)
+    # the optimum itself, carrying this rule's derivative when the rule is differentiated
+    # again: the tangent below is then a differentiable function of (T*(θ), θ), so second
+    # and higher derivatives are exact too
+    ts = SE3(_implicit_tangent(t, pw, uv, k))
 
     def cost(delta: Array) -> Array:  # T·Exp(δ)·p to second order (exact Hessian at 0)
         h = ts.act(exp_act2(delta, pw)) @ k.T
@@ -310,7 +316,7 @@ def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
     damp = jnp.finfo(t.dtype).eps * (jnp.trace(jnp.abs(h)) + 1.0)
     ddelta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), dg)
     dt = jax.jvp(lambda d: ts.retract(d).data, (zero,), (ddelta,))[1]
-    return t, dt
+    return ts.data, dt
 
 
 @functools.partial(jax.jit, static_argnames=("refine", "refine_steps"))

@@ -118,6 +118,51 @@ def test_implicit_derivative_matches_finite_differences(rng):
         np.testing.assert_allclose(jnp.sum(grads[i] * direction), fd, rtol=1e-5, atol=1e-8)
 
 
+
+def _second_derivative_errors(loss, x0, directions, eps):
+    """Max relative errors of the gradient of a ↦ loss(x0 + a·D) against central
+    differences of the value, and of jax.hessian (fwd over rev) and jacrev(grad) (rev over
+    rev) against central differences of that gradient (one compilation)."""
+    f = lambda a: loss(x0 + jnp.tensordot(a, directions, 1))
+    m = directions.shape[0]
+    a0 = jnp.zeros(m, x0.dtype)
+    steps = jnp.concatenate([jnp.zeros((1, m)), eps * np.eye(m), -eps * np.eye(m)])
+
+    @jax.jit
+    def run(a0):
+        vals, grads = jax.vmap(jax.value_and_grad(f))(a0 + steps)
+        return vals, grads, jax.hessian(f)(a0), jax.jacrev(jax.grad(f))(a0)
+
+    vals, grads, hess, revrev = run(a0)
+    fd_g = (vals[1:m + 1] - vals[m + 1:]) / (2 * eps)
+    fd_h = (grads[1:m + 1] - grads[m + 1:]) / (2 * eps)
+    rel = lambda x, ref: float(np.max(np.abs(x - ref)) / np.max(np.abs(ref)))
+    return rel(grads[0], fd_g), rel(hess, fd_h), rel(revrev, fd_h)
+
+
+@pytest.mark.parametrize("method", [
+    pytest.param("point_to_point", marks=pytest.mark.slow),  # Kabsch: see test_registration
+    "point_to_plane",
+])
+def test_second_derivative_matches_finite_differences(rng, method):
+    """Second derivatives of a loss on the ICP pose with respect to the source and target
+    points (both implicit rules are differentiable functions of the optimum) against
+    central differences of the first derivative."""
+    src = jnp.asarray(_cloud(rng, 40))
+    tgt = _small_motion(rng, 0.08, 0.05).act(src) + jnp.asarray(rng.normal(size=(40, 3)) * 0.01)
+    kw = {}
+    if method == "point_to_plane":
+        kw["target_normals"] = estimate_normals(tgt, k=8)
+    v = jnp.asarray(rng.normal(size=7))
+    d = jnp.asarray(rng.normal(size=(2, 2, 40, 3)))
+
+    def loss(x):  # x stacks source and target: (2, 40, 3)
+        t = icp(x[0], x[1], method=method, max_iterations=50, tolerance=1e-13, **kw)
+        return jnp.dot(t.transform.data, v) + jnp.sum(t.transform.data ** 2 * v)
+
+    errs = _second_derivative_errors(loss, jnp.stack([src, tgt]), d, 1e-5)
+    assert max(errs) < 1e-5, errs
+
 def test_bad_input(rng):
     z = np.zeros((10, 3))
     with pytest.raises(ValueError, match=r"icp\(source\).*empty"):

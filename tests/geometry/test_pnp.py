@@ -121,6 +121,39 @@ def test_jit_vmap_grad_implicit_derivative(rng):
     np.testing.assert_allclose(jnp.sum(grads[1] * du, axis=(1, 2)), fd, rtol=1e-4, atol=1e-8)
 
 
+
+@pytest.mark.slow  # ~60 s on the shared 2-core CI box (EPnP + LM compiled three times)
+def test_second_derivative_matches_finite_differences(rng):
+    """jax.hessian (fwd over rev) and jacrev(grad) (rev over rev) of a loss on the refined
+    pose with respect to pixels and points against central differences of the gradient
+    (the implicit rule is a differentiable function of the optimum)."""
+    pw, _, uv = _scene(rng, 1)
+    x0 = jnp.concatenate([jnp.asarray(pw[0]), jnp.asarray(uv[0] + rng.normal(size=(N, 2)))],
+                         -1)  # (N, 5): points | noisy pixels
+    k = jnp.asarray(intrinsics_matrix(520.0, 500.0, 320.0, 240.0))
+    v = jnp.asarray(rng.normal(size=7))
+    d = jnp.asarray(rng.normal(size=(2, N, 5)) * np.r_[0.01, 0.01, 0.01, 1.0, 1.0])
+
+    def loss(a):
+        x = x0 + jnp.tensordot(a, d, 1)
+        t = epnp(x[:, :3], x[:, 3:], k, refine_steps=30).transform.data
+        return jnp.dot(t, v) + jnp.sum(t ** 2 * v)
+
+    eps, a0 = 1e-3, jnp.zeros(2)  # smaller steps meet LM stopping-tolerance jumps
+    steps = jnp.concatenate([jnp.zeros((1, 2)), eps * np.eye(2), -eps * np.eye(2)])
+
+    @jax.jit
+    def run(a0):  # one compilation: FD stencil, hessian (fwd∘rev), jacrev∘grad (rev∘rev)
+        vals, grads = jax.vmap(jax.value_and_grad(loss))(a0 + steps)
+        return vals, grads, jax.hessian(loss)(a0), jax.jacrev(jax.grad(loss))(a0)
+
+    vals, grads, hess, revrev = run(a0)
+    fd_g = (vals[1:3] - vals[3:]) / (2 * eps)
+    fd_h = (grads[1:3] - grads[3:]) / (2 * eps)
+    np.testing.assert_allclose(grads[0], fd_g, rtol=1e-6, atol=1e-8 * np.abs(fd_g).max())
+    for second in (hess, revrev):
+        np.testing.assert_allclose(second, fd_h, rtol=1e-5, atol=1e-6 * np.abs(fd_h).max())
+
 def test_float32(rng):
     pw, pose, uv = _scene(rng, 2)
     res = epnp(pw.astype(np.float32), uv.astype(np.float32), K.astype(np.float32),
