@@ -154,6 +154,7 @@ def _default_strategy(lambda_init: float, lambda_factor: float | None, lambda_mi
     return LambdaFactor(lambda_init, lambda_factor, lambda_min, lambda_max)
 
 
+@eqx.filter_jit
 def solve(
     graph: FactorGraph,
     variables: Variables | None = None,
@@ -208,38 +209,6 @@ def solve(
     information, weights) are traced and its structure and the options are static, so a
     repeated call on a graph of the same structure with new values reuses the program.
     """
-    return _solve(
-        graph, variables, linear_solver=linear_solver, max_steps=max_steps, rtol=rtol,
-        atol=atol, gtol=gtol, xtol=xtol, damping=damping, lambda_init=lambda_init,
-        lambda_factor=lambda_factor, lambda_min=lambda_min, lambda_max=lambda_max,
-        strategy=strategy, stopping=stopping, cg_rtol=cg_rtol, cg_max_iters=cg_max_iters,
-        verbose=verbose,
-    )
-
-
-@eqx.filter_jit
-def _solve(
-    graph: FactorGraph,
-    variables: Variables | None = None,
-    *,
-    linear_solver: str = "auto",
-    max_steps: int = 100,
-    rtol: float | None = None,
-    atol: float = 0.0,
-    gtol: float = 0.0,
-    xtol: float = 0.0,
-    damping: str = "identity",
-    lambda_init: float = 1e-5,
-    lambda_factor: float | None = 10.0,
-    lambda_min: float = 1e-15,
-    lambda_max: float = 1e16,
-    strategy: Strategy | None = None,
-    stopping: Stopping | None = None,
-    cg_rtol: float | str = 1e-8,
-    cg_max_iters: int = 2000,
-    verbose: bool = False,
-) -> GraphSolution:
-    """The body of :func:`solve` (compiled once per structure and options)."""
     if linear_solver not in LINEAR_SOLVERS:
         raise ValueError(
             f"solve(linear_solver={linear_solver!r}): expected one of {LINEAR_SOLVERS}"

@@ -57,6 +57,21 @@ def _runner(
     return run
 
 
+def _inexact(params: PyTree) -> PyTree:
+    """Integer or bool array leaves (and Python numbers) of ``params`` as floating arrays
+    of JAX's default float dtype: the parameters of a continuous optimisation."""
+
+    def leaf(x: Any) -> Any:
+        if isinstance(x, bool | int | float) or (
+            eqx.is_array_like(x) and not jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+        ):
+            return jnp.asarray(x, jnp.result_type(float))
+        return x
+
+    return jax.tree.map(leaf, params)
+
+
+@eqx.filter_jit
 def least_squares(
     residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem,
     params: PyTree,
@@ -124,53 +139,7 @@ def least_squares(
             so the solve ends at once with ``NON_FINITE`` and the initial ``params``
             (as :func:`jaxpose.graph.solve` does).
     """
-    return _least_squares(
-        residual_fn, _inexact(params), args, solver, weights=weights, kernel=kernel,
-        corrector=corrector, max_steps=max_steps, cost_atol=cost_atol, cost_rtol=cost_rtol,
-        gtol=gtol, xtol=xtol, max_rejects=max_rejects, stop=stop, adjoint=adjoint,
-        jacobian=jacobian, verbose=verbose, history=history,
-    )
-
-
-def _inexact(params: PyTree) -> PyTree:
-    """Integer or bool array leaves (and Python numbers) of ``params`` as floating arrays
-    of JAX's default float dtype: the parameters of a continuous optimisation."""
-
-    def leaf(x: Any) -> Any:
-        if isinstance(x, bool | int | float) or (
-            eqx.is_array_like(x) and not jnp.issubdtype(jnp.result_type(x), jnp.inexact)
-        ):
-            return jnp.asarray(x, jnp.result_type(float))
-        return x
-
-    return jax.tree.map(leaf, params)
-
-
-@eqx.filter_jit
-def _least_squares(
-    residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem,
-    params: PyTree,
-    args: PyTree,
-    solver: AbstractSolver | None,
-    *,
-    weights: PyTree,
-    kernel: PyTree,
-    corrector: Corrector | None,
-    max_steps: int,
-    cost_atol: float,
-    cost_rtol: float,
-    gtol: float,
-    xtol: float,
-    max_rejects: int,
-    stop: StopOnPlateau | None,
-    adjoint: str | ImplicitAdjoint | UnrolledAdjoint,
-    jacobian: str | Callable[..., jax.Array],
-    verbose: bool,
-    history: bool,
-) -> Solution:
-    """The body of :func:`least_squares`, compiled once per (function, structure, shapes,
-    options): arrays in ``params``/``args``/``weights`` are traced, everything else
-    (the residual function, Python numbers, strings, solver configuration) is static."""
+    params = _inexact(params)
     solver = LevenbergMarquardt() if solver is None else solver
     if not isinstance(solver, AbstractSolver):
         raise TypeError(
