@@ -39,7 +39,9 @@ def is_euclidean(x: Any) -> bool:
 
 def tangent_space(x: Any) -> TangentSpace:
     """Tangent-space operations for one (unbatched) state ``x``."""
-    if isinstance(x, (jax.Array, float, int)) or hasattr(x, "__array__"):
+    if not isinstance(x, LieGroup) and (
+        isinstance(x, (jax.Array, float, int)) or hasattr(x, "__array__")
+    ):
         arr = jnp.asarray(x)
         if arr.ndim != 1:
             raise ValueError(f"state: expected a vector of shape (n,), got {tuple(arr.shape)}")
