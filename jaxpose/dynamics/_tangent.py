@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from ..lie import manifold
-from ..lie.base import LieGroup
+from ..lie.base import LieAlgebra, LieGroup
 
 Array = jax.Array
 
@@ -39,7 +39,8 @@ def is_euclidean(x: Any) -> bool:
 
 def tangent_space(x: Any) -> TangentSpace:
     """Tangent-space operations for one (unbatched) state ``x``."""
-    if not isinstance(x, LieGroup) and (
+    # Lie elements define __array__ (np.asarray(X) is X.data) but are pytrees, not arrays
+    if not isinstance(x, LieGroup | LieAlgebra) and (
         isinstance(x, (jax.Array, float, int)) or hasattr(x, "__array__")
     ):
         arr = jnp.asarray(x)

@@ -257,3 +257,17 @@ def test_fuzz_filter_run(kind, skip, p, n_us, P0, hits):
     if skip:
         assert np.all(finite), "skip_nonfinite must keep every estimate finite"
         assert not np.any(ok[bad_rows])
+
+
+def test_tangent_space_of_lie_elements_under_jit():
+    """Lie elements define __array__ (np.asarray(X) is X.data) yet are pytree states: the
+    tangent space of a group or algebra state must not go through np.asarray (it fails on
+    tracers)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import jaxpose as jp
+    from jaxpose.dynamics._tangent import tangent_space
+
+    dim = eqx.filter_jit(lambda a, g: (tangent_space(a).dim, tangent_space(g).dim))
+    assert dim(jp.so3(jnp.zeros(3)), jp.SE2.identity()) == (3, 3)
