@@ -20,6 +20,7 @@ from . import (
     io,
     lie,
     optim,
+    results,
     sharding,
     smoothing,
     testing,
@@ -76,12 +77,13 @@ from .lie import (
     so3,
     translation,
 )
+from .results import Results
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "BALProblem", "FormatError", "PoseGraph", "__version__", "control", "datasets", "dynamics",
-    "filters", "geometry", "graph", "imu", "interop", "io", "lie", "optim", "read_bal",
+    "BALProblem", "FormatError", "PoseGraph", "Results", "__version__", "control", "datasets",
+    "dynamics", "filters", "geometry", "graph", "imu", "interop", "io", "lie", "optim", "read_bal",
     "read_g2o", "sharding", "smoothing", "synthetic_bal", "synthetic_pose_graph", "testing",
     "write_bal", "write_g2o",
     *lie.__all__,

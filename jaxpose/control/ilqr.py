@@ -10,7 +10,7 @@ step's control-limited QP by projected Newton (control-limited DDP, as in Amos e
 
 The loop is a ``lax.while_loop`` (stops at convergence); ``unroll=True`` runs exactly
 ``max_iter`` iterations in ``lax.scan`` so reverse-mode gradients flow through the
-solver. Results carry a status (see :data:`~jaxpose.control.lqr.STATUS_NAMES`).
+solver. Results carry a :class:`~jaxpose.Results` status.
 """
 
 from __future__ import annotations
@@ -24,8 +24,9 @@ import numpy as np
 
 from ..dynamics._checks import as_array, is_concrete
 from ..dynamics.system import LTI, LTV, System
+from ..results import Results
 from .cost import Cost
-from .lqr import CONVERGED, MAX_ITER, NONFINITE, STALLED, backward_step
+from .lqr import backward_step
 
 Array = jax.Array
 
@@ -35,8 +36,9 @@ _ARMIJO = 1e-4
 
 class ILQRSolution(eqx.Module):
     """``x`` (T+1, n), ``u`` (T, m), ``cost``, feedback ``K`` (T, m, n), ``k`` (T, m)
-    from the last backward pass, ``iterations``, ``status`` (0 converged, 1 max
-    iterations, 2 non-finite, 3 stalled) and the final regularisation ``reg``."""
+    from the last backward pass, ``iterations``, ``status`` (a :class:`~jaxpose.Results`
+    code: CONVERGED 0, MAX_STEPS 1 (``max_iter`` ran out), DIVERGED 2 (stalled at the
+    regularisation limit or no descent), NON_FINITE 3) and the final regularisation ``reg``."""
 
     x: Array
     u: Array
@@ -46,6 +48,12 @@ class ILQRSolution(eqx.Module):
     iterations: Array
     status: Array
     reg: Array
+
+    @property
+    def status_name(self) -> Any:
+        """``status`` as text (``"converged"``, ...; an array of names when batched), by
+        :meth:`jaxpose.Results.name_of`."""
+        return Results.name_of(self.status)
 
 
 def default_tol(dtype: Any) -> float:
@@ -119,7 +127,11 @@ def ilqr(
 
     ``x0`` (n,), ``u_init`` (T, m) (sets the horizon T; clipped to the box). For
     batches use ``jax.vmap``. ``max_iter`` may be a traced integer unless ``unroll``.
-    ``tol``: relative cost decrease at which to stop (default :func:`default_tol`)."""
+    ``tol``: relative cost decrease at which to stop (default :func:`default_tol`).
+
+    Argument checks run here (eagerly: NaN or crossed box limits raise); the solve is
+    compiled with ``eqx.filter_jit`` (Python numbers and ``unroll``/``alphas`` static,
+    arrays traced), so new arrays of the same shapes reuse the compiled program."""
     x0 = as_array(x0, "x0", 1)
     u_init = as_array(u_init, "u_init", 2)
     if isinstance(max_iter, int):
@@ -131,14 +143,40 @@ def ilqr(
             f"unroll), got {max_iter!r}"
         )
     T, m = u_init.shape
-    n = x0.shape[0]
     dtype = jnp.result_type(x0.dtype, u_init.dtype)
     x0, u_init = x0.astype(dtype), u_init.astype(dtype)
     tol = default_tol(dtype) if tol is None else float(tol)
     box = _bounds(u_lower, u_upper, T, m, dtype)
+    # t0 traced (a new start time must not recompile); the options static or traced as given
+    return _ilqr(system, cost, x0, u_init, box, max_iter, tol, reg_init, reg_min, reg_max,
+                 reg_factor, alphas, box_iters, unroll, jnp.asarray(t0))
+
+
+@eqx.filter_jit
+def _ilqr(
+    system: System,
+    cost: Cost,
+    x0: Array,
+    u_init: Array,
+    box: tuple[Array, Array] | None,
+    max_iter: int | Array,
+    tol: float,
+    reg_init: float,
+    reg_min: float,
+    reg_max: float,
+    reg_factor: float,
+    alphas: tuple[float, ...],
+    box_iters: int,
+    unroll: bool,
+    t0: Array,
+) -> ILQRSolution:
+    """The compiled iLQR loop behind :func:`ilqr` (arguments already checked)."""
+    T, m = u_init.shape
+    n = x0.shape[0]
+    dtype = x0.dtype
     if box is not None:
         u_init = jnp.clip(u_init, box[0], box[1])
-    ts = jnp.asarray(t0) + jnp.arange(T)
+    ts = t0 + jnp.arange(T)
     al = jnp.asarray(alphas, dtype)
     f = system.state_transition
     try:
@@ -220,7 +258,7 @@ def ilqr(
         K=zK,
         k=zk,
         it=jnp.array(0),
-        status=jnp.where(finite0, MAX_ITER, NONFINITE),
+        status=jnp.where(finite0, Results.MAX_STEPS, Results.NON_FINITE),
         done=~finite0,
     )
 
@@ -253,7 +291,8 @@ def ilqr(
         mu_down = jnp.where(s["mu"] / reg_factor < reg_min, 0.0, s["mu"] / reg_factor)
         mu_n = jnp.where(accept | small, mu_down, mu_up)
         stalled = ~accept & ~small & (mu_n > reg_max)
-        status = jnp.where(converged, CONVERGED, jnp.where(stalled, STALLED, s["status"]))
+        status = jnp.where(converged, Results.CONVERGED,
+                           jnp.where(stalled, Results.DIVERGED, s["status"]))
         keep_k = ok & jnp.all(jnp.isfinite(k))
         return dict(
             xs=xs_n,
@@ -278,7 +317,7 @@ def ilqr(
     else:
         final = jax.lax.while_loop(lambda s: ~s["done"] & (s["it"] < max_iter), iteration, init)
     finite = jnp.isfinite(final["J"]) & jnp.all(jnp.isfinite(final["xs"]))
-    status = jnp.where(finite, final["status"], NONFINITE).astype(jnp.int32)
+    status = jnp.where(finite, final["status"], Results.NON_FINITE).astype(jnp.int32)
     return ILQRSolution(
         final["xs"],
         final["us"],

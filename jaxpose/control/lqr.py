@@ -24,23 +24,11 @@ from jax.scipy.linalg import cho_solve
 
 from ..dynamics._checks import as_array, check_horizon
 from ..dynamics.system import LTI, LTV, System
+from ..results import Results
 from .boxqp import box_qp, free_block
 from .cost import QuadraticCost
 
 Array = jax.Array
-
-# Status codes shared by LQR, iLQR and MPC results.
-CONVERGED = 0
-MAX_ITER = 1
-NONFINITE = 2
-STALLED = 3
-STATUS_NAMES = {
-    CONVERGED: "converged",
-    MAX_ITER: "max iterations",
-    NONFINITE: "non-finite",
-    STALLED: "stalled (regularisation limit or no descent)",
-}
-
 
 class BackwardOut(NamedTuple):
     """One Riccati step: policy (K, k), value (V, v), expected-decrease terms and flags."""
@@ -171,7 +159,8 @@ def quadratic_total(C: Array, c: Array, CT: Array, cT: Array, xs: Array, us: Arr
 
 class LQRSolution(eqx.Module):
     """``x`` (…, T+1, n) (x0 first), ``u`` (…, T, m), ``cost`` (…), feedback ``K``
-    (…, T, m, n) and ``k`` (…, T, m), ``status`` (…) int (0 converged, 2 non-finite)."""
+    (…, T, m, n) and ``k`` (…, T, m), ``status`` (…) int32
+    :class:`~jaxpose.Results` code (CONVERGED 0 or NON_FINITE 3)."""
 
     x: Array
     u: Array
@@ -180,7 +169,14 @@ class LQRSolution(eqx.Module):
     k: Array
     status: Array
 
+    @property
+    def status_name(self) -> Any:
+        """``status`` as text (``"converged"``, ...; an array of names when batched), by
+        :meth:`jaxpose.Results.name_of`."""
+        return Results.name_of(self.status)
 
+
+@eqx.filter_jit
 def lqr_solve(
     F: Array,
     f: Array,
@@ -191,7 +187,10 @@ def lqr_solve(
     cT: Array | None = None,
     free: Array | None = None,
 ) -> LQRSolution:
-    """Solve the LQR problem above for one element (see the module docstring)."""
+    """Solve the LQR problem above for one element (see the module docstring).
+
+    Compiled with ``eqx.filter_jit`` (shape checks run at trace time); new arrays of the
+    same shapes reuse the compiled program."""
     F, f, C, c, x0 = (
         as_array(a, nm) for a, nm in ((F, "F"), (f, "f"), (C, "C"), (c, "c"), (x0, "x0"))
     )
@@ -209,7 +208,7 @@ def lqr_solve(
     cost = quadratic_total(C, c, CT, cT, xs, us)
     # the cost too: a state of 1e200 has a finite trajectory but a cost that overflows
     finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us)) & jnp.isfinite(cost)
-    status = jnp.where(finite, CONVERGED, NONFINITE).astype(jnp.int32)
+    status = jnp.where(finite, Results.CONVERGED, Results.NON_FINITE).astype(jnp.int32)
     return LQRSolution(xs, us, cost, K, k, status)
 
 
@@ -257,10 +256,14 @@ def lq_problem(
     return F, f, C, c, CT, cT
 
 
+@eqx.filter_jit
 def lqr(system: System, cost: QuadraticCost, x0: Any, horizon: int) -> LQRSolution:
     """LQR for an :class:`LTI`/:class:`LTV` system and a :class:`QuadraticCost` over
     ``horizon`` steps. ``x0`` (n,) or batched (..., n) (vmapped; the Riccati recursion
-    is computed once for the whole batch)."""
+    is computed once for the whole batch).
+
+    Compiled with ``eqx.filter_jit``: ``horizon`` (a Python int) is static, the arrays of
+    ``system``, ``cost`` and ``x0`` are traced; checks run at trace time."""
     F, f, C, c, CT, cT = lq_problem(system, cost, horizon)
     x0 = as_array(x0, "x0")
     n = F.shape[1]

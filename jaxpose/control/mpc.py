@@ -33,11 +33,10 @@ import numpy as np
 from ..dynamics._checks import as_array, check_horizon
 from ..dynamics.system import LTI, LTV, System
 from ..optim.implicit import first_order_only
+from ..results import Results
 from .cost import Cost, QuadraticCost
 from .ilqr import ILQRSolution, _bounds, dynamics_jacobians, ilqr
 from .lqr import (
-    CONVERGED,
-    NONFINITE,
     lq_problem,
     lqr_resolve,
     lqr_solve,
@@ -52,14 +51,21 @@ SOLVERS = ("auto", "lqr", "ilqr")
 
 
 class MPCSolution(eqx.Module):
-    """``x`` (…, T+1, n), ``u`` (…, T, m), ``cost`` (…), ``status`` (…) (0 converged,
-    1 max iterations, 2 non-finite, 3 stalled), ``iterations`` (…)."""
+    """``x`` (…, T+1, n), ``u`` (…, T, m), ``cost`` (…), ``status`` (…) (a
+    :class:`~jaxpose.Results` code: CONVERGED 0, MAX_STEPS 1, DIVERGED 2 (iLQR stalled),
+    NON_FINITE 3), ``iterations`` (…)."""
 
     x: Array
     u: Array
     cost: Array
     status: Array
     iterations: Array
+
+    @property
+    def status_name(self) -> Any:
+        """``status`` as text (``"converged"``, ...; an array of names when batched), by
+        :meth:`jaxpose.Results.name_of`."""
+        return Results.name_of(self.status)
 
 
 class _Config(eqx.Module):
@@ -91,7 +97,7 @@ def _solve(
         K, k, _, _, ok, L = riccati(F, f, C, c, CT, cT)
         xs, us = policy_rollout(F, f, K, k, x0)
         finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us))
-        status = jnp.where(finite, CONVERGED, NONFINITE).astype(jnp.int32)
+        status = jnp.where(finite, Results.CONVERGED, Results.NON_FINITE).astype(jnp.int32)
         return (xs, us, status, jnp.array(1)), (K, L)
     lo, hi = (None, None) if bounds is None else bounds
     s: ILQRSolution = ilqr(
@@ -234,6 +240,13 @@ def implicit_vjp(
 # ----------------------------------------------------------------------------------
 # Module
 # ----------------------------------------------------------------------------------
+def _bound_field(x: Any) -> Any:
+    """Python-number limits as arrays, so that they are traced (not static) under jit."""
+    if isinstance(x, (int, float)) and not isinstance(x, bool):
+        return jnp.asarray(float(x))
+    return x
+
+
 class MPC(eqx.Module):
     """Model-predictive controller over ``horizon`` steps.
 
@@ -246,8 +259,8 @@ class MPC(eqx.Module):
     system: System
     cost: Cost
     horizon: int = eqx.field(static=True)
-    u_lower: Array | None = None
-    u_upper: Array | None = None
+    u_lower: Array | None = eqx.field(default=None, converter=_bound_field)
+    u_upper: Array | None = eqx.field(default=None, converter=_bound_field)
     max_iter: int = eqx.field(static=True, default=50)
     tol: float | None = eqx.field(static=True, default=None)
     gradient: str = eqx.field(static=True, default="implicit")
@@ -288,6 +301,9 @@ class MPC(eqx.Module):
 
         ``u_init`` (T, m) or (…, T, m) warm-starts the controls (zeros by default). Returns an
         :class:`MPCSolution` whose ``u[0]`` is the control to apply.
+
+        Checks run eagerly here; the solve is compiled with ``eqx.filter_jit`` (new arrays
+        of the same shapes, in ``x0``, ``u_init`` or the module, reuse the program).
         """
         x0 = as_array(x0, "x0")
         if x0.ndim == 0:
@@ -312,17 +328,7 @@ class MPC(eqx.Module):
         cfg = _Config(
             T, self.solver, self.max_iter, self.tol, self.gradient == "unroll", self.box_iters
         )
-        batch = np.broadcast_shapes(x0.shape[:-1], u_init.shape[:-2])
-        one = lambda x, u: self._solve_one(x, u, bounds, cfg)
-        if not batch:
-            return one(x0, u_init)
-        xb = jnp.broadcast_to(x0, (*batch, n)).reshape(-1, n)
-        if u_init.ndim == 2:
-            out = jax.vmap(lambda x: one(x, u_init))(xb)
-        else:
-            ub = jnp.broadcast_to(u_init, (*batch, T, m)).reshape(-1, T, m)
-            out = jax.vmap(one)(xb, ub)
-        return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), out)
+        return _mpc_solve(self, x0, u_init, bounds, cfg)
 
     def _solve_one(self, x0: Array, u_init: Array, bounds: Any, cfg: _Config) -> MPCSolution:
         if self.gradient == "implicit":
@@ -330,7 +336,8 @@ class MPC(eqx.Module):
         else:
             xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, cfg)[0]
         cost = self.cost.total(xs, us)
-        status = jnp.where(jnp.isfinite(cost) | (status != CONVERGED), status, NONFINITE)
+        ok = jnp.isfinite(cost) | (status != Results.CONVERGED)
+        status = jnp.where(ok, status, Results.NON_FINITE)
         return MPCSolution(xs, us, cost, status.astype(jnp.int32), it)
 
     def control(self, x: Any, u_init: Any = None) -> tuple[Array, Array, MPCSolution]:
@@ -341,12 +348,31 @@ class MPC(eqx.Module):
         return sol.u[..., 0, :], warm, sol
 
 
+@eqx.filter_jit
+def _mpc_solve(mpc: MPC, x0: Array, u_init: Array, bounds: Any, cfg: _Config) -> MPCSolution:
+    """The compiled part of :meth:`MPC.__call__` (arguments already checked)."""
+    n, (T, m) = x0.shape[-1], u_init.shape[-2:]
+    batch = np.broadcast_shapes(x0.shape[:-1], u_init.shape[:-2])
+    one = lambda x, u: mpc._solve_one(x, u, bounds, cfg)  # noqa: E731
+    if not batch:
+        return one(x0, u_init)
+    xb = jnp.broadcast_to(x0, (*batch, n)).reshape(-1, n)
+    if u_init.ndim == 2:
+        out = jax.vmap(lambda x: one(x, u_init))(xb)
+    else:
+        ub = jnp.broadcast_to(u_init, (*batch, T, m)).reshape(-1, T, m)
+        out = jax.vmap(one)(xb, ub)
+    return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), out)
+
+
+@eqx.filter_jit
 def closed_loop(
     mpc: MPC, plant: System, x0: Any, steps: int, u_init: Any = None
 ) -> tuple[Array, Array, Array]:
     """Simulate ``plant`` for ``steps`` steps under receding-horizon ``mpc`` with warm
     starts (``lax.scan``). Returns ``xs`` (steps+1, n), ``us`` (steps, m) and the
-    per-step solver ``status`` (steps,)."""
+    per-step solver ``status`` (steps,). Compiled with ``eqx.filter_jit`` (``steps``
+    static)."""
     steps = check_horizon(steps, "steps")
     x0 = as_array(x0, "x0", 1)
     T, m = mpc.horizon, mpc._m(x0, u_init)

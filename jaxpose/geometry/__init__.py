@@ -4,8 +4,8 @@ trajectory metrics, rotation losses and point-cloud down-sampling.
 All functions are pure and take/return arrays and :mod:`jaxpose.lie` groups (SE3 with
 PyPose's ``[tx, ty, tz, qx, qy, qz, qw]`` storage); they jit, vmap and differentiate.
 Shape and type errors raise at trace time naming the argument; conditions that depend
-on values (degenerate configurations, non-finite data) come back as :class:`Status`
-codes in the results.
+on values (degenerate configurations, non-finite data) come back as
+:class:`jaxpose.Results` codes in the results.
 
 Modules: :mod:`.camera`, :mod:`.registration`, :mod:`.knn`, :mod:`.kdtree`, :mod:`.icp`,
 :mod:`.pnp`, :mod:`.spline`, :mod:`.metrics`, :mod:`.losses`, :mod:`.downsample`. The
@@ -14,7 +14,6 @@ from those as ``from jaxpose.geometry.icp import ICPResult``).
 """
 
 from . import camera, downsample, kdtree, losses, metrics, pnp, registration, spline
-from ._util import Status
 from .camera import (
     bal_project,
     cart2homo,
@@ -37,7 +36,7 @@ from .spline import bspline, bspline_se3, bspline_se3_fit, chspline, hermite
 
 __all__ = [
     "Downsampled", "ErrorStats", "Filtered", "ICPResult", "KDTree", "KNNResult", "PnPResult",
-    "Status", "TrajectoryError", "ape", "associate", "bal_project", "bspline", "bspline_se3",
+    "TrajectoryError", "ape", "associate", "bal_project", "bspline", "bspline_se3",
     "bspline_se3_fit", "build_kdtree", "camera", "cart2homo", "chspline", "downsample",
     "epnp", "error_stats", "estimate_normals", "geodesic_angle", "geodesic_loss",
     "hermite", "homo2cart", "icp", "intrinsics_matrix", "kdtree", "knn", "knn_filter", "losses",

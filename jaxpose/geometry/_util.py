@@ -1,13 +1,12 @@
-"""Shared helpers for :mod:`jaxpose.geometry`: argument checks, status codes, safe math.
+"""Shared helpers for :mod:`jaxpose.geometry`: argument checks and safe math.
 
 Checks run at trace time on shapes and types and raise exceptions that name the argument;
 conditions that depend on values (degenerate configurations, non-finite data) are
-reported through :class:`Status` codes in the results instead.
+reported through :class:`~jaxpose.Results` codes in the results instead.
 """
 
 from __future__ import annotations
 
-import enum
 from typing import Any
 
 import jax
@@ -17,20 +16,6 @@ import numpy as np
 from ..lie.base import LieGroup, as_float_array
 
 Array = jax.Array
-
-
-class Status(enum.IntEnum):
-    """Outcome of an iterative or degenerate-prone geometry routine (int32 in results).
-
-    Values shared with :class:`jaxpose.optim.Status` mean the same thing there."""
-
-    SUCCESS = 0  #: converged (iterative routines) or a well-posed closed-form solution
-    MAX_STEPS = 1  #: iteration budget ran out before the tolerance was met
-    NON_FINITE = 3  #: NaN/Inf appeared in the data or the estimate
-    DEGENERATE = 4  #: the configuration does not determine the answer (e.g. collinear
-    #: points, fewer than 3 correspondences within the distance gate)
-
-    CONVERGED = 0  # alias of SUCCESS for iterative routines
 
 
 def points_array(x: Any, argname: str, dim: int | None = 3, min_points: int = 1) -> Array:
@@ -111,10 +96,6 @@ def flatten_batch(x: Array, batch: tuple[int, ...], core_ndim: int) -> Array:
     """Broadcast ``x`` to ``(*batch, *core)`` and merge the batch axes into one."""
     core = x.shape[x.ndim - core_ndim:] if core_ndim else ()
     return jnp.broadcast_to(x, (*batch, *core)).reshape((-1, *core))
-
-
-def status_array(code: int | Status) -> Array:
-    return jnp.asarray(int(code), jnp.int32)
 
 
 def exp_act2(delta: Array, p: Array) -> Array:

@@ -1,7 +1,7 @@
 """Iterative closest point (point-to-point and point-to-plane) in one ``lax.while_loop``.
 
 ``icp(source, target)`` returns the SE3 T with ``target ≈ T · source`` (PyPose's
-convention for ``pp.module.ICP``), the number of iterations, a :class:`Status` and the
+convention for ``pp.module.ICP``), the number of iterations, a :class:`~jaxpose.Results` and the
 final inlier RMSE / fitness. Each iteration matches every transformed source point with
 its nearest target point (exact k-NN, see :func:`~jaxpose.geometry.knn`; the target's
 k-d tree is built once) and then
@@ -12,7 +12,7 @@ k-d tree is built once) and then
   applied on the left, T ← Exp(δ)·T.
 
 Correspondences farther than ``max_distance`` are ignored. The loop stops when the
-update ‖Log(T_k⁻¹ T_{k+1})‖ ≤ ``tolerance`` (status SUCCESS), after ``max_iterations``
+update ‖Log(T_k⁻¹ T_{k+1})‖ ≤ ``tolerance`` (status CONVERGED), after ``max_iterations``
 (MAX_STEPS), with fewer than 3 inlier correspondences (DEGENERATE, last good estimate
 kept) or on NaN/Inf in the inputs or the estimate (NON_FINITE, last finite estimate kept;
 no iteration runs when an input is non-finite).
@@ -38,9 +38,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..lie import SE3
+from ..results import Results
 from ._util import (
     Array,
-    Status,
     batch_shape,
     check_group,
     exp_act2,
@@ -57,7 +57,7 @@ _METHODS = ("point_to_point", "point_to_plane")
 
 class ICPResult(NamedTuple):
     """``transform`` SE3 (...) with target ≈ T·source; ``iterations`` int32 (...);
-    ``status`` int32 (...) (:class:`Status`); ``rmse`` (...): RMS point distance (or
+    ``status`` int32 (...) (:class:`~jaxpose.Results`); ``rmse`` (...): RMS point distance (or
     point-to-plane distance) of the inlier correspondences used by the last update;
     ``fitness`` (...): their fraction of the source points."""
 
@@ -66,6 +66,12 @@ class ICPResult(NamedTuple):
     status: Array
     rmse: Array
     fitness: Array
+
+    @property
+    def status_name(self) -> Any:
+        """``status`` as text (``"converged"``, ...; an array of names when batched), by
+        :meth:`jaxpose.Results.name_of`."""
+        return Results.name_of(self.status)
 
 
 def _plane_step(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
@@ -125,7 +131,7 @@ def _plane_rmse(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
 def _spread(src: Array, w: Array) -> Array:
     """True when the weighted source points are not all on one line (or one point): the
     second largest eigenvalue of their scatter exceeds rounding level. Collinear points
-    leave the rotation about their line undetermined (Status.DEGENERATE)."""
+    leave the rotation about their line undetermined (Results.DEGENERATE)."""
     c = jnp.sum(w[:, None] * src, 0) / jnp.maximum(jnp.sum(w), 1.0)
     d = (src - c) * w[:, None]
     scale = jnp.max(jnp.abs(d))
@@ -189,8 +195,8 @@ def _icp_single(
         ok = finite & enough
         step = jnp.linalg.norm(SE3(t_new).rminus(SE3(s.t)))
         converged = ok & (step <= tolerance)
-        status = jnp.where(~enough, Status.DEGENERATE,
-                           jnp.where(~finite, Status.NON_FINITE, Status.SUCCESS))
+        status = jnp.where(~enough, Results.DEGENERATE,
+                           jnp.where(~finite, Results.NON_FINITE, Results.CONVERGED))
         return State(
             t=jnp.where(ok, t_new, s.t),
             t_prev=jnp.where(ok, s.t, s.t_prev),
@@ -207,10 +213,10 @@ def _icp_single(
     if nrm_c is not None:
         finite_in = finite_in & jnp.all(jnp.isfinite(nrm_c))
     s0 = State(init, init, zero_idx, jnp.asarray(0, jnp.int32), jnp.asarray(False),
-               jnp.where(finite_in, Status.SUCCESS, Status.NON_FINITE).astype(jnp.int32),
+               jnp.where(finite_in, Results.CONVERGED, Results.NON_FINITE).astype(jnp.int32),
                ~finite_in)
     s = jax.lax.while_loop(cond, body, s0)
-    status = jnp.where(s.done, s.status, Status.MAX_STEPS).astype(jnp.int32)
+    status = jnp.where(s.done, s.status, Results.MAX_STEPS).astype(jnp.int32)
     accepted = s.accepted
 
     # differentiable re-solve from the converged correspondences (value = loop's)
@@ -229,7 +235,7 @@ def _icp_single(
     rmse = jnp.where(accepted, rmse, jnp.nan)
     # an accepted estimate whose transform or residual is not finite is not a success
     bad = accepted & ~(jnp.isfinite(rmse) & jnp.all(jnp.isfinite(t_out)))
-    status = jnp.where(bad, Status.NON_FINITE, status).astype(jnp.int32)
+    status = jnp.where(bad, Results.NON_FINITE, status).astype(jnp.int32)
     return ICPResult(SE3(t_out), s.it, status, rmse, fitness)
 
 

@@ -2,7 +2,7 @@
 
 ``epnp(points, pixels, intrinsics)`` returns the SE3 that maps world points into the
 camera frame (the ``extrinsics`` of :func:`~jaxpose.geometry.point2pixel`), a
-:class:`Status` and the mean reprojection error in pixels.
+:class:`~jaxpose.Results` and the mean reprojection error in pixels.
 
 Algorithm (per problem, vmapped over the batch):
 
@@ -22,10 +22,10 @@ Algorithm (per problem, vmapped over the batch):
 5. Optional refinement (``refine=True``): Levenberg–Marquardt on the pixel reprojection
    error over SE3 with :func:`jaxpose.optim.least_squares` (right retraction).
 
-Status: SUCCESS; DEGENERATE when the world points are (numerically) collinear — the pose
-is then not determined (rotation about the line is free) and the returned estimate is
-only one of many; NON_FINITE when the inputs or the estimate contain NaN/Inf. Fewer than
-4 points raises a ValueError (a shape known at trace time).
+Status (:class:`~jaxpose.Results`): CONVERGED; DEGENERATE when the world points are
+(numerically) collinear — the pose is then not determined (rotation about the line is
+free) and the returned estimate is only one of many; NON_FINITE when the inputs or the
+estimate contain NaN/Inf. Fewer than 4 points raises a ValueError (a shape known at trace time).
 
 Derivatives. EPnP's algebra is not differentiated (eigenvector derivatives are undefined
 for repeated eigenvalues, which planar targets always produce). Instead the returned pose
@@ -42,14 +42,15 @@ from __future__ import annotations
 import functools
 from typing import Any, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from ..lie import SE3
 from ..lie.base import skew
+from ..results import Results
 from ._util import (
     Array,
-    Status,
     batch_shape,
     exp_act2,
     flatten_batch,
@@ -71,6 +72,12 @@ class PnPResult(NamedTuple):
     transform: SE3
     status: Array
     error: Array
+
+    @property
+    def status_name(self) -> Any:
+        """``status`` as text (``"converged"``, ...; an array of names when batched), by
+        :meth:`jaxpose.Results.name_of`."""
+        return Results.name_of(self.status)
 
 
 _PAIRS4 = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
@@ -242,8 +249,8 @@ def _epnp_single(pw: Array, uv: Array, k: Array) -> tuple[Array, Array]:
     collinear = lam[1] <= 1e3 * eps * lam_max
     finite = jnp.all(jnp.isfinite(best)) & jnp.isfinite(jnp.min(errs))
     finite = finite & jnp.all(jnp.isfinite(pw)) & jnp.all(jnp.isfinite(uv))
-    status = jnp.where(~finite, Status.NON_FINITE,
-                       jnp.where(collinear, Status.DEGENERATE, Status.SUCCESS))
+    status = jnp.where(~finite, Results.NON_FINITE,
+                       jnp.where(collinear, Results.DEGENERATE, Results.CONVERGED))
     best = jnp.where(jnp.all(jnp.isfinite(best)), best, SE3.identity(dtype=dtype).data)
     return best, status.astype(jnp.int32)
 
@@ -320,7 +327,10 @@ def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
 
 
 @functools.partial(jax.jit, static_argnames=("refine", "refine_steps"))
+@eqx.filter_jit
 def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps: int):
+    """The compiled part of :func:`epnp`: (B, N, 3), (B, N, 2), (B, 3, 3) → t (B, 7),
+    status (B,), error (B,)."""
     def single(pw: Array, uv: Array, k: Array) -> tuple[Array, Array, Array]:
         pws, uvs, ks = (jax.lax.stop_gradient(x) for x in (pw, uv, k))
         t, status = _epnp_single(pws, uvs, ks)
@@ -331,7 +341,7 @@ def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps:
             # other problems get a trivially solved stand-in (one point on the axis)
             good = (jnp.all(jnp.isfinite(pws)) & jnp.all(jnp.isfinite(uvs))
                     & jnp.all(jnp.isfinite(ks)) & jnp.all(jnp.isfinite(t))
-                    & (status == Status.SUCCESS))
+                    & (status == Results.CONVERGED))
             ident = jnp.zeros(7, t.dtype).at[6].set(1.0)
             on_axis = jnp.zeros_like(pws).at[:, 2].set(1.0)
             t_ref = _refine(jnp.where(good, t, ident), jnp.where(good, pws, on_axis),
@@ -339,7 +349,7 @@ def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps:
                             jnp.where(good, ks, jnp.eye(3, dtype=ks.dtype)), refine_steps)
             ok = good & jnp.all(jnp.isfinite(t_ref))
             t = jnp.where(ok, t_ref, t)
-        ok = status != Status.NON_FINITE
+        ok = status != Results.NON_FINITE
         t = jnp.where(ok, _implicit_tangent(t, pw, uv, k), t)
         err = jnp.mean(safe_norm(_residual(SE3(t), (pw, uv, k))), -1)
         return t, status, err
@@ -359,7 +369,9 @@ def epnp(
     (..., N, 2) with ``intrinsics`` K (..., 3, 3); batch axes broadcast.
 
     Returns :class:`PnPResult` with ``transform`` (SE3 world → camera, so that
-    ``point2pixel(points, K, transform) ≈ pixels``), ``status`` and ``error``."""
+    ``point2pixel(points, K, transform) ≈ pixels``), ``status`` and ``error``.
+    Checks run eagerly; the solve is compiled with ``eqx.filter_jit`` (``refine`` and
+    ``refine_steps`` static), so new data of the same shapes reuse the program."""
     fn = "epnp"
     pw = points_array(points, f"{fn}(points)", 3)
     uv = points_array(pixels, f"{fn}(pixels)", 2)

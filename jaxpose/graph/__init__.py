@@ -24,14 +24,10 @@ from .init import chordal_initialization, initial_poses, pose_graph_cost
 from .marginals import Marginals, marginals, se3_to_gtsam
 from .problem import FactorGraph, Linearization, cost, linearize
 from .robust import GNCSolution, gm_weights, gnc, tls_weights, weighted_graph
-from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STALLED, GraphSolution, solve, summary
+from .solve import GraphSolution, solve, summary
 from .strategies import LambdaFactor, Nielsen
 
 __all__ = [
-    "CONVERGED",
-    "MAX_STEPS",
-    "NON_FINITE",
-    "STALLED",
     "Factor",
     "GNCSolution",
     "FactorGraph",

@@ -51,9 +51,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..optim.solve import least_squares
-from ..optim.stopping import Status
+from ..results import Results
 from .problem import FactorGraph, factor_residuals
-from .solve import CONVERGED, MAX_STEPS, NON_FINITE, STATUS_NAMES, solve
+from .solve import solve
 
 Array = jax.Array
 
@@ -171,8 +171,9 @@ class GNCSolution(eqx.Module):
 
     @property
     def status_name(self) -> str:
-        """``status`` as text: converged, max_steps or non_finite."""
-        return STATUS_NAMES[int(self.status)]
+        """``status`` as text: converged, max_steps or non_finite
+        (:meth:`jaxpose.Results.name_of`)."""
+        return Results.name_of(self.status)
 
     @property
     def inliers(self) -> tuple[Array, ...]:
@@ -400,7 +401,7 @@ def _run(
     if config["initial_solve"]:
         x1, ist, iits = inner(x0, _split(w_init, counts))
     else:
-        x1, ist, iits = x0, jnp.asarray(CONVERGED), jnp.asarray(0)
+        x1, ist, iits = x0, jnp.asarray(Results.CONVERGED), jnp.asarray(0)
     cost1 = 0.5 * jnp.sum(w_init * _squared_norms(graph, x1))
     mu0 = initial_mu(surrogate, s0, barc_sq, unknown).astype(dtype)
     # nothing to decide (no unknown factor, or none above the threshold): the plain
@@ -410,7 +411,9 @@ def _run(
     mu0 = jnp.where(nothing, -1.0, mu0).astype(dtype)
     solved = nothing & config["initial_solve"]
     status0 = jnp.where(
-        ~jnp.isfinite(cost1), NON_FINITE, jnp.where(solved, CONVERGED, int(Status.RUNNING))
+        ~jnp.isfinite(cost1),
+        Results.NON_FINITE,
+        jnp.where(solved, Results.CONVERGED, Results.RUNNING),
     ).astype(jnp.int32)
     init = dict(
         x=x1,
@@ -448,11 +451,11 @@ def _run(
         done = cost_conv | weights_conv | mu_conv | plain
         status = jnp.where(
             ~finite,
-            NON_FINITE,
+            Results.NON_FINITE,
             jnp.where(
                 done,
-                CONVERGED,
-                jnp.where(k >= config["max_iterations"], MAX_STEPS, int(Status.RUNNING)),
+                Results.CONVERGED,
+                jnp.where(k >= config["max_iterations"], Results.MAX_STEPS, Results.RUNNING),
             ),
         ).astype(jnp.int32)
         keep = lambda new, old: jax.tree.map(  # noqa: E731
@@ -470,7 +473,7 @@ def _run(
         )
 
     if config["max_iterations"] <= 0:
-        init["status"] = jnp.where(init["status"] < 0, MAX_STEPS, init["status"])
+        init["status"] = jnp.where(init["status"] < 0, Results.MAX_STEPS, init["status"])
     out = jax.lax.while_loop(lambda st: st["status"] < 0, body, init)
     s = _squared_norms(graph, out["x"])
     return GNCSolution(

@@ -5,7 +5,7 @@ The pieces are those of :mod:`jaxpose.optim`: a damping :class:`~jaxpose.optim.S
 with ``lambda_factor=None``; :class:`~jaxpose.optim.Constant`, ``Adaptive``,
 ``TrustRegion`` and ``Dogleg`` work too), robust kernels and correctors per factor
 (:class:`~jaxpose.graph.Factor`), :class:`~jaxpose.optim.Stopping` tolerances and
-:class:`~jaxpose.optim.Status` codes. Only the linear algebra is sparse: each trial solves
+:class:`~jaxpose.Results` codes. Only the linear algebra is sparse: each trial solves
 ``(H + diag(lift) + λ·diag(D)) δ = −g`` with H = J̃ᵀJ̃ block-sparse, D = 1 (``damping=
 "identity"``, GTSAM's default) or D = clamp(diag H, 1e-6, 1e32) (``"diagonal"``, Marquardt,
 as Ceres and GTSAM's ``diagonalDamping``), then evaluates the cost at X ⊕ δ. One
@@ -17,8 +17,8 @@ seen.
 Stopping (:func:`jaxpose.optim.stopping.check`): an accepted step lowering the cost by at
 most ``atol + rtol·cost``; ‖g‖∞ ≤ ``gtol``; ‖δ‖ ≤ ``xtol``; a rejected trial whose
 predicted decrease is at the cost's floating-point resolution; ``max_steps`` trials; a
-rejection that cannot change the damping (λ at its bound: status ``STALLED``, which is
-``Status.DIVERGED``).
+rejection that cannot change the damping (λ at its bound: ``Results.DIVERGED``, "stalled",
+best estimate kept).
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..optim.stopping import Status, Stopping, Trial, check, nonfinite_run, plateau_count
+from ..optim.stopping import Stopping, Trial, check, nonfinite_run, plateau_count
 from ..optim.strategies import Strategy, System
+from ..results import Results
 from . import linear
 from .problem import (
     FactorGraph,
@@ -49,20 +50,6 @@ from .strategies import LambdaFactor, Nielsen
 
 Array = jax.Array
 
-CONVERGED = int(Status.CONVERGED)
-"""Status code: a stopping tolerance was met."""
-MAX_STEPS = int(Status.MAX_STEPS)
-"""Status code: the iteration budget ran out."""
-STALLED = int(Status.DIVERGED)
-"""Status code: no trial lowers the cost at the largest damping (best estimate kept)."""
-NON_FINITE = int(Status.NON_FINITE)
-"""Status code: a non-finite cost or step appeared (best estimate kept)."""
-STATUS_NAMES = {
-    CONVERGED: "converged",
-    MAX_STEPS: "max_steps",
-    STALLED: "stalled",
-    NON_FINITE: "non_finite",
-}
 LINEAR_SOLVERS = ("auto", "sparse", "pcg", "dense", "schur")
 DENSE_MAX = 600  # "auto": dense Cholesky up to this many tangent dimensions
 
@@ -70,8 +57,8 @@ DENSE_MAX = 600  # "auto": dense Cholesky up to this many tangent dimensions
 class GraphSolution(eqx.Module):
     """Result of :func:`solve`.
 
-    ``status``: a :class:`jaxpose.optim.Status` code: 0 converged, 1 max_steps,
-    2 stalled (``Status.DIVERGED``: damping exhausted; the estimate is the best found),
+    ``status``: a :class:`jaxpose.Results` code: 0 converged, 1 max_steps,
+    2 diverged (stalled: damping exhausted; the estimate is the best found),
     3 non_finite (a non-finite cost or step stopped the solve: ``max_rejects`` such
     trials, or the budget ran out while every trial since the last accepted one was
     non-finite, or the gradient at the start is not finite; best estimate kept).
@@ -89,8 +76,9 @@ class GraphSolution(eqx.Module):
 
     @property
     def status_name(self) -> str:
-        """``status`` as text: converged, max_steps, stalled or non_finite."""
-        return STATUS_NAMES[int(self.status)]
+        """``status`` as text: converged, max_steps, diverged or non_finite
+        (:meth:`jaxpose.Results.name_of`; an array of names for a batched solution)."""
+        return Results.name_of(self.status)
 
 
 def default_rtol(dtype: Any) -> float:
@@ -317,9 +305,9 @@ def solve(
     # a Jacobian that is not finite at the start: no step can be computed (as in
     # jaxpose.optim.least_squares, a status rather than an exception)
     status0 = jnp.where(
-        ~jnp.all(jnp.isfinite(g0)), NON_FINITE,
-        jnp.where(jnp.max(jnp.abs(g0), initial=0.0) <= stopping.gtol, CONVERGED,
-                  jnp.where(stopping.budget <= 0, MAX_STEPS, int(Status.RUNNING))),
+        ~jnp.all(jnp.isfinite(g0)), Results.NON_FINITE,
+        jnp.where(jnp.max(jnp.abs(g0), initial=0.0) <= stopping.gtol, Results.CONVERGED,
+                  jnp.where(stopping.budget <= 0, Results.MAX_STEPS, Results.RUNNING)),
     ).astype(jnp.int32)
     init = dict(
         x=x0, lin=lin0, g=g0, s=strategy.init(dtype), k=jnp.asarray(0, jnp.int32),

@@ -32,14 +32,13 @@ from .problem import Problem
 from .solution import Solution
 from .solve import least_squares
 from .solver import GN, LM, AbstractSolver, GaussNewton, LevenbergMarquardt, SolverState
-from .stopping import Status, StopOnPlateau, Stopping
+from .stopping import StopOnPlateau, Stopping
 from .strategies import Adaptive, Constant, Dogleg, Strategy, TrustRegion
 
 __all__ = [
     "least_squares",
     "covariance",
     "Solution",
-    "Status",
     "Problem",
     "AbstractSolver",
     "GaussNewton",

@@ -7,7 +7,7 @@ from typing import Any
 import equinox as eqx
 import jax
 
-from .stopping import Status
+from ..results import Results
 
 Array = jax.Array
 
@@ -17,7 +17,7 @@ class Solution(eqx.Module):
 
     * ``params``: the best estimate found (lowest cost seen; never a rejected or
       non-finite trial), same pytree structure and types as the initial params;
-    * ``status``: int32, a :class:`Status` value (CONVERGED, MAX_STEPS, DIVERGED,
+    * ``status``: int32, a :class:`~jaxpose.Results` code (CONVERGED, MAX_STEPS, DIVERGED,
       NON_FINITE);
     * ``num_steps``: iterations (trial steps) taken; ``num_accepted``: accepted ones;
     * ``cost`` / ``initial_cost``: ``0.5 · Σ ρ(rᵀ W r)`` at ``params`` / at the start;
@@ -37,8 +37,14 @@ class Solution(eqx.Module):
 
     @property
     def converged(self) -> Array:
-        """Boolean array: ``status == Status.CONVERGED``."""
-        return self.status == Status.CONVERGED
+        """Boolean array: ``status == Results.CONVERGED``."""
+        return self.status == Results.CONVERGED
+
+    @property
+    def status_name(self) -> Any:
+        """``status`` as text (``"converged"``, ...; an array of names when batched), by
+        :meth:`jaxpose.Results.name_of`."""
+        return Results.name_of(self.status)
 
 
 __all__ = ["Solution"]

@@ -27,9 +27,10 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from ..lie import manifold
+from ..results import Results
 from .linear import Cholesky, LinearSolver
 from .problem import Linearization, Problem, as_problem
-from .stopping import Status, Stopping, Trial, check, nonfinite_run, plateau_count
+from .stopping import Stopping, Trial, check, nonfinite_run, plateau_count
 from .strategies import Strategy, System, TrustRegion
 
 Array = jax.Array
@@ -56,7 +57,7 @@ class SolverState(eqx.Module):
     accepted: Array  # bool, last trial accepted
     linearized: Array  # bool, the first step (linearisation only) has run
     done: Array  # bool
-    status: Array  # int32 Status
+    status: Array  # int32 Results code
     history: Array  # (budget + 1,) costs, or (0,) when not recorded
 
 
@@ -190,7 +191,7 @@ class AbstractSolver(eqx.Module):
             accepted=jnp.asarray(False),
             linearized=jnp.asarray(False),
             done=jnp.asarray(False),
-            status=jnp.asarray(Status.RUNNING, jnp.int32),
+            status=jnp.asarray(Results.RUNNING, jnp.int32),
             history=hist,
         )
 
@@ -290,15 +291,15 @@ class AbstractSolver(eqx.Module):
         # the linearisation step: only non-finite Jacobian, gtol or a zero budget stop it
         status0 = jnp.where(
             ~finite,
-            Status.NON_FINITE,
+            Results.NON_FINITE,
             jnp.where(
                 grad_inf <= stopping.gtol,
-                Status.CONVERGED,
-                jnp.where(stopping.budget <= 0, Status.MAX_STEPS, Status.RUNNING),
+                Results.CONVERGED,
+                jnp.where(stopping.budget <= 0, Results.MAX_STEPS, Results.RUNNING),
             ),
         ).astype(jnp.int32)
         status = jnp.where(fresh, status0, status)
-        done = status != Status.RUNNING
+        done = status != Results.RUNNING
         hist = state.history
         if hist.shape[0] > 0:
             hist = hist.at[jnp.minimum(num_steps, hist.shape[0] - 1)].set(cost)

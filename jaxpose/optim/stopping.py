@@ -1,4 +1,4 @@
-"""Termination: status codes, tolerances and PyPose's StopOnPlateau rule.
+"""Termination: tolerances and PyPose's StopOnPlateau rule.
 
 All tests are evaluated per problem from scalar state, so under ``vmap`` every problem
 stops on its own. One *iteration* is one trial step (accepted or rejected).
@@ -6,27 +6,15 @@ stops on its own. One *iteration* is one trial step (accepted or rejected).
 
 from __future__ import annotations
 
-import enum
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..results import Results
+
 Array = jax.Array
-
-
-class Status(enum.IntEnum):
-    """Why a solve stopped (stored as an int32 array in the solution)."""
-
-    RUNNING = -1  #: not finished (only seen when driving ``step`` by hand)
-    CONVERGED = 0  #: a tolerance or the plateau rule was met
-    MAX_STEPS = 1  #: the iteration budget ran out first
-    DIVERGED = 2  #: no trial lowers the cost: rejected at the strategy's damping bound
-    #: (or with Constant damping), or ``max_rejects`` times in a row
-    NON_FINITE = 3  #: the last such failed trial was NaN/Inf, the budget ran out while
-    #: every trial since the last accepted one was NaN/Inf, or the Jacobian at the start
-    #: was; the best finite estimate is kept
 
 
 class StopOnPlateau(eqx.Module):
@@ -164,21 +152,22 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     diverged = stalled & t.finite
     status = jnp.where(
         nonfinite,
-        Status.NON_FINITE,
+        Results.NON_FINITE,
         jnp.where(
             conv,
-            Status.CONVERGED,
+            Results.CONVERGED,
             jnp.where(
-                diverged, Status.DIVERGED, jnp.where(out_of_steps, Status.MAX_STEPS, Status.RUNNING)
+                diverged,
+                Results.DIVERGED,
+                jnp.where(out_of_steps, Results.MAX_STEPS, Results.RUNNING),
             ),
         ),
     )
     status = status.astype(jnp.int32)
-    return status != Status.RUNNING, status
+    return status != Results.RUNNING, status
 
 
 __all__ = [
-    "Status",
     "StopOnPlateau",
     "Stopping",
     "Trial",

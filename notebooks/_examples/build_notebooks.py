@@ -72,7 +72,7 @@ plot(hist)""",
         "run": SMOKE + """
 jax.config.update("jax_enable_x64", True)
 sol, model = solve(horizon=80, u_max=5.0, max_iter=3 if SMOKE else 400)
-print(STATUS_NAMES[int(sol.status)], int(sol.iterations), "iterations; cost", float(sol.cost))
+print(Results.name_of(sol.status), int(sol.iterations), "iterations; cost", float(sol.cost))
 print("final state", sol.x[-1], "| force range", float(sol.u.min()), float(sol.u.max()))
 plot(sol, dt=0.05)""",
     },

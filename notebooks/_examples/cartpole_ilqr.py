@@ -24,7 +24,8 @@ if __package__ in (None, ""):
 import jax
 import jax.numpy as jnp
 
-from jaxpose.control import STATUS_NAMES, FunctionCost, ILQRSolution, ilqr
+from jaxpose import Results
+from jaxpose.control import FunctionCost, ILQRSolution, ilqr
 from jaxpose.dynamics import CartPole
 
 
@@ -106,7 +107,7 @@ def main(argv: list[str] | None = None) -> ILQRSolution:
     sol, _ = solve(args.horizon, args.dt, args.u_max, args.max_iter)
     jax.block_until_ready(sol)
     print(
-        f"iLQR: {STATUS_NAMES[int(sol.status)]} after {int(sol.iterations)} iterations "
+        f"iLQR: {Results.name_of(sol.status)} after {int(sol.iterations)} iterations "
         f"({time.perf_counter() - t0:.1f} s incl. compile), cost {float(sol.cost):.4f}"
     )
     print(f"final state [x, ẋ, θ, θ̇] = {[round(float(v), 4) for v in sol.x[-1]]}")

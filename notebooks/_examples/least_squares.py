@@ -57,7 +57,7 @@ def decay(p, args):
 
 solve_decay = jax.jit(lambda p0: optim.least_squares(decay, p0, (t, y), verbose=True))
 sol = solve_decay(jnp.array([1.0, 0.5]))
-print("a, b =", sol.params, "| status", optim.Status(int(sol.status)).name,
+print("a, b =", sol.params, "| status", jp.Results.name_of(sol.status),
       "| steps", int(sol.num_steps), "| cost", float(sol.cost))
 
 # %% [markdown]
@@ -167,7 +167,7 @@ solvers = {
 for name, solver in solvers.items():
     run = jax.jit(lambda p0, solver=solver: optim.least_squares(decay, p0, (t, y), solver=solver))
     s = run(jnp.array([3.0, 0.2]))
-    print(f"{name:27s} {optim.Status(int(s.status)).name:10s} steps {int(s.num_steps):3d}"
+    print(f"{name:27s} {jp.Results.name_of(s.status):10s} steps {int(s.num_steps):3d}"
           f"  cost {float(s.cost):.6f}")
 
 # %% [markdown]
@@ -247,4 +247,4 @@ for _ in range(8):
 print("cost per step:", np.round(costs, 6))
 rule = optim.StopOnPlateau(steps=50, patience=2, decreasing=1e-6)
 plateau = jax.jit(lambda p0: optim.least_squares(decay, p0, (t, y), stop=rule))(jnp.ones(2))
-print("StopOnPlateau:", optim.Status(int(plateau.status)).name, int(plateau.num_steps), "steps")
+print("StopOnPlateau:", jp.Results.name_of(plateau.status), int(plateau.num_steps), "steps")

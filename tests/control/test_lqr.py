@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxpose import Results
 from jaxpose.control import (
     LQR,
-    NONFINITE,
     QuadraticCost,
     box_qp,
     ilqr,
@@ -258,7 +258,7 @@ def test_lqr_bad_input():
 def test_nonfinite_status_not_garbage():
     n, m, T = N, M, T6
     sol = eqx.filter_jit(lqr)(LTI(np.eye(n), np.ones((n, m))), COST, np.array([np.nan, 0, 0]), T)
-    assert int(sol.status) == NONFINITE
+    assert int(sol.status) == Results.NON_FINITE
     assert not np.all(np.isfinite(sol.u))  # reported, and the caller can see it
     # an indefinite problem reached under tracing (no eager check): Q_uu not PD
     bad = LQR_SOLVE(
@@ -270,21 +270,21 @@ def test_nonfinite_status_not_garbage():
         np.eye(4),
         np.zeros(4),
     )
-    assert int(bad.status) == NONFINITE
+    assert int(bad.status) == Results.NON_FINITE
     it = ILQR(np.eye(n), np.ones((n, m)), np.zeros(n), np.array([np.inf, 0.0, 0.0]))
-    assert int(it.status) == NONFINITE
+    assert int(it.status) == Results.NON_FINITE
 
 
 def test_issue19_overflow_status_nan_bounds_and_input_size():
     """Found by fault injection: x0 = 1e200 gave a finite trajectory, cost inf and status
-    CONVERGED (now NONFINITE); NaN box bounds passed the u_lower ≤ u_upper check (NaN
-    compares false) and only showed up as a NONFINITE status; a u_init of the wrong width
+    CONVERGED (now Results.NON_FINITE); NaN box bounds passed the u_lower ≤ u_upper check (NaN
+    compares false) and only showed up as a Results.NON_FINITE status; a u_init of the wrong width
     raised an error naming the system's ``u``, not ``u_init``."""
     n, m, T = 3, 2, 4
     A, B = np.eye(n), np.ones((n, m))
     cost = QuadraticCost(np.eye(n + m))
     sol = lqr(LTI(A, B), cost, np.array([1e200, 0.0, 0.0]), T)
-    assert not np.isfinite(float(sol.cost)) and int(sol.status) == NONFINITE
+    assert not np.isfinite(float(sol.cost)) and int(sol.status) == Results.NON_FINITE
     with pytest.raises(ValueError, match="u_lower: contains NaN"):
         ilqr(LTI(A, B), cost, np.ones(n), np.zeros((T, m)), u_lower=np.array([np.nan, 0.0]))
     with pytest.raises(ValueError, match=r"x0, u_init: .*u_init\[t\] \(3,\)"):

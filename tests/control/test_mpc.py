@@ -8,11 +8,9 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
+from jaxpose import Results
 from jaxpose.control import (
-    CONVERGED,
-    MAX_ITER,
     MPC,
-    NONFINITE,
     QuadraticCost,
     closed_loop,
 )
@@ -113,7 +111,7 @@ def test_nonlinear_mpc_with_limits_implicit_gradient_matches_fd():
     flat, make = pendulum_setup()
     loss = make("implicit")
     (val, sol), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(flat)
-    assert int(sol.status) == CONVERGED
+    assert int(sol.status) == Results.CONVERGED
     clamped = np.abs(sol.u) >= 0.5 - 1e-12
     assert np.any(clamped) and not np.all(clamped), "a mix of active and free limits"
     assert np.all(np.abs(sol.u) <= 0.5)
@@ -139,7 +137,7 @@ def test_closed_loop_regulates_lti():
     plant = LTI(A, B)
     mpc = MPC(plant, QuadraticCost(np.diag([1.0, 0.1, 0.01]), QT=10 * np.eye(2)), 10)
     xs, us, status = eqx.filter_jit(closed_loop)(mpc, plant, rng.normal(size=2), 40)
-    assert xs.shape == (41, 2) and us.shape == (40, 1) and np.all(status == CONVERGED)
+    assert xs.shape == (41, 2) and us.shape == (40, 1) and np.all(status == Results.CONVERGED)
     assert np.linalg.norm(xs[-1]) < 0.05 * np.linalg.norm(xs[0])
 
 
@@ -159,7 +157,7 @@ def _cartpole(x0, u_max, max_iter):
 
 def test_cartpole_balance_converges_within_limits():
     sol = _cartpole(jnp.array([0.0, 0.0, 0.6, 0.0]), 2.0, 400)
-    assert int(sol.status) == CONVERGED
+    assert int(sol.status) == Results.CONVERGED
     assert np.all(np.abs(sol.u) <= 2.0) and np.any(np.abs(sol.u) >= 2.0 - 1e-12)
     assert np.cos(float(sol.x[-1, 2])) > 0.999 and abs(float(sol.x[-1, 0])) < 0.05
 
@@ -167,7 +165,7 @@ def test_cartpole_balance_converges_within_limits():
 @pytest.mark.slow
 def test_cartpole_swing_up_converges_within_limits():
     sol = _cartpole(jnp.array([0.0, 0.0, np.pi, 0.0]), CP_UMAX, 400)
-    assert int(sol.status) == CONVERGED
+    assert int(sol.status) == Results.CONVERGED
     assert np.all(np.abs(sol.u) <= CP_UMAX)
     assert np.sum(np.abs(sol.u) >= CP_UMAX - 1e-12) >= 5  # the limit binds
     assert np.cos(float(sol.x[-1, 2])) > 0.999  # upright
@@ -176,7 +174,7 @@ def test_cartpole_swing_up_converges_within_limits():
 
 def test_ilqr_max_iter_status_and_limits_on_early_stop():
     sol = _cartpole(jnp.array([0.0, 0.0, np.pi, 0.0]), 1.0, 3)
-    assert int(sol.status) == MAX_ITER and int(sol.iterations) == 3
+    assert int(sol.status) == Results.MAX_STEPS and int(sol.iterations) == 3
     assert np.all(np.abs(sol.u) <= 1.0)
 
 
@@ -201,7 +199,7 @@ def test_mpc_bad_input():
     with pytest.raises(ValueError, match="u_lower, u_upper: expected u_lower ≤ u_upper"):
         MPC(LTI(A, B), cost, 4, u_lower=1.0, u_upper=0.0)(np.ones(2))
     sol = eqx.filter_jit(MPC(LTI(A, B), cost, 4))(np.array([np.nan, 1.0]))
-    assert int(sol.status) == NONFINITE
+    assert int(sol.status) == Results.NON_FINITE
 
 
 def test_second_derivative_through_implicit_mpc_raises_not_wrong():

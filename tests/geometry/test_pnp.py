@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxpose.geometry import Status, epnp, intrinsics_matrix, point2pixel
+from jaxpose import Results
+from jaxpose.geometry import epnp, intrinsics_matrix, point2pixel
 from jaxpose.lie import SE3
 
 from .conftest import random_rotation, se3_from_rt
@@ -48,8 +49,8 @@ def test_exact_on_noise_free_data_with_status_cases(rng):
     pix = np.concatenate([uv, uv_p, uv_line[None], bad_uv[None]])
     res = epnp_plain(pts, pix, K)
     status = np.asarray(res.status)
-    np.testing.assert_array_equal(status[:6], Status.SUCCESS)
-    assert status[6] == Status.DEGENERATE and status[7] == Status.NON_FINITE
+    np.testing.assert_array_equal(status[:6], Results.CONVERGED)
+    assert status[6] == Results.DEGENERATE and status[7] == Results.NON_FINITE
     want = np.concatenate([pose.matrix(), pose_p.matrix()])
     got = np.asarray(res.transform.matrix())[:6]
     np.testing.assert_allclose(got, want, atol=1e-9)
@@ -159,7 +160,7 @@ def test_float32(rng):
     res = epnp(pw.astype(np.float32), uv.astype(np.float32), K.astype(np.float32),
                refine=False)
     assert res.transform.dtype == jnp.float32
-    np.testing.assert_array_equal(res.status, Status.SUCCESS)
+    np.testing.assert_array_equal(res.status, Results.CONVERGED)
     np.testing.assert_allclose(res.transform.matrix(), pose.matrix(), atol=5e-3)
 
 
@@ -194,8 +195,8 @@ def test_non_finite_data_with_refinement_reports_status(rng):
     uv_bad[1, 2, 1] = np.inf
     for p, u in ((pw_bad, uv), (pw, uv_bad)):
         res = epnp_refined(p, u, K)
-        assert int(res.status[1]) == Status.NON_FINITE
-        assert int(res.status[0]) == Status.SUCCESS
+        assert int(res.status[1]) == Results.NON_FINITE
+        assert int(res.status[0]) == Results.CONVERGED
         np.testing.assert_allclose(res.transform.data[0], pose.data[0], atol=1e-8)
     eager = epnp(pw_bad[1], uv[1], K)  # eager call, default refinement
-    assert int(eager.status) == Status.NON_FINITE
+    assert int(eager.status) == Results.NON_FINITE

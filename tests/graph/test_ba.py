@@ -215,7 +215,7 @@ def test_float32_schur_solve():
     s64 = jit_solve(linear_solver="schur", **BA_OPTIONS)(g64)
     s32 = jax.jit(lambda g: bal_graph.solve(g, linear_solver="schur", **BA_OPTIONS),
                   compiler_options=FAST_COMPILE)(g32)
-    assert s32.cost.dtype == jnp.float32 and s32.status_name in ("converged", "stalled")
+    assert s32.cost.dtype == jnp.float32 and s32.status_name in ("converged", "diverged")
     np.testing.assert_allclose(float(s32.cost), float(s64.cost), rtol=1e-4)
 
 

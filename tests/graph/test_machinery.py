@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxpose import read_g2o
+from jaxpose import Results, read_g2o
 from jaxpose.graph import (
     Factor,
     FactorGraph,
@@ -33,7 +33,6 @@ from jaxpose.optim import (
     Constant,
     Dogleg,
     Huber,
-    Status,
     StopOnPlateau,
     Stopping,
     Triggs,
@@ -65,7 +64,7 @@ def test_dogleg_inexact_pcg_with_plateau_stopping_reaches_gtsam_minimum():
     sol = _solve(problem, strategy=Dogleg(radius=0.1), stopping=stop, verbose=True,
                  linear_solver="pcg", cg_rtol="inexact")
     assert int(sol.linear_iterations) > 0
-    assert int(sol.status) == Status.CONVERGED and sol.status_name == "converged"
+    assert int(sol.status) == Results.CONVERGED and sol.status_name == "converged"
     np.testing.assert_allclose(float(sol.cost), GTSAM_COST["pose2example.txt"], rtol=1e-9)
     k = int(sol.iterations)
     hist = np.asarray(sol.history)

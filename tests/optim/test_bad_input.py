@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxpose as jp
 import jaxpose.optim as jo
 
 from .test_least_squares import run_steps
@@ -42,7 +43,7 @@ def test_nan_mid_run_reports_non_finite_and_keeps_best():
         return jnp.where(x > 2.5, x * x - 4.0, jnp.nan)
 
     state = run_steps(jo.GN(), res, jnp.array([10.0]), None)
-    assert int(state.status) == jo.Status.NON_FINITE
+    assert int(state.status) == jp.Results.NON_FINITE
     assert int(state.num_accepted) == 2
     x1 = 10.0 - 96.0 / 20.0
     x2 = x1 - (x1 * x1 - 4.0) / (2 * x1)
@@ -54,7 +55,7 @@ def test_nan_mid_run_reports_non_finite_and_keeps_best():
         return jnp.where(x == 1.0, x - 3.0, jnp.nan)
 
     sol = jo.least_squares(res2, jnp.array([1.0]))
-    assert int(sol.status) == jo.Status.NON_FINITE
+    assert int(sol.status) == jp.Results.NON_FINITE
     np.testing.assert_array_equal(sol.params, [1.0])
     assert int(sol.num_accepted) == 0 and float(sol.cost) == pytest.approx(2.0)
 
@@ -65,15 +66,15 @@ def test_singular_normal_equations_do_not_crash():
     lstsq_res = a @ np.linalg.pinv(a) @ b - b
     # damped path (LM + Cholesky): a least-squares minimiser
     lm = run_steps(jo.LM(), _lin, jnp.zeros(4), args)
-    assert int(lm.status) == jo.Status.CONVERGED
+    assert int(lm.status) == jp.Results.CONVERGED
     np.testing.assert_allclose(a @ np.asarray(lm.best_params) - b, lstsq_res, atol=1e-8)
     # pseudo-inverse path (GN + SVD): exactly the minimum-norm solution
     gn = run_steps(jo.GN(jo.SVD()), _lin, jnp.zeros(4), args)
-    assert int(gn.status) == jo.Status.CONVERGED
+    assert int(gn.status) == jp.Results.CONVERGED
     np.testing.assert_allclose(gn.best_params, np.linalg.pinv(a) @ b, rtol=1e-9, atol=1e-12)
     # undamped Cholesky: no exception, a status, the initial estimate kept
     bad = run_steps(jo.GN(jo.Cholesky()), _lin, jnp.zeros(4), args)
-    assert int(bad.status) == jo.Status.NON_FINITE
+    assert int(bad.status) == jp.Results.NON_FINITE
     np.testing.assert_array_equal(bad.best_params, np.zeros(4))
 
 
@@ -130,7 +131,7 @@ def test_nonfinite_jacobian_at_start_reports_status_not_exception():
 
     for run in (jo.least_squares, jax.jit(jo.least_squares, static_argnums=0)):
         sol = run(res, jnp.zeros(2))
-        assert int(sol.status) == jo.Status.NON_FINITE
+        assert int(sol.status) == jp.Results.NON_FINITE
         np.testing.assert_array_equal(sol.params, np.zeros(2))
         assert int(sol.num_steps) == 0 and float(sol.cost) == pytest.approx(1.0)
     assert "RuntimeError" in jo.least_squares.__doc__ and "sqrt(x)" in jo.least_squares.__doc__
@@ -145,7 +146,7 @@ def test_all_nan_trials_end_non_finite_within_a_small_budget(max_steps):
 
     for solver in (jo.LM(), jo.LM(strategy=jo.Adaptive())):
         sol = jo.least_squares(res, jnp.array([1.0]), solver=solver, max_steps=max_steps)
-        assert int(sol.status) == jo.Status.NON_FINITE
+        assert int(sol.status) == jp.Results.NON_FINITE
         np.testing.assert_array_equal(sol.params, [1.0])
     # finite trials that run out of budget are still MAX_STEPS
     sol = jo.least_squares(
@@ -153,4 +154,4 @@ def test_all_nan_trials_end_non_finite_within_a_small_budget(max_steps):
         jnp.array([-1.2, 1.0]),
         max_steps=2,
     )
-    assert int(sol.status) == jo.Status.MAX_STEPS
+    assert int(sol.status) == jp.Results.MAX_STEPS

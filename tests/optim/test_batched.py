@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jaxpose as jp
 import jaxpose.optim as jo
 from jaxpose.lie import SE3
 
@@ -37,7 +38,7 @@ def test_vmap_1000_circle_fits_each_converge():
     init = {"c": c0, "r": jnp.mean(jnp.linalg.norm(pts - c0[:, None], axis=-1), -1)}
     solve = jax.jit(jax.vmap(lambda p, x: jo.least_squares(circle_residual, p, x)))
     sol = solve(init, pts)
-    assert np.all(np.asarray(sol.status) == jo.Status.CONVERGED)
+    assert np.all(np.asarray(sol.status) == jp.Results.CONVERGED)
     np.testing.assert_allclose(sol.params["c"], c, atol=1e-8)
     np.testing.assert_allclose(sol.params["r"], r, atol=1e-8)
     # every problem stops on its own: iteration counts differ across the batch, and a
@@ -71,7 +72,7 @@ def test_vmap_1000_se3_pose_averages_with_outliers_under_huber():
         pose_residual, x, m, kernel=jo.Huber(0.05), max_steps=50)))
     sol = solve(init, meas)
     assert sol.params.dtype == f32
-    assert np.all(np.asarray(sol.status) == jo.Status.CONVERGED)
+    assert np.all(np.asarray(sol.status) == jp.Results.CONVERGED)
     err = np.linalg.norm(np.asarray((truth.inv() @ sol.params).log().data), axis=-1)
     # Huber caps each outlier's pull at δ: error ≲ noise + 2δ/8; a plain average would be
     # dragged ~0.3 away by the outliers

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxpose as jp
 import jaxpose.optim as jo
 from jaxpose.lie import SE3, manifold
 
@@ -44,7 +45,7 @@ def jls(x, a, **kw):
                          ids=lambda s: type(s).__name__)
 def test_each_linear_solver_reaches_optimum(linear_solver):
     state = run_steps(jo.LM(linear_solver=linear_solver), exp_residual, X0, EXP_ARGS)
-    assert int(state.status) == jo.Status.CONVERGED
+    assert int(state.status) == jp.Results.CONVERGED
     np.testing.assert_allclose(state.best_params, EXP_OPT, rtol=1e-8)
 
 
@@ -58,7 +59,7 @@ def test_each_strategy_reaches_optimum(solver):
     hard = isinstance(solver, jo.LM) and not isinstance(solver.strategy, jo.Constant)
     x0 = jnp.array([0.5, 3.0]) if hard else X0
     state = run_steps(solver, exp_residual, x0, EXP_ARGS)
-    assert int(state.status) == jo.Status.CONVERGED
+    assert int(state.status) == jp.Results.CONVERGED
     np.testing.assert_allclose(state.best_params, EXP_OPT, rtol=1e-7)
     # LM never accepts a cost increase
     if isinstance(solver, jo.LM):
@@ -67,7 +68,7 @@ def test_each_strategy_reaches_optimum(solver):
 
 def test_constant_damping_stalls_on_rejection():
     state = run_steps(jo.LM(jo.Constant(1e-3)), exp_residual, jnp.array([0.5, 3.0]), EXP_ARGS)
-    assert int(state.status) == jo.Status.DIVERGED and int(state.num_steps) == 1
+    assert int(state.status) == jp.Results.DIVERGED and int(state.num_steps) == 1
     assert float(state.best_cost) <= float(state.initial_cost)
 
 
@@ -82,7 +83,7 @@ def test_compiled_loop_matches_object_api_history_and_verbose(capsys):
     for key in ("cost", "ratio", "damping", "|step|", "accepted"):
         assert key in lines[-1]
     state = run_steps(jo.LM(), exp_residual, X0, EXP_ARGS)
-    assert int(sol.status) == jo.Status.CONVERGED
+    assert int(sol.status) == jp.Results.CONVERGED
     assert int(sol.num_steps) == int(state.num_steps)
     np.testing.assert_allclose(sol.params, state.best_params, rtol=1e-12)
     np.testing.assert_allclose(sol.params, EXP_OPT, rtol=1e-8)
@@ -102,7 +103,7 @@ def test_float32_path():
     args = tuple(a.astype(jnp.float32) for a in EXP_ARGS)
     sol = jls(x0, args)
     assert sol.params.dtype == jnp.float32 and sol.cost.dtype == jnp.float32
-    assert int(sol.status) in (jo.Status.CONVERGED, jo.Status.DIVERGED)
+    assert int(sol.status) in (jp.Results.CONVERGED, jp.Results.DIVERGED)
     np.testing.assert_allclose(sol.params, EXP_OPT, rtol=2e-4)
 
 
@@ -203,21 +204,21 @@ def test_weighted_linear_least_squares_matches_numpy():
 def test_stopping_rules():
     lm = jo.LM()
     sol = run_steps(lm, exp_residual, X0, EXP_ARGS, stopping=jo.Stopping(max_steps=2))
-    assert int(sol.status) == jo.Status.MAX_STEPS and int(sol.num_steps) == 2
+    assert int(sol.status) == jp.Results.MAX_STEPS and int(sol.num_steps) == 2
     # already optimal: gtol holds before any step
     sol = run_steps(lm, exp_residual, jnp.asarray(EXP_OPT), EXP_ARGS,
                     stopping=jo.Stopping(gtol=1e-8))
-    assert int(sol.status) == jo.Status.CONVERGED and int(sol.num_steps) == 0
+    assert int(sol.status) == jp.Results.CONVERGED and int(sol.num_steps) == 0
     # xtol: a tiny trial step ends the solve
     sol = run_steps(lm, exp_residual, X0, EXP_ARGS,
                     stopping=jo.Stopping(gtol=0.0, cost_rtol=0.0, xtol=1e-3))
-    assert int(sol.status) == jo.Status.CONVERGED and float(sol.step_norm) <= 1e-3
+    assert int(sol.status) == jp.Results.CONVERGED and float(sol.step_norm) <= 1e-3
     # a loose relative cost tolerance stops after the first small accepted decrease
     stop = jo.Stopping(cost_rtol=0.5, gtol=0.0, xtol=0.0)
     loose = run_steps(lm, exp_residual, X0, EXP_ARGS, stopping=stop, history=True)
     h = np.asarray(loose.history)
     k = int(loose.num_steps)
-    assert int(loose.status) == jo.Status.CONVERGED
+    assert int(loose.status) == jp.Results.CONVERGED
     assert h[k - 1] - h[k] <= 0.5 * h[k - 1]
     assert np.all(h[:k - 1] - h[1:k] > 0.5 * h[:k - 1])
 
@@ -227,17 +228,17 @@ def test_stop_on_plateau_semantics():
     # every iteration decreases by less than 1e9: stop after exactly `patience` iterations
     stop = jo.Stopping(plateau=jo.StopOnPlateau(steps=50, patience=3, decreasing=1e9))
     state = run_steps(solver, exp_residual, X0, EXP_ARGS, stopping=stop)
-    assert int(state.num_steps) == 3 and int(state.status) == jo.Status.CONVERGED
+    assert int(state.num_steps) == 3 and int(state.status) == jp.Results.CONVERGED
     # `steps` caps the budget
     stop = jo.Stopping(gtol=0.0, xtol=0.0, cost_rtol=0.0,
                        plateau=jo.StopOnPlateau(steps=2, patience=5, decreasing=0.0))
     state = run_steps(solver, exp_residual, X0, EXP_ARGS, stopping=stop)
-    assert int(state.num_steps) == 2 and int(state.status) == jo.Status.MAX_STEPS
+    assert int(state.num_steps) == 2 and int(state.status) == jp.Results.MAX_STEPS
     # relative decrease: the patience counter resets after a large relative decrease
     stop = jo.Stopping(gtol=0.0, xtol=0.0, cost_rtol=0.0, max_steps=40, plateau=jo.StopOnPlateau(
         steps=40, patience=2, decreasing=1e-3, relative=True))
     state = run_steps(solver, exp_residual, X0, EXP_ARGS, stopping=stop)
-    assert int(state.status) == jo.Status.CONVERGED
+    assert int(state.status) == jp.Results.CONVERGED
     assert int(state.plateau) == 2 and int(state.num_steps) > 2
 
 
@@ -302,7 +303,7 @@ def test_robust_line_fit_with_outliers():
 
     plain, robust = fits(args)
     for sol in robust:
-        assert int(sol.status) == jo.Status.CONVERGED
+        assert int(sol.status) == jp.Results.CONVERGED
         np.testing.assert_allclose(sol.params, [0.7, -0.3], atol=0.02)
         assert float(jnp.max(jnp.abs(jax.grad(robust_cost)(sol.params)))) < 1e-6
     assert float(jnp.abs(plain.params[1] + 0.3)) > 0.3  # the plain fit is pulled away
@@ -322,11 +323,11 @@ def test_gauss_newton_cost_increase_is_not_convergence():
 
     x0 = jnp.array([0.5, 3.0])
     gn = run_steps(jo.GN(), res, x0, (t, y))
-    assert int(gn.status) != jo.Status.CONVERGED
+    assert int(gn.status) != jp.Results.CONVERGED
     assert int(gn.num_steps) > 1
     np.testing.assert_array_equal(np.asarray(gn.best_params), np.asarray(x0))
     lm = run_steps(jo.LM(), res, x0, (t, y))
-    assert int(lm.status) == jo.Status.CONVERGED
+    assert int(lm.status) == jp.Results.CONVERGED
     np.testing.assert_allclose(np.asarray(lm.best_params), [2.0, 1.3], rtol=1e-6)
 
 
