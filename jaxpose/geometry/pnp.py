@@ -42,7 +42,6 @@ from __future__ import annotations
 import functools
 from typing import Any, NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -327,7 +326,6 @@ def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
 
 
 @functools.partial(jax.jit, static_argnames=("refine", "refine_steps"))
-@eqx.filter_jit
 def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps: int):
     """The compiled part of :func:`epnp`: (B, N, 3), (B, N, 2), (B, 3, 3) → t (B, 7),
     status (B,), error (B,)."""
@@ -370,7 +368,7 @@ def epnp(
 
     Returns :class:`PnPResult` with ``transform`` (SE3 world → camera, so that
     ``point2pixel(points, K, transform) ≈ pixels``), ``status`` and ``error``.
-    Checks run eagerly; the solve is compiled with ``eqx.filter_jit`` (``refine`` and
+    Checks run eagerly; the solve is compiled (``jax.jit``, ``refine`` and
     ``refine_steps`` static), so new data of the same shapes reuse the program."""
     fn = "epnp"
     pw = points_array(points, f"{fn}(points)", 3)
