@@ -58,7 +58,7 @@ def test_cartpole_example_smoke():
     out = io.StringIO()
     with redirect_stdout(out):
         sol = cartpole_ilqr.main(["--max-iter", "3"])
-    assert "max iterations after 3 iterations" in out.getvalue()
+    assert "max_steps after 3 iterations" in out.getvalue()
     assert np.all(np.abs(np.asarray(sol.u)) <= 5.0)
 
 
