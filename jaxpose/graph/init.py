@@ -6,7 +6,7 @@ rotation estimation and its use in pose graph optimization", ICRA 2015:
 1. **Rotations.** Relax ``R_j = R_i·Z_ij`` to a linear least-squares problem over the
    entries of the rotation matrices (``‖(R_j − R_i·Z_ij)·W_ij‖²_F`` summed over the edges),
    with one pose per connected piece held at its current value (the gauge anchors of
-   :func:`~jaxpose.graph.pgo.gauge_anchors`, the poses LM then holds fixed); project every
+   :func:`gauge_anchors`, the poses LM then holds fixed); project every
    3×3 (2×2) block to SO(3) (SO(2)) by SVD.
 2. **Translations.** With the rotations fixed, the translation part of the residual
    ``Log(Z⁻¹·Xi⁻¹·Xj)`` is linear in the translations, ``V(φ)⁻¹·Z_Rᵀ·(R_iᵀ(t_j − t_i) − t_z)``,
@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse
 
+from ..io.g2o import connected_components
 from . import cholmod
 
 __all__ = ["INIT_METHODS", "chordal_initialization", "initial_poses", "pose_graph_cost"]
@@ -208,9 +209,19 @@ def _block_lstsq(
     return x_all
 
 
-def _anchors(graph: Any, fix: str) -> np.ndarray:
-    from .pgo import gauge_anchors
+def gauge_anchors(graph: Any, held: Any) -> np.ndarray:
+    """Sorted indices to hold constant: ``held`` plus the first pose of every connected
+    piece of ``graph`` that contains none of them."""
+    held = np.unique(np.asarray(held, np.int64).reshape(-1))
+    if graph.n_poses == 0:
+        return held
+    labels = connected_components(graph)
+    firsts = np.unique(labels, return_index=True)[1]
+    free_pieces = np.setdiff1d(np.arange(firsts.size), labels[held])
+    return np.union1d(held, firsts[free_pieces])
 
+
+def _anchors(graph: Any, fix: str) -> np.ndarray:
     if fix not in ("first", "file", "none"):
         raise ValueError(f"chordal_initialization(fix={fix!r}): expected 'first', 'file' or 'none'")
     file_fixed = np.asarray(getattr(graph, "fixed", []), dtype=np.int64)
