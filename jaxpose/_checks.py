@@ -22,17 +22,17 @@ def require(name: str, cond: bool, msg: str) -> None:
         raise ValueError(f"{name}: {msg}")
 
 
-def as_float_array(x: Any, name: str) -> Array:
+def as_float_array(x: Any, name: str, what: str = "an array of numbers") -> Array:
     """``x`` as a real floating JAX array (integers promoted to the default float).
 
-    Raises TypeError for None, strings, mappings, sets, complex arrays and anything
-    ``jnp.asarray`` rejects."""
+    Raises TypeError ("{name}: expected {what}, got ...") for None, strings, mappings,
+    sets, complex arrays and anything ``jnp.asarray`` rejects."""
     if x is None or isinstance(x, (str, bytes, dict, set)):
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}")
+        raise TypeError(f"{name}: expected {what}, got {type(x).__name__}")
     try:
         arr = jnp.asarray(x)
     except (TypeError, ValueError) as err:
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}") from err
+        raise TypeError(f"{name}: expected {what}, got {type(x).__name__}") from err
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         if jnp.issubdtype(arr.dtype, jnp.complexfloating):
             raise TypeError(f"{name}: expected a real floating array, got {arr.dtype}")

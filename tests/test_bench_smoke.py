@@ -16,12 +16,13 @@ def _agreement_rows(text: str) -> list[str]:
 def test_lie_ops_runs_and_contestants_agree():
     # f2 exercises exp, compose and log of every contestant, values and Jacobians; f3 the
     # group action. (All three functions at every size: python bench/lie_ops.py --quick.)
-    text = lie_ops.main(["--quick", "--batches", "16", "--funcs", "f2"])
+    text = lie_ops.main(["--quick", "--threads", "0", "--batches", "16", "--funcs", "f2"])
     assert "## Throughput" in text and "## Compile time" in text
     rows = _agreement_rows(text)
     assert len(rows) == 2  # f2 value and jac
     assert all(r.rstrip().endswith("| yes |") for r in rows), text
-    text = lie_ops.main(["--quick", "--batches", "16", "--funcs", "f3", "--kinds", "value"])
+    text = lie_ops.main(["--quick", "--threads", "0", "--batches", "16", "--funcs", "f3",
+                         "--kinds", "value"])
     rows = _agreement_rows(text)
     assert len(rows) == 1 and all(r.rstrip().endswith("| yes |") for r in rows), text
 

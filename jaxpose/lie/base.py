@@ -45,7 +45,7 @@ def as_float_array(x: Any, argname: str) -> Array:
             f"{argname}: expected an array, got a {type(x).__name__} element; "
             f"use its `.data` if you meant the stored array"
         )
-    return _as_float_array(x, argname)
+    return _as_float_array(x, argname, "an array-like of numbers")
 
 
 def check_last_dim(arr: Array, dims: int | tuple[int, ...], argname: str, layout: str) -> None:
