@@ -1,4 +1,12 @@
-"""Shared helpers for the benchmarks: timing, peer imports and markdown tables.
+"""Shared helpers for the benchmarks: the command line, threads, worker subprocesses,
+timing, peer imports and markdown tables.
+
+Every script builds its parser on :func:`parser` (``--quick``, ``--out`` and
+``--threads`` with one meaning and one default everywhere), reads ``--threads`` with
+:func:`early_threads` before numpy/jax/torch start their thread pools, applies it with
+:func:`set_threads`, and launches its ``--worker`` subprocesses with :func:`spawn_worker`
+(the worker answers with :func:`worker_result`). This module imports jax lazily so that
+:func:`early_threads` can run first. The registry of workloads is :mod:`bench.run`.
 
 Timing rules (DESIGN.md, "Benchmarks"): compile time and steady-state time are reported
 separately; every timed call ends with ``block_until_ready`` (JAX) so asynchronous
@@ -8,17 +16,131 @@ least disturbed by other load) and the median are kept.
 
 from __future__ import annotations
 
+import argparse
 import importlib
+import json
 import math
 import os
 import platform
 import statistics
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-import jax
+ROOT = Path(__file__).resolve().parent.parent  # the repository (bench/..)
+DEFAULT_THREADS = 1  # one thread per library: the fairest, most repeatable on a shared box
+RESULT_TAG = "BENCH-RESULT "  # prefix of a worker's JSON answer on its stdout
+WORKER_TIMEOUT = 1800.0  # seconds per worker subprocess
+
+
+# ----------------------------------------------------------------------------------
+# Command line and threads
+# ----------------------------------------------------------------------------------
+def parser(description: str | None, *, quick: str = "smoke-run settings (minutes)",
+           threads: bool = True, clock: bool = True,
+           workers: bool = False) -> argparse.ArgumentParser:
+    """The common command line of every benchmark script: ``--quick`` (help text
+    ``quick``), ``--out FILE.md``, with ``threads`` ``--threads N`` (default
+    :data:`DEFAULT_THREADS`; 0 = each library's default) and, with ``threads`` and
+    ``clock`` (scripts timing through :func:`time_jax`/:func:`time_callable`),
+    ``--clock wall|cpu``; with ``workers`` (scripts that run each contestant in a
+    :func:`spawn_worker` subprocess) ``--timeout`` seconds per subprocess (default
+    :data:`WORKER_TIMEOUT`)."""
+    ap = argparse.ArgumentParser(description=(description or "").strip().split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help=quick)
+    ap.add_argument("--out", default=None, help="also write the markdown report to this file")
+    if threads:
+        ap.add_argument("--threads", type=int, default=DEFAULT_THREADS,
+                        help="CPU threads for jaxpose and each peer (BLAS/OpenMP pools, XLA's "
+                        "Eigen pool, torch.set_num_threads); 0 = each library's default")
+    if threads and clock:
+        ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                        help="cpu: process CPU time, robust on a loaded machine (use with "
+                        "--threads 1)")
+    if workers:
+        ap.add_argument("--timeout", type=float, default=WORKER_TIMEOUT,
+                        help="seconds per worker subprocess")
+    return ap
+
+
+def early_threads(argv: Sequence[str] | None = None, default: int = DEFAULT_THREADS) -> int:
+    """``--threads`` read from ``argv`` (default ``sys.argv[1:]``) before numpy, jax or
+    torch load their BLAS/OpenMP thread pools, and those pools capped to it (environment
+    variables, ``setdefault``): jaxlib's LAPACK kernels run on scipy's OpenBLAS and torch
+    on its OpenMP/MKL pool, whose busy-waiting threads otherwise oversubscribe a shared
+    machine. Call it at the top of a script run as ``__main__``. Returns the count."""
+    argv = sys.argv[1:] if argv is None else argv
+    threads = default
+    for i, a in enumerate(argv):
+        if a == "--threads" and i + 1 < len(argv):
+            threads = int(argv[i + 1])
+        elif a.startswith("--threads="):
+            threads = int(a.split("=", 1)[1])
+    if threads > 0:
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(var, str(threads))
+    return threads
+
+
+def set_threads(threads: int, *, pin: bool = False) -> None:
+    """The same thread budget for jaxpose and the peers (before JAX's first computation):
+    XLA's Eigen pool off and ``torch.set_num_threads``; with ``pin`` also the CPU affinity
+    (:func:`pin_threads`: XLA sizes its intra-op pool from it). 0 leaves the defaults."""
+    if threads <= 0:
+        return
+    if pin:
+        pin_threads(threads)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "--xla_cpu_multi_thread_eigen" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_multi_thread_eigen=false").strip()
+    try:
+        import torch
+    except ImportError:
+        return
+    torch.set_num_threads(threads)
+
+
+def apply_common(args: argparse.Namespace, *, pin: bool = False) -> None:
+    """Apply the common options of :func:`parser`: threads and the timing clock."""
+    if hasattr(args, "threads"):
+        set_threads(args.threads, pin=pin)
+    if hasattr(args, "clock"):
+        set_clock(args.clock)
+
+
+# ----------------------------------------------------------------------------------
+# Worker subprocesses
+# ----------------------------------------------------------------------------------
+def worker_result(payload: dict[str, Any]) -> None:
+    """A worker's answer: one tagged JSON line on stdout (read by :func:`spawn_worker`)."""
+    print(RESULT_TAG + json.dumps(payload), flush=True)
+
+
+def spawn_worker(args: Sequence[str], *, timeout: float, env: dict[str, str] | None = None,
+                 tail: int = 3) -> dict[str, Any]:
+    """Run ``python ARGS`` (a script path or ``-m module``, then its ``--worker`` flags)
+    from the repository root and return the worker's :func:`worker_result` dict plus
+    ``wall_s``; ``{"failed": why}`` (with the last ``tail`` lines of its output) when it
+    times out or exits without an answer. Each worker is its own process, so JIT caches,
+    thread pools and peak memory (``ru_maxrss``) are its own."""
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run([sys.executable, *args], capture_output=True, text=True,
+                              timeout=timeout, cwd=str(ROOT), env=env)
+    except subprocess.TimeoutExpired:
+        return {"failed": f"timed out after {timeout} s"}
+    wall = time.perf_counter() - t0
+    for line in reversed(proc.stdout.splitlines()):
+        if line.startswith(RESULT_TAG):
+            out = json.loads(line[len(RESULT_TAG):])
+            out.setdefault("wall_s", wall)
+            return out
+    lines = (proc.stderr or proc.stdout).strip().splitlines()[-tail:]
+    return {"failed": f"exit {proc.returncode}: " + " / ".join(lines)}
 
 
 @dataclass(frozen=True)
@@ -60,6 +182,8 @@ def pin_threads(n: int) -> None:
 
 
 def _block(out: Any) -> Any:
+    import jax
+
     return jax.block_until_ready(out)
 
 
@@ -102,6 +226,8 @@ def time_jax(
     """Jit ``fn``, time compilation (lower + compile) and then steady-state calls.
 
     Returns the :class:`Timing` and the output of one call (for correctness checks)."""
+    import jax
+
     jitted = jax.jit(fn)
     t0 = time.perf_counter()
     compiled = jitted.lower(*args).compile()
@@ -177,6 +303,8 @@ def import_peer(name: str, dist: str | None = None) -> Peer:
 
 def environment() -> str:
     """One line describing the machine and library versions."""
+    import jax
+
     return (
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
         f"Python {platform.python_version()}, jax {jax.__version__} "

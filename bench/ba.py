@@ -35,10 +35,8 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
-import subprocess
 import sys
 import tempfile
 import time
@@ -49,9 +47,17 @@ from typing import Any
 if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from bench._common import fmt_ratio, fmt_seconds, import_peer, markdown_table
+from bench._common import (
+    ROOT,
+    fmt_ratio,
+    fmt_seconds,
+    import_peer,
+    markdown_table,
+    parser,
+    spawn_worker,
+    worker_result,
+)
 
-ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "bal"
 DEFAULT_FILES = ("dubrovnik-1-1-pre", "dubrovnik-3-7-18-pre", "dubrovnik-3-7-pre")
 SOLVERS = ("schur", "sparse", "pcg", "dense")
@@ -103,7 +109,6 @@ def _gtsam_runner(gtsam: Any, path: str, max_steps: int) -> tuple[float, Any]:
     return float(graph.error(initial)), run
 
 
-RESULT_TAG = "RESULT "
 
 
 def _gtsam_worker(path: str, repeats: int, max_steps: int) -> dict[str, Any]:
@@ -123,18 +128,9 @@ def _gtsam_worker(path: str, repeats: int, max_steps: int) -> dict[str, Any]:
 
 
 def _spawn_gtsam(path: str, args: argparse.Namespace) -> dict[str, Any]:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "gtsam", "--file", path,
-           "--repeats", str(args.repeats), "--max-steps", str(args.max_steps)]
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout,
-                              cwd=str(ROOT))
-    except subprocess.TimeoutExpired:
-        return dict(failed=f"timed out after {args.timeout} s")
-    for line in reversed(proc.stdout.splitlines()):
-        if line.startswith(RESULT_TAG):
-            return json.loads(line[len(RESULT_TAG):])
-    tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-    return dict(failed=f"exit {proc.returncode}: " + " / ".join(tail))
+    return spawn_worker([str(Path(__file__).resolve()), "--worker", "gtsam", "--file", path,
+                         "--repeats", str(args.repeats), "--max-steps", str(args.max_steps)],
+                        timeout=args.timeout)
 
 
 def bench_problem(name: str, problem: Any, path: str, args: argparse.Namespace,
@@ -297,9 +293,8 @@ def report(results: list[dict], args: argparse.Namespace, load: tuple, version: 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true",
-                   help="small synthetic problem (20 cameras x 2000 points), 2 repeats")
+    p = parser(__doc__, quick="small synthetic problem (20 cameras x 2000 points), 2 repeats",
+               threads=False, workers=True)
     p.add_argument("--files", default=",".join(DEFAULT_FILES),
                    help="comma-separated names in ../shared/data/bal ('' for none)")
     p.add_argument("--cameras", type=int, default=50)
@@ -311,8 +306,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--contestants", default="jaxpose,gtsam")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--max-steps", type=int, default=200)
-    p.add_argument("--timeout", type=float, default=1800.0, help="seconds for GTSAM's run")
-    p.add_argument("--out", help="also write the report (markdown) to this file")
     p.add_argument("--worker", choices=["gtsam"], help=argparse.SUPPRESS)
     p.add_argument("--file", help=argparse.SUPPRESS)
     return p
@@ -321,8 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> str:
     args = build_parser().parse_args(argv)
     if args.worker:
-        print(RESULT_TAG + json.dumps(_gtsam_worker(args.file, args.repeats, args.max_steps)),
-              flush=True)
+        worker_result(_gtsam_worker(args.file, args.repeats, args.max_steps))
         return ""
     if args.quick:  # smaller defaults (explicit values win)
         defaults = build_parser().parse_args([])

@@ -40,29 +40,10 @@ from typing import Any
 if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-
-def _early_threads(argv: Sequence[str]) -> int:
-    """``--threads`` read before numpy/jax/torch load their BLAS thread pools."""
-    for i, a in enumerate(argv):
-        if a == "--threads" and i + 1 < len(argv):
-            return int(argv[i + 1])
-        if a.startswith("--threads="):
-            return int(a.split("=", 1)[1])
-    return 1
-
-
-def _limit_blas_threads(threads: int) -> None:
-    # jaxlib's LAPACK kernels (Cholesky, triangular solves) run on scipy's OpenBLAS,
-    # and torch on its own OpenMP/MKL pool: both must be capped before they load, or
-    # their busy-waiting thread pools oversubscribe a shared machine (a 64×64
-    # triangular solve measured 29 ms instead of 0.2 ms on a loaded 2-core box).
-    if threads > 0:
-        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ.setdefault(var, str(threads))
-
+from bench._common import early_threads  # noqa: E402 - imports no jax
 
 if __name__ == "__main__":
-    _limit_blas_threads(_early_threads(sys.argv[1:]))
+    early_threads()  # caps the BLAS/OpenMP pools before numpy, jax or torch load them
 
 import jax  # noqa: E402 - after the BLAS thread caps
 import numpy as np  # noqa: E402
@@ -70,12 +51,14 @@ import numpy as np  # noqa: E402
 from bench._common import (  # noqa: E402
     Peer,
     Timing,
+    apply_common,
     emit_report,
     environment,
     fmt_ratio,
     fmt_seconds,
     import_peer,
     markdown_table,
+    parser,
     time_callable,
     time_jax,
 )
@@ -350,53 +333,25 @@ def fmt_seconds_fine(s: float | None) -> str:
     return fmt_seconds(s) if s >= 0.01 else f"{s * 1e3:.1f} ms"
 
 
-def set_threads(threads: int) -> None:
-    """Same thread budget for both libraries (must run before JAX's first computation).
-
-    On a shared machine one thread each is the fairest and most repeatable setting:
-    torch's thread pool suffers badly from oversubscription on small ops."""
-    global THREADS
-    THREADS = threads
-    if threads <= 0:
-        return
-    flags = os.environ.get("XLA_FLAGS", "")
-    os.environ["XLA_FLAGS"] = (
-        flags + " --xla_cpu_multi_thread_eigen=false"
-    ).strip()
-    try:
-        import torch
-
-        torch.set_num_threads(threads)
-    except ImportError:
-        pass
-
-
 THREADS = 0
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer repeats (smoke run)")
+    ap = parser(__doc__, quick="fewer repeats (smoke run)")
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     ap.add_argument("--sizes", default="4,16,64")
     ap.add_argument("--batches", default="1,16,64")
     ap.add_argument("--horizon", type=int, default=5)
     ap.add_argument("--solvers", default="auto", help="comma list of auto, lqr, ilqr")
-    ap.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="CPU threads for both libraries (torch.set_num_threads and XLA's "
-        "intra-op pool); 0 = each library's default",
-    )
-    ap.add_argument("--out", default=None, help="also write the markdown report here")
     ap.add_argument("-v", "--verbose", action="store_true")
     return ap.parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> str:
     args = parse_args(argv)
-    set_threads(args.threads)
+    apply_common(args)
+    global THREADS
+    THREADS = args.threads
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     timing_kw = (

@@ -20,12 +20,11 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from collections.abc import Sequence
 
-if __name__ == "__main__":  # run as a script: make ``bench`` and ``jaxpose`` importable
+if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import equinox as eqx  # noqa: E402
@@ -33,7 +32,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench._common import emit_report, import_peer, markdown_table  # noqa: E402
+from bench._common import emit_report, import_peer, markdown_table, parser  # noqa: E402
 from jaxpose.dynamics import NLS  # noqa: E402
 from jaxpose.filters import EKF  # noqa: E402
 
@@ -101,11 +100,9 @@ def _one(pp, torch, seed: int, steps: int, new_state: bool, run, utp) -> tuple[f
 
 def main(argv: Sequence[str] | None = None) -> str:
     """Run, print and return the report."""
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="20 seeds")
+    ap = parser(__doc__, quick="20 seeds", threads=False)
     ap.add_argument("--seeds", type=int, default=None)
     ap.add_argument("--steps", default="5,20", help="comma-separated sequence lengths T")
-    ap.add_argument("--out", default=None, help="also write the report to this file")
     args = ap.parse_args(argv)
     seeds = args.seeds or (20 if args.quick else 100)
     jax.config.update("jax_enable_x64", True)

@@ -40,7 +40,6 @@ over a second are timed once) separately. Ratios are PyPose time / jaxpose time.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import math
 import os
@@ -55,20 +54,10 @@ if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` imp
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
-def _early_threads(argv: Sequence[str]) -> int:
-    """``--threads`` read before numpy/jax/torch start their thread pools (0: default)."""
-    for i, a in enumerate(argv):
-        if a == "--threads" and i + 1 < len(argv):
-            return int(argv[i + 1])
-        if a.startswith("--threads="):
-            return int(a.split("=", 1)[1])
-    return 0
+from bench._common import DEFAULT_THREADS, early_threads  # noqa: E402 - imports no jax
 
-
-THREADS = _early_threads(sys.argv[1:]) if __name__ == "__main__" else 0
-if THREADS > 0:
-    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(_var, str(THREADS))
+# caps the BLAS/OpenMP pools before numpy, jax or torch load them
+THREADS = early_threads() if __name__ == "__main__" else DEFAULT_THREADS
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -77,6 +66,7 @@ import numpy as np  # noqa: E402
 from bench._common import (  # noqa: E402
     Peer,
     Timing,
+    apply_common,
     emit_report,
     environment,
     fmt_batch,
@@ -84,6 +74,7 @@ from bench._common import (  # noqa: E402
     fmt_seconds,
     import_peer,
     markdown_table,
+    parser,
     time_callable,
 )
 from jaxpose.geometry import epnp, icp, knn  # noqa: E402
@@ -387,10 +378,6 @@ def run(sizes: Sequence[int], epnp_batch: int, timing_kw: dict[str, Any],
         chunk_sample: int, other_method_max: int, log: Callable[[str], None]
         ) -> tuple[list[dict[str, Any]], Peer, dict[str, int]]:
     peer = import_peer("pypose")
-    if peer.available and THREADS > 0:
-        import torch
-
-        torch.set_num_threads(THREADS)
     rss = {"baseline": _peak_rss()}
     rows: list[dict[str, Any]] = []
     probs = {n: cloud_problem(n) for n in sizes}
@@ -513,19 +500,17 @@ def report(rows: list[dict[str, Any]], peer: Peer, rss: dict[str, int],
 
 def main(argv: Sequence[str] | None = None) -> str:
     """Run, print and return the report."""
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="N = 2000, EPnP batch 64, fewer repeats")
+    ap = parser(__doc__, quick="N = 2000, EPnP batch 64, fewer repeats")
     ap.add_argument("--sizes", default=None, help="comma-separated cloud sizes")
     ap.add_argument("--epnp-batch", type=int, default=None)
     ap.add_argument("--chunk-sample", type=int, default=5000,
                     help="queries timed for PyPose's chunked extrapolation")
     ap.add_argument("--other-method-max", type=int, default=20000,
                     help="also time the non-default knn method up to this N")
-    ap.add_argument("--threads", type=int, default=0,
-                    help="cap BLAS/torch threads (0: library defaults)")
-    ap.add_argument("--out", default=None, help="also write the report to this file")
     args = ap.parse_args(argv)
+    apply_common(args)
+    global THREADS
+    THREADS = args.threads
     if args.sizes:
         sizes = [int(float(s)) for s in args.sizes.split(",")]
     else:

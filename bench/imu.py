@@ -50,19 +50,25 @@ from typing import Any
 if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-import jax  # noqa: E402
+from bench._common import early_threads  # noqa: E402 - imports no jax
+
+if __name__ == "__main__":
+    early_threads()  # caps the BLAS/OpenMP pools before numpy, jax or torch load them
+
+import jax  # noqa: E402 - after the BLAS thread caps
 import numpy as np  # noqa: E402
 
 from bench._common import (  # noqa: E402
     Peer,
     Timing,
+    apply_common,
     emit_report,
     environment,
     fmt_ratio,
     fmt_seconds,
     import_peer,
     markdown_table,
-    set_clock,
+    parser,
     time_callable,
     time_jax,
 )
@@ -300,27 +306,8 @@ THREADS = 0
 CLOCK = "wall"
 
 
-def set_threads(threads: int) -> None:
-    """Same thread budget for both libraries (before JAX's first computation)."""
-    global THREADS
-    THREADS = threads
-    if threads <= 0:
-        return
-    flags = os.environ.get("XLA_FLAGS", "")
-    os.environ["XLA_FLAGS"] = (
-        flags + " --xla_cpu_multi_thread_eigen=false"
-    ).strip()
-    try:
-        import torch
-
-        torch.set_num_threads(threads)
-    except ImportError:
-        pass
-
-
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer repeats (smoke run)")
+    ap = parser(__doc__, quick="fewer repeats (smoke run)")
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     ap.add_argument("--windows", type=int, default=1000)
     ap.add_argument("--samples", type=int, default=200)
@@ -328,22 +315,15 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--tasks", default="all",
                     help="comma list of task numbers 1-4 (the order above), or 'all'")
     ap.add_argument("--workloads", default="windows,sequence")
-    ap.add_argument("--threads", type=int, default=1,
-                    help="CPU threads for both libraries; 0 = each library's default")
-    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
-                    help="wall seconds, or process CPU seconds (robust to other load on a "
-                    "shared machine; fair with --threads 1)")
-    ap.add_argument("--out", default=None, help="also write the markdown report here")
     ap.add_argument("-v", "--verbose", action="store_true")
     return ap.parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> str:
     args = parse_args(argv)
-    set_threads(args.threads)
-    set_clock(args.clock)
-    global CLOCK
-    CLOCK = args.clock
+    apply_common(args)
+    global CLOCK, THREADS
+    CLOCK, THREADS = args.clock, args.threads
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     timing_kw = ({"repeats": 3, "min_time": 0.01, "max_time": 2.0} if args.quick

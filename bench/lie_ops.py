@@ -40,6 +40,7 @@ import numpy as np
 from bench._common import (
     Peer,
     Timing,
+    apply_common,
     emit_report,
     environment,
     fmt_batch,
@@ -48,8 +49,7 @@ from bench._common import (
     fmt_seconds,
     import_peer,
     markdown_table,
-    pin_threads,
-    set_clock,
+    parser,
     time_callable,
     time_jax,
 )
@@ -360,22 +360,16 @@ def report(cells: Sequence[Cell], peers: Sequence[Peer], names: Sequence[str],
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="fewer repeats (and B ≤ 1e5)")
+    ap = parser(__doc__, quick="fewer repeats (and B ≤ 1e5)")
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     ap.add_argument("--batches", type=str, default=None,
                     help="comma-separated batch sizes (default 1000,100000,1000000)")
-    ap.add_argument("--out", type=str, default=None, help="also write the markdown here")
     ap.add_argument("--skip", type=str, default="", help="peers to skip, e.g. pypose,jaxlie")
     ap.add_argument("--funcs", type=str, default=",".join(FUNCS), help="subset of f1,f2,f3")
     ap.add_argument("--kinds", type=str, default=",".join(KINDS), help="subset of value,jac")
     ap.add_argument("--async-dispatch", action="store_true",
                     help="keep JAX's default asynchronous CPU dispatch (adds a fixed "
                          "~25-50 µs per call on a 2-core machine; see the module docstring)")
-    ap.add_argument("--threads", type=int, default=None,
-                    help="pin to this many cores (XLA and torch threads alike)")
-    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
-                    help="cpu: process CPU time, robust on a loaded machine (use --threads 1)")
     ap.add_argument("-v", "--verbose", action="store_true", help="progress to stderr")
     return ap.parse_args(argv)
 
@@ -383,9 +377,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> str:
     """Run the benchmark, print the markdown report and return it."""
     args = parse_args(argv)
-    if args.threads:
-        pin_threads(args.threads)
-    set_clock(args.clock)
+    apply_common(args, pin=True)  # pinned: XLA sizes its intra-op pool from the affinity
     if args.batches:
         batches = tuple(int(float(b)) for b in args.batches.split(",") if b)
     else:

@@ -48,6 +48,7 @@ from bench._common import (  # noqa: E402
     fmt_seconds,
     import_peer,
     markdown_table,
+    parser,
     time_callable,
     time_jax,
 )
@@ -150,12 +151,10 @@ def report(results: dict[str, dict], args: argparse.Namespace, gtsam_label: str)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = parser(__doc__, quick="small files only (smoke run)", threads=False)
     p.add_argument("--files", default=None, help="comma-separated names in ../shared/data/g2o")
     p.add_argument("--method", default="sparse", choices=["auto", "sparse", "dense", "pcg"])
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--quick", action="store_true", help="small files only (smoke run)")
-    p.add_argument("--out", help="also write the report (markdown) to this file")
     return p
 
 

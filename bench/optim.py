@@ -41,7 +41,6 @@ PyPose time / jaxpose time. Usage::
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -53,20 +52,10 @@ if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` imp
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
-def _early_threads(argv: Sequence[str]) -> int:
-    """``--threads`` read before numpy/jax/torch start their thread pools (0: default)."""
-    for i, a in enumerate(argv):
-        if a == "--threads" and i + 1 < len(argv):
-            return int(argv[i + 1])
-        if a.startswith("--threads="):
-            return int(a.split("=", 1)[1])
-    return 0
+from bench._common import DEFAULT_THREADS, early_threads  # noqa: E402 - imports no jax
 
-
-THREADS = _early_threads(sys.argv[1:]) if __name__ == "__main__" else 0
-if THREADS > 0:
-    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(_var, str(THREADS))
+# caps the BLAS/OpenMP pools before numpy, jax or torch load them
+THREADS = early_threads() if __name__ == "__main__" else DEFAULT_THREADS
 
 import jax  # noqa: E402
 
@@ -80,6 +69,7 @@ import jaxpose.optim as jo  # noqa: E402
 from bench._common import (  # noqa: E402
     Peer,
     Timing,
+    apply_common,
     emit_report,
     environment,
     fmt_batch,
@@ -87,6 +77,7 @@ from bench._common import (  # noqa: E402
     fmt_seconds,
     import_peer,
     markdown_table,
+    parser,
     time_jax,
 )
 from jaxpose.lie import SE3, manifold  # noqa: E402
@@ -290,10 +281,6 @@ def run(batches: Sequence[int], dtype: str, sgd_steps: int, adam_steps: int,
         timing_kw: dict[str, Any], log: Callable[[str], None],
         draws: int = 1) -> tuple[list[dict], Peer]:
     peer = import_peer("pypose")
-    if peer.available and THREADS > 0:
-        import torch
-
-        torch.set_num_threads(THREADS)
     rows = []
     for b in batches:
         n_draws = max(draws, -(-MIN_PROBLEMS // b))
@@ -393,20 +380,18 @@ def report(rows: list[dict[str, Any]], peer: Peer, dtype: str, sgd_steps: int,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="batches 1e1 and 1e2, fewer first-order steps and repeats")
+    ap = parser(__doc__, quick="batches 1e1 and 1e2, fewer first-order steps and repeats")
     ap.add_argument("--batches", default=None, help="comma-separated batch sizes")
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
-    ap.add_argument("--threads", type=int, default=0,
-                    help="cap BLAS/torch threads (0: library defaults)")
     ap.add_argument("--sgd-steps", type=int, default=None)
     ap.add_argument("--adam-steps", type=int, default=None)
     ap.add_argument("--draws", type=int, default=None,
                     help=f"independent draws per batch for the final error (default {DRAWS}, "
                          f"--quick 2; at least {MIN_PROBLEMS}/batch); the first is also timed")
-    ap.add_argument("--out", default=None, help="also write the report to this file")
     args = ap.parse_args(argv)
+    apply_common(args)
+    global THREADS
+    THREADS = args.threads
     if args.batches:
         batches = [int(float(b)) for b in args.batches.split(",")]
     else:

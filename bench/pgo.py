@@ -44,10 +44,8 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
-import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -57,9 +55,17 @@ from typing import Any
 if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from bench._common import fmt_ratio, fmt_seconds, import_peer, markdown_table
+from bench._common import (
+    ROOT,
+    fmt_ratio,
+    fmt_seconds,
+    import_peer,
+    markdown_table,
+    parser,
+    spawn_worker,
+    worker_result,
+)
 
-ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "g2o"
 # every pose graph of the shared folder (g2o files and the two g2o-format examples)
 DEFAULT_FILES = tuple(sorted(p.stem for p in [*DATA.glob("*.g2o"), *DATA.glob("*.txt")]
@@ -76,7 +82,6 @@ README_COST = {
 BAR_RATIO_FILES = ("parking-garage", "sphere2500")
 BAR_ITER_RATIO, BAR_COST_RTOL = 1.0, 1e-6
 BAR_COMPILE_S, BAR_GARAGE_RSS = 30.0, 3 * 2**30
-RESULT_TAG = "RESULT "
 
 
 def _path(name: str) -> Path:
@@ -239,30 +244,17 @@ def _worker(args: argparse.Namespace) -> int:
             out = run_gtsam(path, args.repeats, args.max_steps)
     except ImportError as err:
         out = dict(skipped=f"{err.name or err} not installed")
-    print(RESULT_TAG + json.dumps(out), flush=True)
+    worker_result(out)
     return 0
 
 
 def _spawn(contestant: str, path: Path, args: argparse.Namespace) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", contestant,
+    cmd = [str(Path(__file__).resolve()), "--worker", contestant,
            "--file", str(path), "--solver", args.solver, "--repeats", str(args.repeats),
            "--max-steps", str(args.max_steps)]
     if args.float32:
         cmd.append("--float32")
-    t0 = time.perf_counter()
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout,
-                              cwd=str(ROOT))
-    except subprocess.TimeoutExpired:
-        return dict(failed=f"timed out after {args.timeout} s")
-    wall = time.perf_counter() - t0
-    for line in reversed(proc.stdout.splitlines()):
-        if line.startswith(RESULT_TAG):
-            out = json.loads(line[len(RESULT_TAG):])
-            out["wall_s"] = wall
-            return out
-    tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-    return dict(failed=f"exit {proc.returncode}: " + " / ".join(tail))
+    return spawn_worker(cmd, timeout=args.timeout)
 
 
 # ----------------------------------------------------------------------------------
@@ -431,21 +423,18 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = parser(__doc__, quick="the five reference graphs, one timed run (smoke run)",
+               threads=False, workers=True)
     p.add_argument("--files", default=None,
                    help="comma-separated names in ../shared/data/g2o (or paths); default: "
                         "every pose graph there (--quick: " + ",".join(QUICK_FILES) + ")")
-    p.add_argument("--quick", action="store_true",
-                   help="the five reference graphs, one timed run (smoke run)")
     p.add_argument("--solver", default="auto", choices=["auto", "sparse", "pcg", "dense"],
                    help="jaxpose's linear solver (default: auto, as jaxpose pgo)")
     p.add_argument("--float32", action="store_true", help="jaxpose in float32")
     p.add_argument("--repeats", type=int, default=None,
                    help="timed runs after the warm-up (default 3, --quick 1)")
     p.add_argument("--max-steps", type=int, default=200)
-    p.add_argument("--timeout", type=float, default=1800.0, help="seconds per subprocess")
     p.add_argument("--contestants", default="jaxpose,gtsam")
-    p.add_argument("--out", help="also write the report (markdown) to this file")
     p.add_argument("--worker", choices=["jaxpose", "gtsam"], help=argparse.SUPPRESS)
     p.add_argument("--file", help=argparse.SUPPRESS)
     return p

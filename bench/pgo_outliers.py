@@ -50,7 +50,7 @@ if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` imp
 
 import numpy as np
 
-from bench._common import fmt_seconds, import_peer, markdown_table
+from bench._common import fmt_seconds, import_peer, markdown_table, parser
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "g2o"
@@ -403,7 +403,7 @@ def report(results: dict[str, Any], args: argparse.Namespace, load: tuple) -> st
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = parser(__doc__, quick=f"only {','.join(QUICK_FILES)}", threads=False)
     p.add_argument(
         "--files",
         default=None,
@@ -418,8 +418,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-steps", type=int, default=200, help="LM iterations per solve")
     p.add_argument("--contestants", default=",".join(CONTESTANTS))
-    p.add_argument("--quick", action="store_true", help=f"only {','.join(QUICK_FILES)}")
-    p.add_argument("--out", help="also write the report (markdown) to this file")
     return p
 
 

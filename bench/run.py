@@ -9,9 +9,11 @@ heading, after a summary of what ran. Missing peers are reported as skipped by t
 scripts themselves; a script that fails or times out is listed with the tail of its
 output, never dropped silently.
 
-Scripts: the known ones below with full and ``--quick`` settings, plus any other
-``bench/*.py`` that appears later (run with ``--quick`` in quick mode when its ``--help``
-offers it, and ``--out`` when offered — otherwise its stdout is the report).
+Workloads: the registry :data:`WORKLOADS` below (name, title, full and ``--quick``
+arguments; every script takes the common ``--quick/--out/--threads`` of
+:func:`bench._common.parser`), plus any other ``bench/*.py`` that appears later (run with
+``--quick`` in quick mode when its ``--help`` offers it, and ``--out`` when offered —
+otherwise its stdout is the report). ``--list`` prints the registry.
 
 Usage::
 
@@ -46,16 +48,16 @@ README_END = "<!-- bench-results:end -->"
 
 @dataclass(frozen=True)
 class Spec:
-    """How to run one script: full and quick argument lists (``--out`` is added); ``None``
-    quick settings: not read yet, ask the script's ``--help``."""
+    """One workload: a script ``bench/NAME.py``, its title and its full and quick argument
+    lists (``--out`` is added)."""
 
     title: str
     full: tuple[str, ...] = ()
-    quick: tuple[str, ...] | None = None
+    quick: tuple[str, ...] = ("--quick",)
 
 
-# Read from each script's argparse (see their docstrings); quick = a smoke run of minutes.
-KNOWN: dict[str, Spec] = {
+# The registry, in run order; quick = a smoke run of minutes (see each script's --help).
+WORKLOADS: dict[str, Spec] = {
     "lie_ops": Spec("Lie-group ops: jaxpose vs PyPose vs jaxlie",
                     quick=("--quick", "--batches", "1000,10000")),
     "optim": Spec("Least squares (InvNet): jaxpose vs PyPose LM",
@@ -65,13 +67,16 @@ KNOWN: dict[str, Spec] = {
                        "--max-steps", "50")),
     "control": Spec("MPC (imitation problem): jaxpose vs PyPose",
                     quick=("--quick", "--sizes", "4,16", "--batches", "1,16")),
-    "sharding": Spec("Sharding: throughput vs device count", quick=("--quick",)),
-    "geometry": Spec("Geometry"),
-    "imu": Spec("IMU preintegration"),
-    "ba": Spec("Bundle adjustment"),
-    "smoother": Spec("Fixed-lag smoother: jaxpose vs GTSAM iSAM2", quick=("--quick",)),
+    "sharding": Spec("Sharding: throughput vs device count"),
+    "geometry": Spec("Geometry: kNN, ICP, EPnP: jaxpose vs PyPose"),
+    "imu": Spec("IMU preintegration: jaxpose vs PyPose"),
+    "ba": Spec("Bundle adjustment: jaxpose vs GTSAM"),
+    "smoother": Spec("Fixed-lag smoother: jaxpose vs GTSAM iSAM2"),
+    "marginals": Spec("Marginal covariances: jaxpose vs GTSAM"),
+    "pgo_outliers": Spec("Pose graphs with outliers (GNC): jaxpose vs GTSAM"),
+    "ekf_convention": Spec("EKF linearisation point: jaxpose vs PyPose"),
 }
-
+KNOWN = WORKLOADS  # earlier name
 
 @dataclass
 class Outcome:
@@ -88,7 +93,7 @@ class Outcome:
 def discover() -> list[str]:
     """Benchmark scripts present in bench/: the known ones in their order, then others."""
     present = {p.stem for p in HERE.glob("*.py")} - NOT_BENCHMARKS
-    known = [n for n in KNOWN if n in present]
+    known = [n for n in WORKLOADS if n in present]
     return known + sorted(present - set(known))
 
 
@@ -100,8 +105,8 @@ def _help(name: str) -> str:
 
 def command(name: str, quick: bool, out: Path) -> list[str]:
     """The subprocess command for ``name``: its settings plus ``--out`` where offered."""
-    spec = KNOWN.get(name)
-    if spec is not None and spec.quick is not None:
+    spec = WORKLOADS.get(name)
+    if spec is not None:
         args, has_out = list(spec.quick if quick else spec.full), True
     else:  # a script this runner does not know yet: ask its --help
         text = _help(name)
@@ -163,7 +168,7 @@ def summary_table(outcomes: Sequence[Outcome]) -> str:
 
     rows = []
     for o in outcomes:
-        title = KNOWN[o.name].title if o.name in KNOWN else o.name
+        title = WORKLOADS[o.name].title if o.name in WORKLOADS else o.name
         args = " ".join(a for a in o.command[2:] if not a.endswith(".md") and a != "--out")
         rows.append([f"[{o.name}](#{o.name})", title, headline(o.report), o.status,
                      f"{o.seconds:.0f} s",
@@ -232,7 +237,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", default=str(HERE / "RESULTS.md"), help="report path")
     ap.add_argument("--readme", default=None, help="also update the marked block here")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per script")
-    ap.add_argument("--list", action="store_true", help="print the commands and exit")
+    ap.add_argument("--list", action="store_true",
+                    help="list the workloads (name, title, command) and exit")
     args = ap.parse_args(argv)
     names = discover()
     only = [n for n in args.only.split(",") if n]
@@ -242,7 +248,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     names = [n for n in (only or names) if n not in set(args.skip.split(","))]
     if args.list:
         for n in names:
-            print(" ".join(command(n, args.quick, Path(f"{n}.md"))[1:]))
+            title = WORKLOADS[n].title if n in WORKLOADS else "(not in the registry)"
+            cmd = command(n, args.quick, Path(f"{n}.md"))[1:]
+            print(f"{n:<15} {title}\n{'':15} python {os.path.relpath(cmd[0], ROOT)} "
+                  + " ".join(cmd[1:]))
         return 0
     log = lambda s: print(s, file=sys.stderr, flush=True)
     load0 = os.getloadavg()[0]

@@ -39,13 +39,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
@@ -53,8 +50,8 @@ if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` imp
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-RESULT_TAG = "SHARDING-RESULT "
+from bench._common import emit_report, parser, spawn_worker, worker_result
+
 WORKLOADS = ("lie", "lsq", "pgo", "ekf")
 FULL = {"lie": 1 << 20, "lsq": 1024, "pgo": 256, "ekf": 512}
 QUICK = {"lie": 1 << 14, "lsq": 32, "pgo": 16, "ekf": 32}
@@ -311,7 +308,7 @@ def _worker(args: argparse.Namespace) -> None:
             compile_s=t_shard.compile_s, diff=diff, int_diff=int_diff,
             spread=len(leaf.sharding.device_set),
         )
-    print(RESULT_TAG + json.dumps(out), flush=True)
+    worker_result(out)
 
 
 def _spawn(devices: int, args: argparse.Namespace) -> dict[str, Any]:
@@ -320,18 +317,15 @@ def _spawn(devices: int, args: argparse.Namespace) -> dict[str, Any]:
         flags = env.get("XLA_FLAGS", "")
         env["XLA_FLAGS"] = (flags + f" --xla_force_host_platform_device_count={devices}").strip()
         env["JAX_PLATFORMS"] = "cpu"
-    cmd = [sys.executable, "-m", "bench.sharding", "--worker", "--workloads", args.workloads,
+    cmd = ["-m", "bench.sharding", "--worker", "--workloads", args.workloads,
            "--linear-solver", args.linear_solver]
     cmd += ["--quick"] if args.quick else []
     if args.real:
         cmd += ["--real-devices", str(devices)]
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=args.timeout)
-    for line in proc.stdout.splitlines():
-        if line.startswith(RESULT_TAG):
-            return json.loads(line[len(RESULT_TAG):])
-    tail = (proc.stderr or proc.stdout).strip().splitlines()[-5:]
-    return {"error": f"worker exited {proc.returncode}: " + " | ".join(tail)}
+    out = spawn_worker(cmd, timeout=args.timeout, env=env, tail=5)
+    if "failed" in out:
+        return {"error": f"worker {out['failed']}"}
+    return out
 
 
 def report(results: dict[int, dict[str, Any]], args: argparse.Namespace,
@@ -389,8 +383,7 @@ def report(results: dict[int, dict[str, Any]], args: argparse.Namespace,
 
 
 def main(argv: Sequence[str] | None = None) -> str:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small batches and few repeats")
+    ap = parser(__doc__, quick="small batches and few repeats", threads=False, workers=True)
     ap.add_argument("--devices", default="1,2,4", help="device counts to compare")
     ap.add_argument("--workloads", default=",".join(WORKLOADS))
     ap.add_argument("--linear-solver", default="cg", choices=LINEAR_SOLVERS,
@@ -398,8 +391,6 @@ def main(argv: Sequence[str] | None = None) -> str:
                     "devices with jaxlib 0.10.2: see the module docstring)")
     ap.add_argument("--real", action="store_true",
                     help="use the real devices of the default backend (GPU/TPU hosts)")
-    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per subprocess")
-    ap.add_argument("--out", default=None, help="also write the markdown report here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--real-devices", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -416,10 +407,7 @@ def main(argv: Sequence[str] | None = None) -> str:
         results[d] = _spawn(d, args)
         print(f"[{d} device(s)] {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
     text = report(results, args, (load0, os.getloadavg()))
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n", encoding="utf-8")
-    return text
+    return emit_report(text, args.out)
 
 
 if __name__ == "__main__":

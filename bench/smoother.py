@@ -24,7 +24,6 @@ the median over the updates with a full window; both run on the same number of c
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import sys
@@ -34,16 +33,22 @@ from collections.abc import Sequence
 if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-import jax  # noqa: E402
+from bench._common import early_threads  # noqa: E402 - imports no jax
+
+if __name__ == "__main__":
+    early_threads()  # caps the BLAS/OpenMP pools before numpy, jax or torch load them
+
+import jax  # noqa: E402 - after the BLAS thread caps
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench._common import (  # noqa: E402
+    apply_common,
     environment,
     fmt_ratio,
     import_peer,
     markdown_table,
-    pin_threads,
+    parser,
 )
 
 DATA = os.path.join(
@@ -186,16 +191,12 @@ def run_gtsam(gtsam, window: int, gyro, acc, init, kf, dr) -> tuple[float, np.nd
 
 
 def main(argv: Sequence[str] | None = None) -> str:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="smoke size: window 4, 2000 samples")
+    ap = parser(__doc__, quick="smoke size: window 4, 2000 samples", clock=False)
     ap.add_argument("--windows", default="10,50,100")
     ap.add_argument("--stride", type=int, default=50)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
-    if args.threads > 0:
-        pin_threads(args.threads)
+    apply_common(args, pin=True)
     windows = [4] if args.quick else [int(w) for w in args.windows.split(",")]
     samples = 2000 if args.quick else None
     data = load(args.stride, samples)

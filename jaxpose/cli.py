@@ -220,16 +220,15 @@ def _pose_graph_edge_costs(graph):
     (translation first), in numpy: checks the start point before anything is compiled."""
     import numpy as np
 
-    from .datasets import _rotvec_from_quat
-    from .io.g2o import _compose, _inverse
+    from .lie._numpy import compose, inverse, rotvec_from_quat
 
     kind = graph.kind
     with np.errstate(all="ignore"):
         xi, xj = graph.poses[graph.edges[:, 0]], graph.poses[graph.edges[:, 1]]
-        e = _compose(kind, _inverse(kind, xi), xj)
-        e = _compose(kind, _inverse(kind, graph.measurements), e)
+        e = compose(kind, inverse(kind, xi), xj)
+        e = compose(kind, inverse(kind, graph.measurements), e)
         if kind == "SE3":
-            phi, t = _rotvec_from_quat(e[:, 3:]), e[:, :3]
+            phi, t = rotvec_from_quat(e[:, 3:]), e[:, :3]
             th = np.linalg.norm(phi, axis=1, keepdims=True)
             small = th < 1e-6
             safe = np.where(small, 1.0, th)

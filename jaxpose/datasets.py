@@ -13,91 +13,27 @@ from collections.abc import Sequence
 import numpy as np
 
 from .io.bal import BALProblem, project_bal
-from .io.g2o import PoseGraph, _compose, _compose1, _inverse, _normalize, _quat_mul
+from .io.g2o import PoseGraph
+from .lie._numpy import (
+    compose,
+    compose1,
+    inverse,
+    normalize,
+    quat_from_matrix,
+    quat_mul,
+    rotvec_from_quat,
+    se2_exp,
+    se3_exp,
+    so3_exp,
+)
 
 __all__ = ["corrupt_loop_closures", "synthetic_bal", "synthetic_pose_graph"]
 
 # ----------------------------------------------------------------------------- numpy Lie helpers
 
 
-def _so3_exp(phi: np.ndarray) -> np.ndarray:
-    """(..., 3) rotation vectors -> (..., 4) unit quaternions ``[x, y, z, w]``."""
-    theta2 = np.sum(phi * phi, -1, keepdims=True)
-    theta = np.sqrt(theta2)
-    small = theta < 1e-4
-    safe = np.where(small, 1.0, theta)
-    # sin(θ/2)/θ; series 1/2 − θ²/48 + θ⁴/3840 is exact to float64 below 1e-4
-    half_sinc = np.where(small, 0.5 - theta2 / 48 + theta2**2 / 3840, np.sin(safe / 2) / safe)
-    return np.concatenate([phi * half_sinc, np.cos(theta / 2)], -1)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    z = np.zeros_like(v[..., 0])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack(
-        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
-    )
-
-
-def _se3_exp(xi: np.ndarray) -> np.ndarray:
-    """(..., 6) ``[ρ, φ]`` -> (..., 7) SE3 storage: ``(Jl(φ)·ρ, Exp(φ))``."""
-    rho, phi = xi[..., :3], xi[..., 3:]
-    t2 = np.sum(phi * phi, -1)[..., None, None]
-    small = t2 < 1e-2  # θ < 0.1: the series below is exact to float64 precision
-    s = np.where(small, 1.0, t2)
-    th = np.sqrt(s)
-    a_series = 0.5 - t2 / 24 + t2**2 / 720 - t2**3 / 40320 + t2**4 / 3628800
-    b_series = 1 / 6 - t2 / 120 + t2**2 / 5040 - t2**3 / 362880 + t2**4 / 39916800
-    a = np.where(small, a_series, 2 * np.sin(th / 2) ** 2 / s)  # (1 − cos θ)/θ²
-    b = np.where(small, b_series, (th - np.sin(th)) / (s * th))  # (θ − sin θ)/θ³
-    K = _skew(phi)
-    Jl = np.eye(3) + a * K + b * (K @ K)
-    return np.concatenate([(Jl @ rho[..., None])[..., 0], _so3_exp(phi)], -1)
-
-
-def _se2_exp(xi: np.ndarray) -> np.ndarray:
-    """(..., 3) ``[ρx, ρy, θ]`` -> (..., 4) SE2 storage: ``(V(θ)·ρ, cos θ, sin θ)``."""
-    th = xi[..., 2]
-    small = np.abs(th) < 1e-4
-    safe = np.where(small, 1.0, th)
-    a = np.where(small, 1 - th**2 / 6 + th**4 / 120, np.sin(safe) / safe)
-    b = np.where(small, th / 2 - th**3 / 24 + th**5 / 720, 2 * np.sin(safe / 2) ** 2 / safe)
-    x, y = xi[..., 0], xi[..., 1]
-    return np.stack([a * x - b * y, b * x + a * y, np.cos(th), np.sin(th)], -1)
-
-
-def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions ``[x, y, z, w]``, w ≥ 0."""
-    m = lambda i, j: R[..., i, j]
-    tr = m(0, 0) + m(1, 1) + m(2, 2)
-    # Shepperd: four unnormalised candidates; keep the one with the largest pivot
-    cands = np.stack(
-        [
-            [m(2, 1) - m(1, 2), m(0, 2) - m(2, 0), m(1, 0) - m(0, 1), 1 + tr],
-            [1 + 2 * m(0, 0) - tr, m(0, 1) + m(1, 0), m(0, 2) + m(2, 0), m(2, 1) - m(1, 2)],
-            [m(0, 1) + m(1, 0), 1 + 2 * m(1, 1) - tr, m(1, 2) + m(2, 1), m(0, 2) - m(2, 0)],
-            [m(0, 2) + m(2, 0), m(1, 2) + m(2, 1), 1 + 2 * m(2, 2) - tr, m(1, 0) - m(0, 1)],
-        ]
-    )  # (4 candidates, 4 components, ...)
-    pivots = np.stack([1 + tr, *(1 + 2 * m(k, k) - tr for k in range(3))])
-    best = np.argmax(pivots, 0)
-    q = np.moveaxis(np.take_along_axis(cands, best[None, None], 0)[0], 0, -1)
-    q = _normalize(q)
-    return q * np.where(q[..., 3:] < 0, -1.0, 1.0)
-
-
-def _rotvec_from_quat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions -> (..., 3) rotation vectors with angle in [0, π]."""
-    q = q * np.where(q[..., 3:] < 0, -1.0, 1.0)
-    v, w = q[..., :3], q[..., 3:]
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    small = n < 1e-8
-    safe = np.where(small, 1.0, n)
-    return v * np.where(small, 2.0 / w, 2 * np.arctan2(n, w) / safe)
-
-
 def _random_quat(rng: np.random.Generator, n: int) -> np.ndarray:
-    return _normalize(rng.normal(size=(n, 4)))
+    return normalize(rng.normal(size=(n, 4)))
 
 
 def _yaw_quat(yaw: np.ndarray) -> np.ndarray:
@@ -129,7 +65,7 @@ def _trajectory(
         out = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
         east = np.stack([-np.sin(lon), np.cos(lon), np.zeros(n)], -1)
         R = np.stack([east, np.cross(out, east), out], -1)  # columns: heading, left, outward
-        return np.concatenate([radius * out, _quat_from_matrix(R)], -1), pairs
+        return np.concatenate([radius * out, quat_from_matrix(R)], -1), pairs
     # grid: a boustrophedon walk through a cube (SE3) or square (SE2) of unit spacing
     dim = 3 if kind == "SE3" else 2
     side = int(np.ceil(n ** (1 / dim) - 1e-9))
@@ -219,7 +155,7 @@ def synthetic_pose_graph(
     n = int(n_poses)
     rng = np.random.default_rng(seed)
     gt, candidates = _trajectory(kind, shape, n, rng)
-    gt = _compose(kind, _inverse(kind, gt[:1]), gt)  # re-anchor: first pose at the identity
+    gt = compose(kind, inverse(kind, gt[:1]), gt)  # re-anchor: first pose at the identity
     gt[0] = [0, 0, 0, 0, 0, 0, 1] if kind == "SE3" else [0, 0, 1, 0]  # exactly
 
     if loop_closures is None:
@@ -239,16 +175,16 @@ def synthetic_pose_graph(
     sig = [trans_sigma] * 3 + [rot_sigma] * 3 if kind == "SE3" else [trans_sigma] * 2 + [rot_sigma]
     sig = np.asarray(sig)
     xi = rng.normal(size=(m, len(sig))) * sig
-    exp = _se3_exp if kind == "SE3" else _se2_exp
-    relative = _compose(kind, _inverse(kind, gt[edges[:, 0]]), gt[edges[:, 1]])
-    meas = _compose(kind, relative, exp(xi))
+    exp = se3_exp if kind == "SE3" else se2_exp
+    relative = compose(kind, inverse(kind, gt[edges[:, 0]]), gt[edges[:, 1]])
+    meas = compose(kind, relative, exp(xi))
     weights = np.where(sig > 0, 1.0 / np.where(sig > 0, sig, 1.0) ** 2, 1.0)
     info = np.broadcast_to(np.diag(weights), (m, len(sig), len(sig))).copy()
 
     odometry = {int(i): e for e, (i, j) in enumerate(edges.tolist()) if j == i + 1}
     chain = [gt[0].tolist()]
     for k in range(n - 1):
-        chain.append(_compose1(kind, chain[-1], meas[odometry[k]].tolist()))
+        chain.append(compose1(kind, chain[-1], meas[odometry[k]].tolist()))
     poses = np.asarray(chain, np.float64)
     graph = PoseGraph(
         kind=kind,
@@ -389,8 +325,8 @@ def synthetic_bal(
         ],
         -1,
     )
-    quat = _quat_from_matrix(R)
-    cameras = np.concatenate([_rotvec_from_quat(quat), t, intr], -1)
+    quat = quat_from_matrix(R)
+    cameras = np.concatenate([rotvec_from_quat(quat), t, intr], -1)
 
     # observations: consecutive cameras on the ring, sorted by point then camera
     start = rng.integers(0, n_cam, n_pt)
@@ -401,8 +337,8 @@ def synthetic_bal(
     truth = BALProblem(cameras, points, cam_idx, pt_idx, obs)
 
     # initial guess
-    dq = _so3_exp(rng.normal(scale=rot_sigma, size=(n_cam, 3)))
-    init_rot = _rotvec_from_quat(_quat_mul(dq, quat))
+    dq = so3_exp(rng.normal(scale=rot_sigma, size=(n_cam, 3)))
+    init_rot = rotvec_from_quat(quat_mul(dq, quat))
     init_t = t + rng.normal(scale=trans_sigma, size=t.shape)
     init_cams = np.concatenate([init_rot, init_t, intr], -1)
     init_pts = points + rng.normal(scale=point_sigma, size=points.shape)

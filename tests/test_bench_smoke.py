@@ -16,12 +16,13 @@ def _agreement_rows(text: str) -> list[str]:
 def test_lie_ops_runs_and_contestants_agree():
     # f2 exercises exp, compose and log of every contestant, values and Jacobians; f3 the
     # group action. (All three functions at every size: python bench/lie_ops.py --quick.)
-    text = lie_ops.main(["--quick", "--batches", "16", "--funcs", "f2"])
+    text = lie_ops.main(["--quick", "--threads", "0", "--batches", "16", "--funcs", "f2"])
     assert "## Throughput" in text and "## Compile time" in text
     rows = _agreement_rows(text)
     assert len(rows) == 2  # f2 value and jac
     assert all(r.rstrip().endswith("| yes |") for r in rows), text
-    text = lie_ops.main(["--quick", "--batches", "16", "--funcs", "f3", "--kinds", "value"])
+    text = lie_ops.main(["--quick", "--threads", "0", "--batches", "16", "--funcs", "f3",
+                         "--kinds", "value"])
     rows = _agreement_rows(text)
     assert len(rows) == 1 and all(r.rstrip().endswith("| yes |") for r in rows), text
 
@@ -44,3 +45,51 @@ def test_missing_peer_is_reported_not_faked():
 
     peer = import_peer("surely_not_an_installed_module_xyz")
     assert not peer.available and "not installed" in peer.label()
+
+
+def test_registry_lists_every_script(capsys):
+    from pathlib import Path
+
+    from bench import run
+
+    scripts = {p.stem for p in Path(run.HERE).glob("*.py")} - run.NOT_BENCHMARKS
+    assert set(run.WORKLOADS) == scripts  # every script is registered, none is stale
+    assert run.main(["--list"]) == 0
+    out = capsys.readouterr().out
+    for name, spec in run.WORKLOADS.items():
+        assert f"python bench/{name}.py" in out and spec.title in out
+    run.main(["--list", "--quick", "--only", "pgo"])
+    assert "--max-steps 50" in capsys.readouterr().out
+
+
+def test_common_cli_and_threads(monkeypatch):
+    import os
+
+    from bench import _common
+
+    ap = _common.parser("Title line.\n\nMore.", workers=True)
+    args = ap.parse_args([])
+    assert (args.quick, args.out, args.threads, args.clock, args.timeout) == (
+        False, None, _common.DEFAULT_THREADS, "wall", _common.WORKER_TIMEOUT)
+    assert not hasattr(_common.parser(None, threads=False).parse_args([]), "threads")
+    caps = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+    # a private copy of the environment: the caps must not leak into later tests
+    monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items() if k not in caps})
+    assert _common.early_threads(["--quick", "--threads", "3"]) == 3
+    assert _common.early_threads(["--threads=2"]) == 2
+    assert [os.environ[v] for v in caps] == ["3"] * 3  # setdefault: the first call wins
+    os.environ.clear()
+    assert _common.early_threads(["--threads", "0"]) == 0 and not os.environ
+
+
+def test_spawn_worker_answer_failure_and_timeout():
+    from bench._common import spawn_worker
+
+    ok = spawn_worker(["-c", "from bench._common import worker_result; "
+                       "print('noise'); worker_result({'a': 1})"], timeout=120)
+    assert ok["a"] == 1 and ok["wall_s"] > 0
+    bad = spawn_worker(["-c", "import sys; print('boom', file=sys.stderr); sys.exit(3)"],
+                       timeout=120)
+    assert bad == {"failed": "exit 3: boom"}
+    slow = spawn_worker(["-c", "import time; time.sleep(30)"], timeout=1)
+    assert slow == {"failed": "timed out after 1 s"}

@@ -13,6 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import as_float_array
+
 Array = jax.Array
 
 
@@ -23,18 +25,7 @@ def is_concrete(x: Any) -> bool:
 
 def as_array(x: Any, name: str, ndim: int | tuple[int, ...] | None = None) -> Array:
     """Floating JAX array with an optional exact ``ndim`` (or allowed set)."""
-    if x is None:
-        raise TypeError(f"{name}: expected an array, got None")
-    if isinstance(x, (str, bytes, dict, set)):
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}")
-    try:
-        arr = jnp.asarray(x)
-    except (TypeError, ValueError) as err:
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}") from err
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        if jnp.issubdtype(arr.dtype, jnp.complexfloating):
-            raise TypeError(f"{name}: expected a real floating array, got {arr.dtype}")
-        arr = arr.astype(jnp.result_type(float))
+    arr = as_float_array(x, name)
     if ndim is not None:
         allowed = (ndim,) if isinstance(ndim, int) else ndim
         if arr.ndim not in allowed:

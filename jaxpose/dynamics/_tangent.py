@@ -47,8 +47,7 @@ def tangent_space(x: Any) -> TangentSpace:
         if arr.ndim != 1:
             raise ValueError(f"state: expected a vector of shape (n,), got {tuple(arr.shape)}")
         return TangentSpace(int(arr.shape[0]), lambda a, d: a + d, lambda a, b: a - b, True)
-    zero = manifold.zero_tangent(x)
-    flat, unravel = ravel_pytree(zero)
+    flat, unravel = manifold.flat_tangent(x)
 
     def plus(a: Any, d: Array) -> Any:
         return manifold.retract(a, unravel(d))

@@ -12,6 +12,7 @@ from jax.scipy.linalg import cho_solve
 
 from ..dynamics._checks import as_array, check_psd
 from ..dynamics._tangent import TangentSpace, tangent_space
+from ..dynamics.system import System
 
 Array = jax.Array
 
@@ -32,6 +33,15 @@ def noise_matrix(M: Any, name: str, strict: bool = False) -> Array:
     M = as_array(M, name, 2)
     check_psd(M, name, strict=strict)
     return M
+
+
+def model_and_noise(model: Any, Q: Any, R: Any) -> tuple[System, Array, Array]:
+    """A filter's validated ``(model, Q, R)``: a :class:`~jaxpose.dynamics.System`, the
+    process noise Q (n, n) positive semi-definite and the measurement noise R (p, p)
+    positive definite."""
+    if not isinstance(model, System):
+        raise TypeError(f"model: expected a jaxpose.dynamics.System, got {type(model).__name__}")
+    return model, noise_matrix(Q, "Q"), noise_matrix(R, "R", strict=True)
 
 
 def check_cov(P: Any, dim: int, name: str = "P") -> Array:

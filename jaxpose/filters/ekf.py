@@ -40,7 +40,7 @@ from ._common import (
     finite_tree,
     innovation_ok,
     kalman_gain,
-    noise_matrix,
+    model_and_noise,
     select_tree,
     symmetrize,
 )
@@ -63,13 +63,7 @@ class EKF(eqx.Module):
     def __init__(
         self, model: System, Q: Any, R: Any, joseph: bool = True, skip_nonfinite: bool = False
     ):
-        if not isinstance(model, System):
-            raise TypeError(
-                f"model: expected a jaxpose.dynamics.System, got {type(model).__name__}"
-            )
-        self.model = model
-        self.Q = noise_matrix(Q, "Q")
-        self.R = noise_matrix(R, "R", strict=True)
+        self.model, self.Q, self.R = model_and_noise(model, Q, R)
         self.joseph = joseph
         self.skip_nonfinite = bool(skip_nonfinite)
 

@@ -32,7 +32,7 @@ from ._common import (
     check_noise_dim,
     check_sequence,
     finite_tree,
-    noise_matrix,
+    model_and_noise,
     psd_cholesky,
     relative_loglik,
     select_tree,
@@ -85,19 +85,13 @@ class ParticleFilter(eqx.Module):
         resample_threshold: float = 0.5,
         skip_nonfinite: bool = False,
     ):
-        if not isinstance(model, System):
-            raise TypeError(
-                f"model: expected a jaxpose.dynamics.System, got {type(model).__name__}"
-            )
+        self.model, self.Q, self.R = model_and_noise(model, Q, R)
         if not isinstance(num_particles, int) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
         if not 0.0 <= resample_threshold <= 1.0:
             raise ValueError(
                 f"resample_threshold: expected a fraction in [0, 1], got {resample_threshold}"
             )
-        self.model = model
-        self.Q = noise_matrix(Q, "Q")
-        self.R = noise_matrix(R, "R", strict=True)
         self.num_particles = num_particles
         self.resample_threshold = float(resample_threshold)
         self.skip_nonfinite = bool(skip_nonfinite)

@@ -34,7 +34,7 @@ from ._common import (
     check_sequence,
     innovation_ok,
     kalman_gain,
-    noise_matrix,
+    model_and_noise,
     psd_cholesky,
     select_tree,
     symmetrize,
@@ -85,15 +85,9 @@ class UKF(eqx.Module):
         kappa: float = 0.0,
         skip_nonfinite: bool = False,
     ):
-        if not isinstance(model, System):
-            raise TypeError(
-                f"model: expected a jaxpose.dynamics.System, got {type(model).__name__}"
-            )
+        self.model, self.Q, self.R = model_and_noise(model, Q, R)
         if not alpha > 0:
             raise ValueError(f"alpha: expected > 0, got {alpha}")
-        self.model = model
-        self.Q = noise_matrix(Q, "Q")
-        self.R = noise_matrix(R, "R", strict=True)
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
         self.skip_nonfinite = bool(skip_nonfinite)
 

@@ -6,7 +6,7 @@ rotation estimation and its use in pose graph optimization", ICRA 2015:
 1. **Rotations.** Relax ``R_j = R_i·Z_ij`` to a linear least-squares problem over the
    entries of the rotation matrices (``‖(R_j − R_i·Z_ij)·W_ij‖²_F`` summed over the edges),
    with one pose per connected piece held at its current value (the gauge anchors of
-   :func:`~jaxpose.graph.pgo.gauge_anchors`, the poses LM then holds fixed); project every
+   :func:`gauge_anchors`, the poses LM then holds fixed); project every
    3×3 (2×2) block to SO(3) (SO(2)) by SVD.
 2. **Translations.** With the rotations fixed, the translation part of the residual
    ``Log(Z⁻¹·Xi⁻¹·Xj)`` is linear in the translations, ``V(φ)⁻¹·Z_Rᵀ·(R_iᵀ(t_j − t_i) − t_z)``,
@@ -37,57 +37,11 @@ from typing import Any
 import numpy as np
 import scipy.sparse
 
+from ..io.g2o import connected_components
+from ..lie._numpy import quat_from_matrix, quat_to_matrix, skew, so3_log
 from . import cholmod
 
 __all__ = ["INIT_METHODS", "chordal_initialization", "initial_poses", "pose_graph_cost"]
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices of unit (..., 4) ``[x, y, z, w]`` quaternions."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - z * w),
-            2 * (x * z + y * w),
-            2 * (x * y + z * w),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - x * w),
-            2 * (x * z - y * w),
-            2 * (y * z + x * w),
-            1 - 2 * (x * x + y * y),
-        ],
-        -1,
-    ).reshape(*q.shape[:-1], 3, 3)
-
-
-def _matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """Unit ``[x, y, z, w]`` quaternions (w ≥ 0) of (..., 3, 3) rotation matrices
-    (Shepperd's method: the largest of 1 + tr, 1 + 2·R_kk − tr chooses the formula)."""
-    r = np.asarray(r)
-    tr = np.trace(r, axis1=-2, axis2=-1)
-    d = np.diagonal(r, axis1=-2, axis2=-1)
-    cand = np.concatenate([1 + 2 * d - tr[..., None], (1 + tr)[..., None]], -1)  # 4x², 4w²
-    k = np.argmax(cand, -1)
-    s = np.sqrt(np.maximum(np.take_along_axis(cand, k[..., None], -1)[..., 0], 1e-300))
-    a = r[..., 2, 1] - r[..., 1, 2]
-    b = r[..., 0, 2] - r[..., 2, 0]
-    c = r[..., 1, 0] - r[..., 0, 1]
-    xy = r[..., 0, 1] + r[..., 1, 0]
-    xz = r[..., 0, 2] + r[..., 2, 0]
-    yz = r[..., 1, 2] + r[..., 2, 1]
-    q = np.stack(
-        [
-            np.choose(k, [s * s, xy, xz, a]),
-            np.choose(k, [xy, s * s, yz, b]),
-            np.choose(k, [xz, yz, s * s, c]),
-            np.choose(k, [a, b, c, s * s]),
-        ],
-        -1,
-    )
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., 3:] < 0, -q, q)
 
 
 def _project_so(m: np.ndarray) -> np.ndarray:
@@ -107,22 +61,6 @@ def _psd_sqrt(m: np.ndarray) -> np.ndarray:
     return (v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]) @ np.swapaxes(v, -1, -2)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    x, y, z = np.moveaxis(v, -1, 0)
-    o = np.zeros_like(x)
-    return np.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(*v.shape[:-1], 3, 3)
-
-
-def _so3_log(r: np.ndarray) -> np.ndarray:
-    """Rotation vectors φ (|φ| ≤ π) of (..., 3, 3) rotation matrices, via the quaternion."""
-    q = _matrix_to_quat(r)
-    v, w = q[..., :3], q[..., 3]
-    n = np.linalg.norm(v, axis=-1)
-    th = 2.0 * np.arctan2(n, w)
-    scale = np.where(n > 1e-12, th / np.where(n > 1e-12, n, 1.0), 2.0 / np.maximum(w, 1e-300))
-    return v * scale[..., None]
-
-
 def _v_inverse(phi: np.ndarray) -> np.ndarray:
     """V(φ)⁻¹ of the SE(3) logarithm (translation part ``V⁻¹·t``), (m, 3) → (m, 3, 3)."""
     th2 = np.sum(phi * phi, -1)
@@ -134,7 +72,7 @@ def _v_inverse(phi: np.ndarray) -> np.ndarray:
         1.0 / 12.0 + th2 / 720.0,
         (1.0 - ths * np.sin(ths) / (2.0 * np.where(small, 1.0, 1.0 - np.cos(ths)))) / ths**2,
     )
-    w = _skew(phi)
+    w = skew(phi)
     return np.eye(3) - 0.5 * w + coef[:, None, None] * (w @ w)
 
 
@@ -208,9 +146,19 @@ def _block_lstsq(
     return x_all
 
 
-def _anchors(graph: Any, fix: str) -> np.ndarray:
-    from .pgo import gauge_anchors
+def gauge_anchors(graph: Any, held: Any) -> np.ndarray:
+    """Sorted indices to hold constant: ``held`` plus the first pose of every connected
+    piece of ``graph`` that contains none of them."""
+    held = np.unique(np.asarray(held, np.int64).reshape(-1))
+    if graph.n_poses == 0:
+        return held
+    labels = connected_components(graph)
+    firsts = np.unique(labels, return_index=True)[1]
+    free_pieces = np.setdiff1d(np.arange(firsts.size), labels[held])
+    return np.union1d(held, firsts[free_pieces])
 
+
+def _anchors(graph: Any, fix: str) -> np.ndarray:
     if fix not in ("first", "file", "none"):
         raise ValueError(f"chordal_initialization(fix={fix!r}): expected 'first', 'file' or 'none'")
     file_fixed = np.asarray(getattr(graph, "fixed", []), dtype=np.int64)
@@ -286,7 +234,7 @@ def _translations(
 
 def _chordal_se3(poses, edges, z, info, anchors, i, j) -> np.ndarray:
     n = poses.shape[0]
-    zr = _quat_to_matrix(z[:, 3:])
+    zr = quat_to_matrix(z[:, 3:])
     o_rr = info[:, 3:, 3:]
     mm = 0.5 * np.trace(o_rr, axis1=1, axis2=2)[:, None, None] * np.eye(3) - o_rr
     w = _psd_sqrt(mm)
@@ -294,15 +242,15 @@ def _chordal_se3(poses, edges, z, info, anchors, i, j) -> np.ndarray:
     bj = w
     bi = -w @ np.swapaxes(zr, -1, -2)
     c = np.zeros((len(edges), 3, 3))
-    r_anchor = _quat_to_matrix(poses[anchors, 3:])
+    r_anchor = quat_to_matrix(poses[anchors, 3:])
     x = _block_lstsq(n, edges, bi, bj, c, anchors, np.swapaxes(r_anchor, -1, -2))
     rot = _project_so(np.swapaxes(x, -1, -2))
     rot[anchors] = r_anchor
-    phi = _so3_log(np.swapaxes(zr, -1, -2) @ np.swapaxes(rot[i], -1, -2) @ rot[j])
+    phi = so3_log(np.swapaxes(zr, -1, -2) @ np.swapaxes(rot[i], -1, -2) @ rot[j])
     t = _translations(
         n, edges, rot, zr, z[:, :3], info, phi, _v_inverse(phi), anchors, poses[anchors, :3]
     )
-    out = np.concatenate([t, _matrix_to_quat(rot)], 1)
+    out = np.concatenate([t, quat_from_matrix(rot)], 1)
     out[anchors] = poses[anchors]
     return out
 
@@ -359,13 +307,13 @@ def pose_graph_cost(graph: Any, poses: Any = None) -> float:
     info = np.asarray(graph.information, np.float64)
     i, j = edges[:, 0], edges[:, 1]
     if graph.kind == "SE3":
-        ri, rj, zr = (_quat_to_matrix(q) for q in (poses[i, 3:], poses[j, 3:], z[:, 3:]))
+        ri, rj, zr = (quat_to_matrix(q) for q in (poses[i, 3:], poses[j, 3:], z[:, 3:]))
         zrt = np.swapaxes(zr, -1, -2)
         rel = zrt @ np.swapaxes(ri, -1, -2) @ rj
         u = np.einsum(
             "mij,mj->mi", zrt, np.einsum("mji,mj->mi", ri, poses[j, :3] - poses[i, :3]) - z[:, :3]
         )
-        phi = _so3_log(rel)
+        phi = so3_log(rel)
         r = np.concatenate([np.einsum("mij,mj->mi", _v_inverse(phi), u), phi], 1)
     else:
         th = lambda p: np.arctan2(p[..., 3], p[..., 2])  # noqa: E731

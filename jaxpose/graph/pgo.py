@@ -20,10 +20,10 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..io.g2o import _apply_policy, connected_components
+from ..io.g2o import _apply_policy
 from ..lie import SE2, SE3
 from .factor import Factor, between_jacobian, between_residual
-from .init import initial_poses
+from .init import gauge_anchors, initial_poses
 from .problem import FactorGraph
 from .solve import solve
 
@@ -91,18 +91,6 @@ def pose_graph_problem(
         held = file_fixed if (fix == "file" and file_fixed.size) else np.zeros(1, np.int64)
         fixed = {"pose": gauge_anchors(graph, held)}
     return FactorGraph([factor], {"pose": poses}, fixed=fixed)
-
-
-def gauge_anchors(graph: Any, held: Any) -> np.ndarray:
-    """Sorted indices to hold constant: ``held`` plus the first pose of every connected
-    piece of ``graph`` that contains none of them."""
-    held = np.unique(np.asarray(held, np.int64).reshape(-1))
-    if graph.n_poses == 0:
-        return held
-    labels = connected_components(graph)
-    firsts = np.unique(labels, return_index=True)[1]
-    free_pieces = np.setdiff1d(np.arange(firsts.size), labels[held])
-    return np.union1d(held, firsts[free_pieces])
 
 
 def odometry_edges(graph: Any) -> np.ndarray:

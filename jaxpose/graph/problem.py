@@ -3,7 +3,8 @@
 Layout of the tangent vector: variable types in sorted-name order; within a type,
 variable ``i`` owns the contiguous slice ``offset + i·d : offset + (i+1)·d``.
 The block-sparsity pattern of the Gauss–Newton matrix H = J̃ᵀJ̃ (:mod:`.pattern`) is
-computed once on the host (numpy) when the graph is built; each iteration only fills in
+computed once on the host (numpy) when the graph is built (:mod:`.analysis`); each
+iteration only fills in
 values, so jit compiles one program whose size grows with the number of factor *types*,
 not factors.
 """
@@ -19,19 +20,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..lie.base import LieGroup
+from .analysis import (
+    Structure,
+    Variables,
+    build_structure,
+    count,
+    join,
+    slot_pairs,
+    split_tangent,
+    tangent_dim,
+)
 from .factor import Factor
-from .pattern import BlockPattern, build_pattern, scatter_blocks
+from .pattern import scatter_blocks
 
 Array = jax.Array
-Variables = dict[str, Any]  # name → LieGroup with batch (n,) or array (n, d)
-
-
-def _tangent_dim(value: Any) -> int:
-    return value.tangent_dim if isinstance(value, LieGroup) else int(value.shape[-1])
-
-
-def _count(value: Any) -> int:
-    return int(value.shape[0])
 
 
 def _gather(value: Any, idx: Array) -> Any:
@@ -44,43 +46,6 @@ def _retract(value: Any, delta: Array) -> Any:
     if isinstance(value, LieGroup):
         return value.retract(delta)
     return value + delta
-
-
-class Structure(eqx.Module):
-    """Static bookkeeping of a graph (index arrays are leaves; sizes are static)."""
-
-    names: tuple[str, ...] = eqx.field(static=True)
-    counts: tuple[int, ...] = eqx.field(static=True)
-    dims: tuple[int, ...] = eqx.field(static=True)
-    offsets: tuple[int, ...] = eqx.field(static=True)
-    size: int = eqx.field(static=True)  # total tangent dimension N
-    free: tuple[Array, ...]  # per type (n,) 1.0 for free, 0.0 for fixed variables
-    pattern: BlockPattern  # block-sparse pattern of H = J̃ᵀJ̃
-    # per factor group, per ordered slot pair (s, t) (row-major): class id and (m,) blocks
-    block_class: tuple[tuple[int, ...], ...] = eqx.field(static=True)
-    block_index: tuple[tuple[Array, ...], ...]
-    schur: Any = None  # SchurStructure when the graph eliminates a variable type
-
-    @property
-    def nnz(self) -> int:
-        return self.pattern.nnz
-
-    @property
-    def csr_indices(self) -> Array:
-        return self.pattern.indices
-
-    @property
-    def csr_indptr(self) -> Array:
-        return self.pattern.indptr
-
-    @property
-    def diag_pos(self) -> Array:
-        return self.pattern.diag_pos
-
-
-def slot_pairs(n_slots: int) -> list[tuple[int, int]]:
-    """Ordered slot pairs (s, t) in the order of ``Structure.block_class``."""
-    return [(s, t) for s in range(n_slots) for t in range(n_slots)]
 
 
 class FactorGraph(eqx.Module):
@@ -135,7 +100,7 @@ class FactorGraph(eqx.Module):
                         f"FactorGraph: factor {f.name!r} uses variable type {slot!r}, "
                         f"not among {sorted(variables)}"
                     )
-                n = _count(variables[slot])
+                n = count(variables[slot])
                 idx_np = np.asarray(idx)
                 if idx_np.size and (idx_np.min() < 0 or idx_np.max() >= n):
                     raise IndexError(
@@ -145,70 +110,12 @@ class FactorGraph(eqx.Module):
                     )
         self.factors = tuple(factors)
         self.variables = variables
-        self.structure = _build_structure(self.factors, variables, dict(fixed or {}), eliminate)
+        self.structure = build_structure(self.factors, variables, dict(fixed or {}), eliminate)
 
     @property
     def size(self) -> int:
         """Total tangent dimension."""
         return self.structure.size
-
-
-def _build_structure(
-    factors: tuple[Factor, ...], variables: Variables, fixed: dict[str, Any],
-    eliminate: str | None = None,
-) -> Structure:
-    names = tuple(sorted(variables))
-    counts = tuple(_count(variables[n]) for n in names)
-    dims = tuple(_tangent_dim(variables[n]) for n in names)
-    offsets = tuple(int(x) for x in np.concatenate([[0], np.cumsum(np.multiply(counts, dims))]))
-    type_of = {n: k for k, n in enumerate(names)}
-    for n in fixed:
-        if n not in type_of:
-            raise KeyError(f"FactorGraph(fixed): unknown variable type {n!r}")
-    free = []
-    for n, c in zip(names, counts, strict=True):
-        mask = np.ones(c)
-        if n in fixed:
-            idx = np.asarray(fixed[n], dtype=np.int64).reshape(-1)
-            if idx.size and (idx.min() < 0 or idx.max() >= c):
-                raise IndexError(f"FactorGraph(fixed[{n!r}]): index out of range for {c} variables")
-            mask[idx] = 0.0
-        free.append(jnp.asarray(mask))
-
-    pairs = []
-    for f in factors:
-        for s, t in slot_pairs(len(f.slots)):
-            pairs.append((type_of[f.slots[s]], np.asarray(f.indices[s]),
-                          type_of[f.slots[t]], np.asarray(f.indices[t])))
-    pattern, located = build_pattern(counts, dims, pairs)
-    block_class, block_index, k = [], [], 0
-    for f in factors:
-        n_pairs = len(slot_pairs(len(f.slots)))
-        block_class.append(tuple(c for c, _ in located[k : k + n_pairs]))
-        block_index.append(tuple(jnp.asarray(i, jnp.int32) for _, i in located[k : k + n_pairs]))
-        k += n_pairs
-    schur = None
-    if eliminate is not None:
-        from .schur import build_schur
-
-        if eliminate not in type_of:
-            raise KeyError(
-                f"FactorGraph(eliminate={eliminate!r}): not a variable type; expected one of "
-                f"{list(names)}"
-            )
-        schur = build_schur(factors, names, counts, dims, eliminate)
-    return Structure(
-        names=names,
-        counts=counts,
-        dims=dims,
-        offsets=offsets,
-        size=offsets[-1],
-        free=tuple(free),
-        pattern=pattern,
-        block_class=tuple(block_class),
-        block_index=tuple(block_index),
-        schur=schur,
-    )
 
 
 # ----------------------------------------------------------------------------------
@@ -262,7 +169,7 @@ def linearize(graph: FactorGraph, variables: Variables) -> Linearization:
             if f.jacobian is not None:
                 r, *jac = f.jacobian(*point, data)
                 return r, tuple(jac)
-            zeros = tuple(jnp.zeros((_tangent_dim_single(p),), _dtype(p)) for p in point)
+            zeros = tuple(jnp.zeros((tangent_dim(p),), _dtype(p)) for p in point)
 
             def res(deltas: tuple[Array, ...]) -> tuple[Array, Array]:
                 moved = [_retract(p, d) for p, d in zip(point, deltas, strict=True)]
@@ -292,26 +199,13 @@ def linearize(graph: FactorGraph, variables: Variables) -> Linearization:
     return Linearization(tuple(residuals), tuple(jacobians), jnp.asarray(total))
 
 
-def _tangent_dim_single(p: Any) -> int:
-    return p.tangent_dim if isinstance(p, LieGroup) else int(p.shape[-1])
-
-
 def _dtype(p: Any) -> Any:
     return p.dtype
 
 
 def split(graph: FactorGraph, flat: Array) -> tuple[Array, ...]:
     """Flat tangent (N,) → per-type blocks (n, d)."""
-    st = graph.structure
-    return tuple(
-        flat[st.offsets[k] : st.offsets[k + 1]].reshape(st.counts[k], st.dims[k])
-        for k in range(len(st.names))
-    )
-
-
-def join(blocks: Sequence[Array]) -> Array:
-    """Per-type blocks (n, d) → flat tangent (N,)."""
-    return jnp.concatenate([b.reshape(-1) for b in blocks])
+    return split_tangent(graph.structure, flat)
 
 
 def gradient(graph: FactorGraph, lin: Linearization) -> Array:

@@ -13,14 +13,10 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .._checks import require
 from ..optim.strategies import Strategy
 
 Array = jax.Array
-
-
-def _check(name: str, cond: bool, msg: str) -> None:
-    if not cond:
-        raise ValueError(f"{name}: {msg}")
 
 
 class LambdaFactor(Strategy):
@@ -34,9 +30,9 @@ class LambdaFactor(Strategy):
 
     def __init__(self, damping: float = 1e-5, factor: float = 10.0, min: float = 1e-15,
                  max: float = 1e16):
-        _check("LambdaFactor(damping)", damping > 0, f"has to be positive, got {damping!r}")
-        _check("LambdaFactor(factor)", factor > 1, f"has to be larger than 1, got {factor!r}")
-        _check("LambdaFactor(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
+        require("LambdaFactor(damping)", damping > 0, f"has to be positive, got {damping!r}")
+        require("LambdaFactor(factor)", factor > 1, f"has to be larger than 1, got {factor!r}")
+        require("LambdaFactor(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
         self.damping_value, self.factor, self.min, self.max = damping, factor, min, max
 
     def init(self, dtype: Any) -> Array:
@@ -67,8 +63,8 @@ class Nielsen(Strategy):
     max: float = 1e16
 
     def __init__(self, damping: float = 1e-4, min: float = 1e-15, max: float = 1e16):
-        _check("Nielsen(damping)", damping > 0, f"has to be positive, got {damping!r}")
-        _check("Nielsen(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
+        require("Nielsen(damping)", damping > 0, f"has to be positive, got {damping!r}")
+        require("Nielsen(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
         self.damping_value, self.min, self.max = damping, min, max
 
     def init(self, dtype: Any) -> NielsenState:

@@ -11,17 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..dynamics._checks import as_array
+from .._checks import as_float_array as as_float
 
 Array = jax.Array
-
-
-def as_float(x: Any, name: str) -> Array:
-    """Real floating array (integers promoted); errors name ``name``. The IMU wording for
-    None ("an array of numbers"), then the shared dynamics check."""
-    if x is None:
-        raise TypeError(f"{name}: expected an array of numbers, got NoneType")
-    return as_array(x, name)
 
 
 def scalar_var(x: Any, name: str, dtype: Any) -> Array:

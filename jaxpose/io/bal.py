@@ -16,11 +16,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .._checks import set_numpy_field
+from ..lie._numpy import rodrigues_rotate
 from ._text import describe_bad_char, first_bad_char, read_text, refuse_nonfinite_rows
 from .errors import FormatError
 
@@ -51,12 +54,13 @@ class BALProblem:
 
     def __post_init__(self) -> None:
         set_ = lambda name, value: object.__setattr__(self, name, value)
-        set_("cameras", _checked(self.cameras, np.float64, (None, 9), "cameras"))
-        set_("points", _checked(self.points, np.float64, (None, 3), "points"))
-        set_("camera_index", _checked(self.camera_index, np.int64, (None,), "camera_index"))
+        check = partial(set_numpy_field, self)
+        check("cameras", np.float64, (None, 9))
+        check("points", np.float64, (None, 3))
+        check("camera_index", np.int64, (None,))
         n_obs = self.camera_index.shape[0]
-        set_("point_index", _checked(self.point_index, np.int64, (n_obs,), "point_index"))
-        set_("observations", _checked(self.observations, np.float64, (n_obs, 2), "observations"))
+        check("point_index", np.int64, (n_obs,))
+        check("observations", np.float64, (n_obs, 2))
         if self.path is not None:
             set_("path", os.fspath(self.path))
         for name, n in (("camera_index", self.n_cameras), ("point_index", self.n_points)):
@@ -84,17 +88,6 @@ class BALProblem:
             f"BALProblem(n_cameras={self.n_cameras}, n_points={self.n_points}, "
             f"n_observations={self.n_observations}, path={self.path!r})"
         )
-
-
-def _checked(value: Any, dtype: Any, shape: tuple[int | None, ...], name: str) -> np.ndarray:
-    arr = np.asarray(value)
-    if dtype is np.int64 and arr.size and not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(f"BALProblem.{name}: expected integers, got dtype {arr.dtype}")
-    arr = np.asarray(arr, dtype=dtype)
-    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
-        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"BALProblem.{name}: expected shape {want}, got {arr.shape}")
-    return arr
 
 
 def project_bal(
@@ -125,17 +118,6 @@ def project_bal(
     n2 = np.sum(p * p, -1, keepdims=True)
     radial = 1.0 + cam[..., 7:8] * n2 + cam[..., 8:9] * n2 * n2
     return cam[..., 6:7] * radial * p
-
-
-def rodrigues_rotate(r: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """Rotate (..., 3) points by (..., 3) Rodrigues (angle-axis) vectors ``r``."""
-    theta2 = np.sum(r * r, -1, keepdims=True)
-    small = theta2 < 1e-30
-    theta = np.sqrt(np.where(small, 1.0, theta2))
-    k = r / theta
-    c, s = np.cos(theta), np.sin(theta)
-    full = X * c + np.cross(k, X) * s + k * np.sum(k * X, -1, keepdims=True) * (1.0 - c)
-    return np.where(small, X + np.cross(r, X), full)
 
 
 # ----------------------------------------------------------------------------- reading

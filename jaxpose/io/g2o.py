@@ -20,16 +20,18 @@ read) and SE2 ``[tx, ty, cos θ, sin θ]``.
 
 from __future__ import annotations
 
-import math
 import os
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .._checks import set_numpy_field
+from ..lie._numpy import compose1, identity, inverse, normalize
 from ._text import describe_bad_char, first_bad_char, read_text, refuse_nonfinite_rows
 from .errors import FormatError
 
@@ -110,14 +112,15 @@ class PoseGraph:
             raise ValueError(f"PoseGraph.kind: expected 'SE3' or 'SE2', got {self.kind!r}")
         d, t = _DIMS[self.kind]
         set_ = lambda name, value: object.__setattr__(self, name, value)
-        set_("vertex_ids", _checked(self.vertex_ids, np.int64, (None,), "vertex_ids"))
+        check = partial(set_numpy_field, self, unwrap=True)  # groups: their stored array
+        check("vertex_ids", np.int64, (None,))
         n = self.vertex_ids.shape[0]
-        set_("poses", _checked(self.poses, np.float64, (n, d), "poses"))
-        set_("edges", _checked(self.edges, np.int64, (None, 2), "edges"))
+        check("poses", np.float64, (n, d))
+        check("edges", np.int64, (None, 2))
         m = self.edges.shape[0]
-        set_("measurements", _checked(self.measurements, np.float64, (m, d), "measurements"))
-        set_("information", _checked(self.information, np.float64, (m, t, t), "information"))
-        set_("fixed", _checked(self.fixed, np.int64, (None,), "fixed"))
+        check("measurements", np.float64, (m, d))
+        check("information", np.float64, (m, t, t))
+        check("fixed", np.int64, (None,))
         if self.path is not None:
             set_("path", os.fspath(self.path))
         for name in ("edges", "fixed"):
@@ -140,111 +143,6 @@ class PoseGraph:
             f"PoseGraph(kind={self.kind!r}, n_poses={self.n_poses}, n_edges={self.n_edges}, "
             f"fixed={self.fixed.tolist()}, path={self.path!r})"
         )
-
-
-def _checked(value: Any, dtype: Any, shape: tuple[int | None, ...], name: str) -> np.ndarray:
-    """``value`` as a numpy array of ``dtype`` whose shape matches ``shape`` (None: any)."""
-    arr = np.asarray(getattr(value, "data", value))  # accepts jaxpose groups and jax arrays
-    if dtype is np.int64 and arr.size and not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(f"PoseGraph.{name}: expected integers, got dtype {arr.dtype}")
-    arr = np.asarray(arr, dtype=dtype)
-    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
-        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"PoseGraph.{name}: expected shape {want}, got {arr.shape}")
-    return arr
-
-
-# ----------------------------------------------------------------------------- numpy poses
-# Small float64 helpers shared with jaxpose.datasets (numpy, not JAX: readers and data
-# generators run before any device is involved and must not depend on jax_enable_x64).
-
-
-def _normalize(v: np.ndarray) -> np.ndarray:
-    """Rows of ``v`` (..., k) scaled to unit norm without overflow or underflow: divided by
-    their largest magnitude first (‖v‖ of a 1e200 quaternion is inf, of a 1e-200 one is 0)."""
-    scale = np.max(np.abs(v), axis=-1, keepdims=True)
-    u = v / np.where(scale > 0, scale, 1.0)
-    return u / np.linalg.norm(u, axis=-1, keepdims=True)
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of (..., 4) ``[x, y, z, w]`` quaternions."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        -1,
-    )
-
-
-def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate (..., 3) vectors by unit (..., 4) quaternions."""
-    u, w = q[..., :3], q[..., 3:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
-def _conj(q: np.ndarray) -> np.ndarray:
-    return q * np.array([-1.0, -1.0, -1.0, 1.0])
-
-
-def _compose(kind: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a · b`` for (..., 7) SE3 or (..., 4) SE2 storage."""
-    if kind == "SE3":
-        q = _normalize(_quat_mul(a[..., 3:], b[..., 3:]))
-        return np.concatenate([a[..., :3] + _quat_rotate(a[..., 3:], b[..., :3]), q], -1)
-    c, s = a[..., 2], a[..., 3]
-    bx, by = b[..., 0], b[..., 1]
-    cs = np.stack([c * b[..., 2] - s * b[..., 3], s * b[..., 2] + c * b[..., 3]], -1)
-    cs = _normalize(cs)
-    t = np.stack([a[..., 0] + c * bx - s * by, a[..., 1] + s * bx + c * by], -1)
-    return np.concatenate([t, cs], -1)
-
-
-def _inverse(kind: str, x: np.ndarray) -> np.ndarray:
-    """``x⁻¹`` for (..., 7) SE3 or (..., 4) SE2 storage."""
-    if kind == "SE3":
-        qc = _conj(x[..., 3:])
-        return np.concatenate([-_quat_rotate(qc, x[..., :3]), qc], -1)
-    c, s, tx, ty = x[..., 2], x[..., 3], x[..., 0], x[..., 1]
-    return np.stack([-(c * tx + s * ty), s * tx - c * ty, c, -s], -1)
-
-
-def _compose1(kind: str, a: list[float], b: list[float]) -> list[float]:
-    """``a · b`` for one pose as plain floats (the sequential chaining loops; ~100x faster
-    than numpy on single poses)."""
-    if kind == "SE3":
-        ax, ay, az, aw = a[3:]
-        bx, by, bz, bw = b[3:]
-        qx = aw * bx + ax * bw + ay * bz - az * by
-        qy = aw * by - ax * bz + ay * bw + az * bx
-        qz = aw * bz + ax * by - ay * bx + az * bw
-        qw = aw * bw - ax * bx - ay * by - az * bz
-        n = math.hypot(qx, qy, qz, qw)  # scale-safe; ≈ 1 for the unit quaternions read
-        vx, vy, vz = b[:3]  # rotate b's translation by a's rotation: v + w·t + u × t
-        tx, ty, tz = 2 * (ay * vz - az * vy), 2 * (az * vx - ax * vz), 2 * (ax * vy - ay * vx)
-        return [
-            a[0] + vx + aw * tx + (ay * tz - az * ty),
-            a[1] + vy + aw * ty + (az * tx - ax * tz),
-            a[2] + vz + aw * tz + (ax * ty - ay * tx),
-            qx / n,
-            qy / n,
-            qz / n,
-            qw / n,
-        ]
-    c, s = a[2], a[3]
-    cc, ss = c * b[2] - s * b[3], s * b[2] + c * b[3]
-    n = math.hypot(cc, ss)
-    return [a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], cc / n, ss / n]
-
-
-def _identity(kind: str) -> np.ndarray:
-    return np.array([0, 0, 0, 0, 0, 0, 1.0]) if kind == "SE3" else np.array([0, 0, 1.0, 0])
 
 
 # ----------------------------------------------------------------------------- reading
@@ -295,7 +193,7 @@ def _unit_quaternions(path: PathLike, q: np.ndarray, lines: list[int], tag: str)
             f"{tag}: expected a non-zero quaternion (qx qy qz qw; it is normalised on read), "
             f"found {q[r].tolist()}",
         )
-    return _normalize(q)
+    return normalize(q)
 
 
 def _poses_from_values(kind: str, v: np.ndarray) -> np.ndarray:
@@ -752,7 +650,7 @@ def _initialise(
             odometry[i] = e
     adj = _adjacency(n, edges)
     forward = meas.tolist()
-    backward = _inverse(kind, meas).tolist()
+    backward = inverse(kind, meas).tolist()
     poses: list[list[float] | None] = [None] * n
     via = np.full(n, -1, np.int64)
     queue: deque[int] = deque()
@@ -765,19 +663,19 @@ def _initialise(
             e = odometry.get(v)
             if e is None or poses[ends[e][1]] is not None:
                 return
-            v, pose, edge = ends[e][1], _compose1(kind, pose, forward[e]), e
+            v, pose, edge = ends[e][1], compose1(kind, pose, forward[e]), e
 
     pieces = 0
     for start in range(n):  # vertex_ids is sorted, so this is smallest id first
         if poses[start] is not None:
             continue
         pieces += 1
-        settle(start, _identity(kind).tolist(), -1)
+        settle(start, identity(kind).tolist(), -1)
         while queue:
             v = queue.popleft()
             for e, w, fwd in adj[v]:
                 if poses[w] is None:
-                    settle(w, _compose1(kind, poses[v], forward[e] if fwd else backward[e]), e)
+                    settle(w, compose1(kind, poses[v], forward[e] if fwd else backward[e]), e)
     return np.asarray(poses, np.float64).reshape(n, _DIMS[kind][0]), pieces, via
 
 

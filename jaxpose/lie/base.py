@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import as_float_array as _as_float_array
+
 Array = jax.Array
 G = TypeVar("G", bound="LieGroup")
 E = TypeVar("E", bound="_Element")
@@ -36,25 +38,14 @@ A = TypeVar("A", bound="LieAlgebra")
 # Validation helpers (trace-time: shapes and types only)
 # ----------------------------------------------------------------------------------
 def as_float_array(x: Any, argname: str) -> Array:
-    """Convert ``x`` to a floating JAX array, with a clear error for non-arrays."""
+    """Convert ``x`` to a floating JAX array, with a clear error for non-arrays (a group
+    or algebra element is refused: its ``.data`` is the array)."""
     if isinstance(x, (LieGroup, LieAlgebra)):
         raise TypeError(
             f"{argname}: expected an array, got a {type(x).__name__} element; "
             f"use its `.data` if you meant the stored array"
         )
-    if isinstance(x, (str, bytes, dict, set)) or x is None:
-        raise TypeError(f"{argname}: expected an array-like of numbers, got {type(x).__name__}")
-    try:
-        arr = jnp.asarray(x)
-    except (TypeError, ValueError) as err:
-        raise TypeError(
-            f"{argname}: expected an array-like of numbers, got {type(x).__name__}"
-        ) from err
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        if jnp.issubdtype(arr.dtype, jnp.complexfloating):
-            raise TypeError(f"{argname}: expected a real floating array, got {arr.dtype}")
-        arr = arr.astype(jnp.result_type(float))
-    return arr
+    return _as_float_array(x, argname, "an array-like of numbers")
 
 
 def check_last_dim(arr: Array, dims: int | tuple[int, ...], argname: str, layout: str) -> None:

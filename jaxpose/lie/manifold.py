@@ -25,6 +25,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
 
 from .base import LieGroup
 
@@ -49,6 +50,13 @@ def zero_tangent(params: PyTree) -> PyTree:
         return jnp.zeros_like(x)
 
     return _map(zero, params)
+
+
+def flat_tangent(params: PyTree) -> tuple[jax.Array, Callable[[jax.Array], PyTree]]:
+    """(zeros (n,), unravel): the flat tangent layout of ``params`` (``ravel_pytree`` of
+    :func:`zero_tangent`, n = :func:`tangent_size`); ``unravel`` maps (n,) to a tangent
+    pytree for :func:`retract`."""
+    return ravel_pytree(zero_tangent(params))
 
 
 def retract(params: PyTree, delta: PyTree) -> PyTree:

@@ -29,7 +29,6 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.flatten_util import ravel_pytree
 
 from ..lie import manifold
 from .linear import SVD, LinearSolver
@@ -129,7 +128,7 @@ def _implicit_bwd(
     ct_params = None if grad_obj is None else grad_obj.params
     ct_cost = None if grad_obj is None else grad_obj.cost
     ct_init = None if grad_obj is None else grad_obj.initial_cost
-    flat0, unravel = ravel_pytree(manifold.zero_tangent(x_star))
+    flat0, unravel = manifold.flat_tangent(x_star)
 
     def lift(eps: jax.Array) -> PyTree:
         return manifold.retract(x_star, unravel(eps))

@@ -15,7 +15,7 @@ Conventions
   whitened the same way, then corrected for the kernel. Cost, step and gain ratio all
   use these same whitened quantities, so weights act consistently everywhere.
 * Flattening: residual rows follow ``jax.flatten_util.ravel_pytree`` of the residual
-  pytree; tangent columns follow ``ravel_pytree(manifold.zero_tangent(params))``. Group
+  pytree; tangent columns follow ``manifold.flat_tangent(params)``. Group
   leaves contribute ``tangent_dim`` columns (right perturbation X·Exp(δ)), never storage
   (quaternion) columns. A user ``jacobian(params, args)`` must return this (m, n) matrix.
 """
@@ -225,7 +225,7 @@ class Problem(eqx.Module):
             out = self.residual_fn(params, args)
             jac = jnp.asarray(self.jacobian(params, args))
             return self._blocks(out, jac)
-        flat0, unravel = ravel_pytree(manifold.zero_tangent(params))
+        flat0, unravel = manifold.flat_tangent(params)
         holder: list[Any] = []
 
         def f(eps: Array) -> tuple[Array, Array]:

@@ -24,7 +24,6 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.flatten_util import ravel_pytree
 
 from ..lie import manifold
 from ..results import Results
@@ -228,7 +227,7 @@ class AbstractSolver(eqx.Module):
         delta = self._propose(state)
         step_ok = fresh | jnp.all(jnp.isfinite(delta))
         delta = jnp.where(step_ok & ~fresh, delta, 0.0)
-        _, unravel = ravel_pytree(manifold.zero_tangent(state.params))
+        _, unravel = manifold.flat_tangent(state.params)
         trial = manifold.retract(state.params, unravel(delta))
         lin = problem.linearize(trial, args)
         finite = step_ok & _all_finite(lin.cost, lin.res, lin.jac)

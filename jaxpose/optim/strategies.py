@@ -22,6 +22,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._checks import require
 from .linear import LinearSolver
 
 Array = jax.Array
@@ -40,11 +41,6 @@ class System(NamedTuple):
     grad: Array
     scale: Array
     lift: Array
-
-
-def _check(name: str, cond: bool, msg: str) -> None:
-    if not cond:
-        raise ValueError(f"{name}: {msg}")
 
 
 class Strategy(eqx.Module):
@@ -81,7 +77,7 @@ class Constant(Strategy):
     damping_value: float = 1e-6
 
     def __init__(self, damping: float = 1e-6):
-        _check("Constant(damping)", damping > 0, f"has to be positive, got {damping!r}")
+        require("Constant(damping)", damping > 0, f"has to be positive, got {damping!r}")
         self.damping_value = damping
 
     def init(self, dtype: Any) -> Array:
@@ -116,12 +112,12 @@ class Adaptive(Strategy):
         min: float = 1e-6,
         max: float = 1e16,
     ):
-        _check("Adaptive(damping)", damping > 0, f"has to be positive, got {damping!r}")
-        _check("Adaptive(high)", high > 0, f"has to be positive, got {high!r}")
-        _check("Adaptive(low)", low > 0, f"has to be positive, got {low!r}")
-        _check("Adaptive(up)", up > 1, f"has to be larger than 1, got {up!r}")
-        _check("Adaptive(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
-        _check("Adaptive(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
+        require("Adaptive(damping)", damping > 0, f"has to be positive, got {damping!r}")
+        require("Adaptive(high)", high > 0, f"has to be positive, got {high!r}")
+        require("Adaptive(low)", low > 0, f"has to be positive, got {low!r}")
+        require("Adaptive(up)", up > 1, f"has to be larger than 1, got {up!r}")
+        require("Adaptive(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
+        require("Adaptive(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
         self.damping_value, self.high, self.low = damping, high, low
         self.up, self.down, self.min, self.max = up, down, min, max
 
@@ -173,13 +169,13 @@ class TrustRegion(Strategy):
         min: float = 1e-6,
         max: float = 1e16,
     ):
-        _check("TrustRegion(radius)", radius > 0, f"has to be positive, got {radius!r}")
-        _check("TrustRegion(high)", high > 0, f"has to be positive, got {high!r}")
-        _check("TrustRegion(low)", low > 0, f"has to be positive, got {low!r}")
-        _check("TrustRegion(up)", up > 1, f"has to be larger than 1, got {up!r}")
-        _check("TrustRegion(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
-        _check("TrustRegion(factor)", 0 < factor < 1, f"has to be in (0, 1), got {factor!r}")
-        _check("TrustRegion(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
+        require("TrustRegion(radius)", radius > 0, f"has to be positive, got {radius!r}")
+        require("TrustRegion(high)", high > 0, f"has to be positive, got {high!r}")
+        require("TrustRegion(low)", low > 0, f"has to be positive, got {low!r}")
+        require("TrustRegion(up)", up > 1, f"has to be larger than 1, got {up!r}")
+        require("TrustRegion(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
+        require("TrustRegion(factor)", 0 < factor < 1, f"has to be in (0, 1), got {factor!r}")
+        require("TrustRegion(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
         self.radius, self.high, self.low, self.up = radius, high, low, up
         self.down, self.factor, self.min, self.max = down, factor, min, max
 
@@ -229,11 +225,11 @@ class Dogleg(Strategy):
         min: float = 1e-12,
         max: float = 1e12,
     ):
-        _check("Dogleg(radius)", radius > 0, f"has to be positive, got {radius!r}")
-        _check("Dogleg(low, high)", 0 <= low < high, f"need 0 <= low < high, got {low}, {high}")
-        _check("Dogleg(up)", up > 1, f"has to be larger than 1, got {up!r}")
-        _check("Dogleg(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
-        _check("Dogleg(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
+        require("Dogleg(radius)", radius > 0, f"has to be positive, got {radius!r}")
+        require("Dogleg(low, high)", 0 <= low < high, f"need 0 <= low < high, got {low}, {high}")
+        require("Dogleg(up)", up > 1, f"has to be larger than 1, got {up!r}")
+        require("Dogleg(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
+        require("Dogleg(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
         self.radius, self.high, self.low, self.up = radius, high, low, up
         self.down, self.min, self.max = down, min, max
 

@@ -240,7 +240,7 @@ class FixedLagSmoother(eqx.Module):
         return _where(self.frozen, self.prior_point, self.states)
 
     def _unravel(self) -> Callable[[Array], PyTree]:
-        return ravel_pytree(manifold.zero_tangent(_take(self.states, 0)))[1]
+        return manifold.flat_tangent(_take(self.states, 0))[1]
 
     def _plus(self, x: PyTree, e: Array) -> PyTree:
         return manifold.retract(x, self._unravel()(e))

@@ -22,7 +22,9 @@ from io_refs import quat_matrix, write_text
 from jaxpose.datasets import synthetic_bal, synthetic_pose_graph
 from jaxpose.imu import read_imu_gps
 from jaxpose.io import FormatError, PoseGraph, read_bal, read_g2o, write_bal, write_g2o
-from jaxpose.io.g2o import _compose, _compose1, _normalize
+from jaxpose.lie._numpy import compose as _compose
+from jaxpose.lie._numpy import compose1 as _compose1
+from jaxpose.lie._numpy import normalize as _normalize
 
 I6 = "1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"
 I3 = "1 0 0 1 0 1"

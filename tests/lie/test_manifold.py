@@ -102,6 +102,21 @@ def test_retract_is_right_multiplication_by_exp_and_addition():
             assert_close(y, np.asarray(x) + delta, np.float64, f64=0.0)
 
 
+def test_flat_tangent_layout_and_retraction():
+    p = _params()
+    d = _random_tangent(p)
+    flat0, unravel = manifold.flat_tangent(p)
+    flat_d, _ = ravel_pytree(d)
+    # the flat layout: zeros of size tangent_size, unravel inverts ravel of a tangent pytree
+    assert flat0.shape == (manifold.tangent_size(p),) and not np.any(np.asarray(flat0))
+    _assert_trees_close(unravel(flat_d), d, f64=0.0)
+    _assert_trees_close(manifold.retract(p, unravel(flat_d)), manifold.retract(p, d))
+    # a flat retraction differentiates and jits: d/dε (p ⊕ ε) ⊖ p at 0 is the identity
+    f = lambda e: ravel_pytree(manifold.rminus(manifold.retract(p, unravel(e)), p))[0]
+    jac = jax.jit(jax.jacfwd(f))(flat0)
+    assert_close(jac, np.eye(flat0.size), np.float64, f64=1e-12)
+
+
 def test_retract_rminus_are_inverse():
     p = _params()
     d = _random_tangent(p)
