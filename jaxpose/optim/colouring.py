@@ -183,9 +183,9 @@ class SparseJacobian(eqx.Module):
             d = self.dense()
             return d.T @ d
         blocks = []
-        for g, (rows, k, l, tgt) in zip(p.groups, p.hessian_plan()):
+        for g, (rows, ka, kb, tgt) in zip(p.groups, p.hessian_plan()):
             nb, s = g.shape
-            contrib = self.values[rows, k] * self.values[rows, l]
+            contrib = self.values[rows, ka] * self.values[rows, kb]
             flat = jnp.zeros((nb * s * s,), self.values.dtype).at[tgt].add(contrib)
             blocks.append(flat.reshape(nb, s, s))
         return BlockHessian(tuple(blocks), p)
