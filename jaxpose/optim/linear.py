@@ -13,6 +13,11 @@ revealing: undamped it needs J̃ of full column rank). No solver raises on a sin
 indefinite system: the step comes back non-finite or meaningless (SVD instead returns the
 minimum-norm pseudo-inverse step) and the optimiser treats a non-finite one as a failed
 trial. Any positive damping (LM) makes every solver well posed.
+
+On the coloured Jacobian path (``jacobian="sparse"``/``"auto"``) H may be a
+:class:`~jaxpose.optim.colouring.BlockHessian` (independent column groups): Cholesky, LU
+and SVD then factorise its small diagonal blocks one by one (batched); CG and QR use the
+dense matrices.
 """
 
 from __future__ import annotations
@@ -23,6 +28,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+
+from .colouring import BlockHessian, as_dense
 
 Array = jax.Array
 
@@ -54,6 +61,8 @@ class Cholesky(LinearSolver):
     """Cholesky of the damped normal matrix (default; H + diag(a) must be SPD)."""
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        if isinstance(hess, BlockHessian):
+            return hess.solve(-grad, diag_add, "cholesky")
         op = self._normal(hess, diag_add, lx.positive_semidefinite_tag)
         return lx.linear_solve(op, -grad, lx.Cholesky(), throw=False).value
 
@@ -62,6 +71,8 @@ class LU(LinearSolver):
     """LU with partial pivoting of the damped normal matrix."""
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        if isinstance(hess, BlockHessian):
+            return hess.solve(-grad, diag_add, "lu")
         op = self._normal(hess, diag_add)
         return lx.linear_solve(op, -grad, lx.LU(), throw=False).value
 
@@ -70,6 +81,7 @@ class QR(LinearSolver):
     """Householder QR of the augmented Jacobian [J̃; diag(√a)] (m + n, n)."""
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        jac = as_dense(jac)
         aug = jnp.concatenate([jac, jnp.diag(jnp.sqrt(jnp.maximum(diag_add, 0.0)))], 0)
         rhs = jnp.concatenate([-res, jnp.zeros_like(diag_add)])
         return lx.linear_solve(lx.MatrixLinearOperator(aug), rhs, lx.QR(), throw=False).value
@@ -82,6 +94,8 @@ class SVD(LinearSolver):
     rcond: float | None = eqx.field(default=None, static=True)
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
+        if isinstance(hess, BlockHessian):
+            return hess.solve(-grad, diag_add, "svd", self.rcond)
         op = self._normal(hess, diag_add)
         return lx.linear_solve(op, -grad, lx.SVD(rcond=self.rcond), throw=False).value
 
@@ -99,7 +113,7 @@ class CG(LinearSolver):
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         n = grad.shape[0]
         steps = 10 * max(n, 1) if self.max_steps is None else self.max_steps
-        op = self._normal(hess, diag_add, lx.positive_semidefinite_tag)
+        op = self._normal(as_dense(hess), diag_add, lx.positive_semidefinite_tag)
         tol_floor = 10 * jnp.finfo(grad.dtype).eps
         solver = lx.CG(rtol=max(self.rtol, float(tol_floor)), atol=self.atol, max_steps=steps)
         return lx.linear_solve(op, -grad, solver, throw=False).value

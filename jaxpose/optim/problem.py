@@ -32,19 +32,42 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..lie import manifold
+from .colouring import Pattern, SparseJacobian, compressed_jacobian, make_pattern
 from .correctors import Corrector, FastTriggs
 from .kernels import Kernel
+from .sparsity import jacobian_pattern
 
 Array = jax.Array
 PyTree = Any
 
 
+# jacobian="auto" colours the Jacobian when the tangent has at least this many entries and
+# the colouring needs at most this fraction of min(m, n) JVPs
+AUTO_MIN_TANGENT = 48
+AUTO_MAX_COLOUR_FRACTION = 0.25
+_PATTERNS: dict[tuple[Any, ...], Pattern] = {}
+
+
 class Linearization(NamedTuple):
-    """Whitened, kernel-corrected residual ẽ (m,) and Jacobian J̃ (m, n) plus the cost."""
+    """Whitened, kernel-corrected residual ẽ (m,) and Jacobian J̃ (m, n) plus the cost.
+
+    ``jac`` is a :class:`~jaxpose.optim.colouring.SparseJacobian` on the coloured path of
+    :meth:`Problem.linearize_structured`; :meth:`Problem.linearize` always gives (m, n)."""
 
     res: Array
-    jac: Array
+    jac: Array | SparseJacobian
     cost: Array
+
+
+def _block_of_row(leaves: list[Any]) -> np.ndarray:
+    """Residual block index of every flattened residual row (m,)."""
+    parts, offset = [], 0
+    for leaf in leaves:
+        d, batch = _block_dim(tuple(leaf.shape))
+        nb = int(np.prod(batch))
+        parts.append(offset + np.repeat(np.arange(nb), d))
+        offset += nb
+    return np.concatenate(parts) if parts else np.zeros((0,), np.int64)
 
 
 def _is_kernel_leaf(x: Any) -> bool:
@@ -64,8 +87,11 @@ def _block_dim(shape: tuple[int, ...]) -> tuple[int, tuple[int, ...]]:
 class Problem(eqx.Module):
     """A residual function plus everything that shapes its cost (see module docstring).
 
-    ``jacobian``: ``"auto"`` (jacfwd when the tangent is no larger than the residual,
-    jacrev otherwise), ``"fwd"``, ``"rev"``, or a callable ``(params, args) -> (m, n)``.
+    ``jacobian``: ``"auto"`` (coloured when the Jacobian is sparse enough, else jacfwd
+    when the tangent is no larger than the residual, jacrev otherwise), ``"fwd"``,
+    ``"rev"``, ``"sparse"`` (always coloured: structural sparsity from the JVP program,
+    one JVP per colour; see :mod:`jaxpose.optim.colouring`), or a callable
+    ``(params, args) -> (m, n)``.
     ``corrector`` defaults to :class:`FastTriggs` when a kernel is given."""
 
     residual_fn: Callable[[PyTree, PyTree], PyTree]
@@ -80,10 +106,10 @@ class Problem(eqx.Module):
                 f"residual_fn: expected a callable residual_fn(params, args), got "
                 f"{type(self.residual_fn).__name__}"
             )
-        if not (callable(self.jacobian) or self.jacobian in ("auto", "fwd", "rev")):
+        if not (callable(self.jacobian) or self.jacobian in ("auto", "fwd", "rev", "sparse")):
             raise ValueError(
-                f"jacobian={self.jacobian!r}: expected 'auto', 'fwd', 'rev' or a callable "
-                f"jacobian(params, args) -> (m, n) array"
+                f"jacobian={self.jacobian!r}: expected 'auto', 'fwd', 'rev', 'sparse' or a "
+                f"callable jacobian(params, args) -> (m, n) array"
             )
         if self.corrector is not None and not isinstance(self.corrector, Corrector):
             raise TypeError(
@@ -219,28 +245,84 @@ class Problem(eqx.Module):
         """``0.5 · Σ ρ(rᵀ W r)`` at ``params`` (a scalar)."""
         return self._blocks(self.residual_fn(params, args), None).cost
 
-    def linearize(self, params: PyTree, args: PyTree) -> Linearization:
-        """Residual, tangent-space Jacobian (whitened, corrected) and cost at ``params``."""
+    def _flat_fn(self, params: PyTree, args: PyTree) -> tuple[Array, Callable[..., Any]]:
+        flat0, unravel = manifold.flat_tangent(params)
+
+        def g(eps: Array) -> Array:
+            out = self.residual_fn(manifold.retract(params, unravel(eps)), args)
+            return ravel_pytree(out)[0]
+
+        return flat0, g
+
+    def pattern(self, params: PyTree, args: PyTree) -> Pattern:
+        """The coloured structural Jacobian pattern at ``params``' shapes (cached by the
+        residual program and the residual's block layout)."""
+        flat0, g = self._flat_fn(params, args)
+        key, jp = jacobian_pattern(g, flat0)
+        leaves = jax.tree.leaves(jax.eval_shape(self.residual_fn, params, args))
+        shapes = tuple(tuple(leaf.shape) for leaf in leaves)
+        if (key, shapes) not in _PATTERNS:
+            if len(_PATTERNS) > 64:
+                _PATTERNS.clear()
+            _PATTERNS[(key, shapes)] = make_pattern(jp, _block_of_row(leaves))
+        return _PATTERNS[(key, shapes)]
+
+    def jacobian_mode(self, params: PyTree, args: PyTree) -> tuple[str, Pattern | None]:
+        """How :meth:`linearize` differentiates: ``("user" | "fwd" | "rev", None)`` or
+        ``("sparse", pattern)``."""
         if callable(self.jacobian):
+            return "user", None
+        if self.jacobian == "sparse":
+            return "sparse", self.pattern(params, args)
+        if self.jacobian != "auto":
+            return self.jacobian, None
+        n = manifold.tangent_size(params)
+        out_shape = jax.eval_shape(self.residual_fn, params, args)
+        m = sum(int(np.prod(leaf.shape)) for leaf in jax.tree.leaves(out_shape))
+        if n >= AUTO_MIN_TANGENT:
+            try:
+                pat = self.pattern(params, args)
+            except Exception:  # noqa: BLE001 - an unanalysable program: the dense path
+                pat = None
+            if pat is not None and pat.num_colours <= AUTO_MAX_COLOUR_FRACTION * min(m, n):
+                return "sparse", pat
+        return ("fwd" if n <= m else "rev"), None
+
+    def linearize(self, params: PyTree, args: PyTree) -> Linearization:
+        """Residual, tangent-space Jacobian (whitened, corrected; dense (m, n)) and cost."""
+        lin = self.linearize_structured(params, args)
+        if isinstance(lin.jac, SparseJacobian):
+            return Linearization(lin.res, lin.jac.dense(), lin.cost)
+        return lin
+
+    def linearize_structured(self, params: PyTree, args: PyTree) -> Linearization:
+        """:meth:`linearize`, with the Jacobian as a :class:`SparseJacobian` (compressed
+        values (m, c)) on the coloured path."""
+        mode, pat = self.jacobian_mode(params, args)
+        if mode == "user":
             out = self.residual_fn(params, args)
             jac = jnp.asarray(self.jacobian(params, args))
             return self._blocks(out, jac)
         flat0, unravel = manifold.flat_tangent(params)
         holder: list[Any] = []
 
-        def f(eps: Array) -> tuple[Array, Array]:
+        def f(eps: Array) -> Array:
             out = self.residual_fn(manifold.retract(params, unravel(eps)), args)
             flat, unravel_out = ravel_pytree(out)
             holder.append(unravel_out)
+            return flat
+
+        if mode == "sparse":
+            flat_out, comp = compressed_jacobian(f, flat0, pat)
+            lin = self._blocks(holder[-1](flat_out), comp)
+            return Linearization(lin.res, SparseJacobian(lin.jac, pat), lin.cost)
+
+        def f_aux(eps: Array) -> tuple[Array, Array]:
+            flat = f(eps)
             return flat, flat
 
-        mode = self.jacobian
-        if mode == "auto":
-            out_shape = jax.eval_shape(self.residual_fn, params, args)
-            m = sum(int(np.prod(leaf.shape)) for leaf in jax.tree.leaves(out_shape))
-            mode = "fwd" if flat0.size <= m else "rev"
         jac_fn = jax.jacfwd if mode == "fwd" else jax.jacrev
-        jac, flat_out = jac_fn(f, has_aux=True)(flat0)
+        jac, flat_out = jac_fn(f_aux, has_aux=True)(flat0)
         out = holder[-1](flat_out)
         return self._blocks(out, jac)
 

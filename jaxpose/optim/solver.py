@@ -27,6 +27,7 @@ import jax.numpy as jnp
 
 from ..lie import manifold
 from ..results import Results
+from .colouring import BlockHessian, SparseJacobian, diagonal, normal_equations
 from .linear import Cholesky, LinearSolver
 from .problem import Linearization, Problem, as_problem
 from .stopping import Stopping, Trial, check, nonfinite_run, plateau_count
@@ -117,14 +118,12 @@ class AbstractSolver(eqx.Module):
 
     # -- shared ------------------------------------------------------------------------
     def _system(self, lin: Linearization) -> System:
-        jac, res = lin.jac, lin.res
-        hess = jac.T @ jac
-        grad = jac.T @ res
-        diag = jnp.diagonal(hess)
+        hess, grad = normal_equations(lin.jac, lin.res)
+        diag = diagonal(hess)
         lo, hi = self._diag_bounds()
         scale = jnp.clip(diag, lo, hi)
         lift = jnp.maximum(scale - diag, 0.0)
-        return System(jac, res, hess, grad, scale, lift)
+        return System(lin.jac, lin.res, hess, grad, scale, lift)
 
     def init(
         self,
@@ -160,10 +159,22 @@ class AbstractSolver(eqx.Module):
         )
         dtype = cost.dtype
         m, n = lin.res.shape[0], manifold.tangent_size(params)
+        mode, pattern = problem.jacobian_mode(params, args)
+        if mode == "sparse":  # the coloured path's structures (the loop carry's layout)
+            jac0: Any = SparseJacobian(jnp.zeros((m, pattern.num_colours), dtype), pattern)
+            hess0: Any = jac0.normal()
+            if isinstance(hess0, BlockHessian):
+                hess0 = BlockHessian(
+                    tuple(jnp.broadcast_to(jnp.eye(b.shape[-1], dtype=dtype), b.shape)
+                          for b in hess0.blocks), pattern)
+            else:
+                hess0 = jnp.eye(n, dtype=dtype)
+        else:
+            jac0, hess0 = jnp.zeros((m, n), dtype), jnp.eye(n, dtype=dtype)
         system = System(
-            jnp.zeros((m, n), dtype),
+            jac0,
             jnp.zeros((m,), dtype),
-            jnp.eye(n, dtype=dtype),
+            hess0,
             jnp.zeros((n,), dtype),
             jnp.ones((n,), dtype),
             jnp.zeros((n,), dtype),
@@ -229,8 +240,8 @@ class AbstractSolver(eqx.Module):
         delta = jnp.where(step_ok & ~fresh, delta, 0.0)
         _, unravel = manifold.flat_tangent(state.params)
         trial = manifold.retract(state.params, unravel(delta))
-        lin = problem.linearize(trial, args)
-        finite = step_ok & _all_finite(lin.cost, lin.res, lin.jac)
+        lin = problem.linearize_structured(trial, args)
+        finite = step_ok & _all_finite(lin.cost, lin.res, *jax.tree.leaves(lin.jac))
         actual = state.cost - lin.cost
         pred = -(sys_.grad @ delta + 0.5 * delta @ (sys_.hess @ delta))
         tiny = jnp.finfo(pred.dtype).tiny
@@ -245,7 +256,7 @@ class AbstractSolver(eqx.Module):
 
         new_lin = Linearization(
             jnp.where(finite, lin.res, 0.0),
-            jnp.where(finite, lin.jac, 0.0),
+            jax.tree.map(lambda j: jnp.where(finite, j, 0.0), lin.jac),
             jnp.where(finite, lin.cost, state.cost),
         )
         system = _select(accepted, self._system(new_lin), sys_)

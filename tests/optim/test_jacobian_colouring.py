@@ -1,0 +1,242 @@
+"""Structural Jacobian sparsity, column colouring and the coloured LM path.
+
+References are independent of the code under test: ``jax.jacfwd`` of the residual in the
+tangent chart (the dense path's definition of the Jacobian), hand-written patterns, and
+the dense solver's answers.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from jax.flatten_util import ravel_pytree
+
+import jaxpose.optim as jo
+from jaxpose.lie import SE3, manifold
+from jaxpose.optim.colouring import BlockHessian, SparseJacobian, greedy_colouring
+from jaxpose.optim.sparsity import jacobian_pattern
+
+
+def _poses(batch: int, seed: int) -> SE3:
+    return SE3.exp(jnp.asarray(np.random.default_rng(seed).normal(size=(batch, 6))))
+
+
+def invnet(x: SE3, a: SE3) -> jax.Array:
+    """PyPose's pose inversion: one 6-d residual per pose (block-diagonal Jacobian)."""
+    return (x @ a).log().data
+
+
+def banded(x: jax.Array, c: jax.Array) -> jax.Array:
+    """Discrete second difference plus a nonlinearity: tridiagonal Jacobian (blocks of
+    dimension 1: a residual of shape (m,) would be one block of dimension m)."""
+    inner = x[:-2] - 2.0 * x[1:-1] + x[2:] + jnp.sin(x[1:-1]) * c
+    return jnp.concatenate([inner, x[:1] - 1.0, x[-1:] + 1.0])[:, None]
+
+
+def dense_res(x: jax.Array, a: jax.Array) -> jax.Array:
+    return jnp.tanh(a @ x) - 0.1 * x
+
+
+def mixed(p: dict, a: SE3) -> dict:
+    """Pytree params (SE3 batch + array) and a pytree residual; v couples to its pose."""
+    rot = (p["pose"] @ a).log().data + jnp.concatenate(
+        [p["v"], jnp.zeros_like(p["v"])], -1)
+    return {"rot": rot, "prior": (p["v"] - 0.5)[:, :, None]}
+
+
+def trap(x: jax.Array, _: object) -> jax.Array:
+    """Structurally nonzero entries that vanish at the test point: x_{i+1} = 0 makes
+    ∂(x_i x_{i+1})/∂x_i = 0, and a ``where`` picks one of two inputs by value."""
+    prod = x[:-2] * x[1:-1]
+    pick = jnp.where(x[:-2] > 0, x[1:-1], x[2:])
+    return jnp.stack([prod, pick], -1)
+
+
+def _dense_jac(problem: jo.Problem, params, args):
+    return jo.Problem(problem.residual_fn, jacobian="fwd").linearize(params, args).jac
+
+
+def _coloured(problem_fn, params, args, **kw):
+    prob = jo.Problem(problem_fn, jacobian="sparse", **kw)
+    return prob, prob.linearize_structured(params, args)
+
+
+# ----------------------------------------------------------------------------------
+# pattern and colouring
+# ----------------------------------------------------------------------------------
+def test_invnet_pattern_is_block_diagonal_and_needs_six_colours():
+    x, a = _poses(7, 0), _poses(7, 1)
+    prob, lin = _coloured(invnet, x, a)
+    pat = lin.jac.pattern
+    assert pat.num_colours == 6
+    assert len(pat.groups) == 1 and pat.groups[0].shape == (7, 6)
+    # hand-written: pose i's 6 tangent columns, in its 6 residual rows only
+    expected = np.kron(np.eye(7, dtype=bool), np.ones((6, 6), bool))
+    dense = np.asarray(lin.jac.dense()) != 0
+    assert not np.any(dense & ~expected)
+    np.testing.assert_array_equal(np.asarray(lin.jac.dense()), _dense_jac(prob, x, a))
+
+
+def test_banded_pattern_three_colours_and_exact_values():
+    x = jnp.asarray(np.random.default_rng(3).normal(size=40))
+    c = jnp.asarray(0.7)
+    prob, lin = _coloured(banded, x, c)
+    assert lin.jac.pattern.num_colours == 3
+    assert lin.jac.pattern.groups is None  # one connected component: dense H
+    np.testing.assert_array_equal(np.asarray(lin.jac.dense()), _dense_jac(prob, x, c))
+
+
+def test_dense_pattern_needs_every_colour_and_matches_jacfwd():
+    rng = np.random.default_rng(4)
+    x, a = jnp.asarray(rng.normal(size=12)), jnp.asarray(rng.normal(size=(12, 12)))
+    prob, lin = _coloured(dense_res, x, a)
+    assert lin.jac.pattern.num_colours == 12
+    np.testing.assert_array_equal(np.asarray(lin.jac.dense()), _dense_jac(prob, x, a))
+
+
+def test_mixed_pytree_params_and_residual():
+    p = {"pose": _poses(5, 5), "v": jnp.asarray(np.random.default_rng(6).normal(size=(5, 3)))}
+    a = _poses(5, 7)
+    prob, lin = _coloured(mixed, p, a)
+    # columns: 30 pose + 15 v; a "rot" block touches 6 + 3 columns, a "prior" row one
+    assert lin.jac.pattern.num_colours == 9
+    np.testing.assert_array_equal(np.asarray(lin.jac.dense()), _dense_jac(prob, p, a))
+
+
+def test_trap_structural_zero_at_the_point_is_kept():
+    # x_{i+1} = 0 for even i: the product's ∂/∂x_i vanishes there numerically
+    x = jnp.asarray([1.0, 0.0, -2.0, 0.0, 3.0, 0.0, -1.0, 0.0, 2.0, 0.5])
+    flat = lambda e: trap(e, None).reshape(-1)  # noqa: E731
+    _, pat = jacobian_pattern(flat, x)
+    n = x.size
+    expected = np.zeros((2 * (n - 2), n), bool)
+    for i in range(n - 2):
+        expected[2 * i, [i, i + 1]] = True  # x_i x_{i+1}
+        # where(x_i > 0, x_{i+1}, x_{i+2}): both branches count, the predicate's x_i not
+        expected[2 * i + 1, [i + 1, i + 2]] = True
+    np.testing.assert_array_equal(pat.toarray(), expected)
+    # numerically, jacfwd at x misses entries the pattern keeps ...
+    jd = np.asarray(jax.jacfwd(flat)(x)) != 0
+    assert np.sum(jd) < np.sum(expected)
+    # ... and the coloured Jacobian is exact here and where the branches flip
+    prob = jo.Problem(trap, jacobian="sparse")
+    for point in (x, -x + 0.3, jnp.linspace(-1.0, 1.0, n)):
+        got = prob.linearize(point, None).jac
+        np.testing.assert_array_equal(np.asarray(got), _dense_jac(prob, point, None))
+
+
+def test_traced_indices_fall_back_to_a_conservative_pattern():
+    def res(x, args):
+        idx, y = args
+        return (x[idx] * x[idx] - y)[:, None]
+
+    x = jnp.linspace(0.5, 2.0, 20)
+    idx = jnp.asarray(np.random.default_rng(8).integers(0, 20, 30))
+    y = jnp.ones(30)
+    prob = jo.Problem(res, jacobian="sparse")
+    got = jax.jit(lambda x, idx: prob.linearize(x, (idx, y)).jac)(x, idx)
+    np.testing.assert_array_equal(np.asarray(got), _dense_jac(prob, x, (idx, y)))
+    # with constant indices the pattern is exact: one column per row
+    const = jo.Problem(lambda x, y: res(x, (np.asarray(idx), y)), jacobian="sparse")
+    assert const.pattern(x, y).num_colours < 20
+
+
+def test_greedy_colouring_is_valid_on_random_patterns():
+    rng = np.random.default_rng(9)
+    for density in (0.02, 0.1, 0.5):
+        p = sp.random(50, 40, density=density, random_state=rng, format="csr") != 0
+        colour = greedy_colouring(p)
+        for r in range(p.shape[0]):
+            cols = p.indices[p.indptr[r]:p.indptr[r + 1]]
+            assert len(set(colour[cols])) == cols.size
+
+
+def test_weights_kernel_and_triggs_whiten_the_compressed_jacobian_exactly():
+    x, a = _poses(6, 10), _poses(6, 11)
+    w = jnp.asarray(np.random.default_rng(12).normal(size=(6, 6, 6)))
+    w = jnp.einsum("bij,bkj->bik", w, w) + jnp.eye(6)
+    kw = {"weights": w, "kernel": jo.Huber(0.3), "corrector": jo.Triggs()}
+    dense = jo.Problem(invnet, jacobian="fwd", **kw).linearize(x, a)
+    sparse = jo.Problem(invnet, jacobian="sparse", **kw).linearize(x, a)
+    np.testing.assert_allclose(np.asarray(sparse.jac), np.asarray(dense.jac), rtol=0,
+                               atol=1e-13)
+    np.testing.assert_array_equal(np.asarray(sparse.res), np.asarray(dense.res))
+
+
+def test_block_hessian_matches_dense_normal_matrix():
+    x, a = _poses(4, 13), _poses(4, 14)
+    _, lin = _coloured(invnet, x, a)
+    h = lin.jac.normal()
+    assert isinstance(h, BlockHessian)
+    jd = np.asarray(lin.jac.dense())
+    np.testing.assert_allclose(np.asarray(h.dense()), jd.T @ jd, rtol=1e-13, atol=1e-13)
+    v = jnp.asarray(np.random.default_rng(15).normal(size=24))
+    np.testing.assert_allclose(np.asarray(h @ v), jd.T @ jd @ np.asarray(v), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(lin.jac.rmatvec(lin.res)), jd.T @ np.asarray(lin.res),
+                               atol=1e-12)
+
+
+# ----------------------------------------------------------------------------------
+# solves
+# ----------------------------------------------------------------------------------
+def test_auto_colours_invnet_and_keeps_small_problems_dense():
+    x, a = _poses(10, 16), _poses(10, 17)
+    mode, pat = jo.Problem(invnet).jacobian_mode(x, a)
+    assert mode == "sparse" and pat.num_colours == 6
+    assert jo.Problem(invnet).jacobian_mode(_poses(2, 1), _poses(2, 2))[0] == "fwd"
+
+
+@pytest.mark.parametrize("linear_solver", [jo.Cholesky(), jo.LU(), jo.SVD(), jo.QR(), jo.CG()])
+def test_invnet_solution_equals_dense_path(linear_solver):
+    x0, a = _poses(12, 18), _poses(12, 19)
+    solver = jo.LM(linear_solver=linear_solver)
+    sols = [jo.least_squares(invnet, x0, a, solver, jacobian=m) for m in ("sparse", "fwd")]
+    assert int(sols[0].num_steps) == int(sols[1].num_steps)
+    np.testing.assert_allclose(sols[0].params.data, sols[1].params.data, atol=1e-10)
+    # the exact answer: X = input⁻¹
+    np.testing.assert_allclose(np.asarray((sols[0].params @ a).log().data), 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("solver", [jo.GN(), jo.LM(strategy=jo.Dogleg())])
+def test_banded_solution_equals_dense_path(solver):
+    x0 = jnp.zeros(30)
+    c = jnp.asarray(0.3)
+    sols = [jo.least_squares(banded, x0, c, solver, jacobian=m) for m in ("sparse", "fwd")]
+    np.testing.assert_allclose(sols[0].params, sols[1].params, atol=1e-10)
+    assert float(sols[0].cost) < 1e-20
+
+
+def test_vmap_jit_and_grad_through_the_coloured_solve():
+    a = _poses(8, 20)
+    x0 = _poses(8, 21)
+
+    def final(a_data, mode):
+        sol = jo.least_squares(invnet, x0, SE3(a_data), jacobian=mode)
+        return jnp.sum(sol.params.data[:, :3] ** 2)
+
+    g_sparse = jax.jit(jax.grad(lambda d: final(d, "sparse")))(a.data)
+    g_dense = jax.grad(lambda d: final(d, "fwd"))(a.data)
+    np.testing.assert_allclose(g_sparse, g_dense, atol=1e-8)
+
+    batch = jnp.stack([a.data, _poses(8, 22).data])
+    solve = jax.vmap(lambda d: jo.least_squares(invnet, x0, SE3(d), jacobian="sparse").params.data)
+    out = jax.jit(solve)(batch)
+    for k in range(2):
+        ref = jo.least_squares(invnet, x0, SE3(batch[k]), jacobian="fwd").params.data
+        np.testing.assert_allclose(out[k], ref, atol=1e-10)
+
+
+def test_unknown_jacobian_mode_names_sparse():
+    with pytest.raises(ValueError, match="'sparse'"):
+        jo.Problem(invnet, jacobian="colour")
+
+
+def test_sparse_jacobian_is_a_pytree_of_values_only():
+    _, lin = _coloured(invnet, _poses(3, 23), _poses(3, 24))
+    assert isinstance(lin.jac, SparseJacobian)
+    assert [leaf.shape for leaf in jax.tree.leaves(lin.jac)] == [(18, 6)]
+    flat0, _ = ravel_pytree(manifold.zero_tangent(_poses(3, 23)))
+    assert lin.jac.shape == (18, flat0.size)
