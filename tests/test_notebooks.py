@@ -1,7 +1,7 @@
 """Every tutorial notebook in notebooks/ executes top to bottom (nbclient, a fresh IPython
 kernel per notebook) at the tiny sizes selected by ``JAXPOSE_NOTEBOOK_SMOKE=1``, so the
-tutorials never rot; and every notebook is Colab-ready (its first cell installs jaxpose
-only when it is not importable).
+tutorials never rot (XLA's fast-compile options come from tests/conftest.py); and every
+notebook is Colab-ready (its first cell installs jaxpose only when it is not importable).
 
 A notebook that needs an optional package declares it in its metadata,
 ``{"jaxpose": {"requires": ["mujoco"]}}``; it is skipped when that package is missing.
@@ -10,12 +10,9 @@ Skipped as a whole when nbclient / ipykernel are not installed (``pip install .[
 
 from __future__ import annotations
 
-import functools
 import importlib.util
 import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -24,26 +21,6 @@ import pytest
 NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
 CELL_TIMEOUT = 600  # seconds; the smoke sizes take a few seconds per cell
-# Compilation dominates at smoke sizes; these XLA:CPU options cut it about twofold.
-FAST_COMPILE_FLAGS = (
-    "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true "
-    "--xla_cpu_use_fusion_emitters=false"
-)
-
-
-@functools.cache
-def _xla_flags() -> str:
-    """XLA_FLAGS for the kernels: the fast-compile options when this XLA accepts them
-    (an unknown flag aborts the process), else the environment's flags unchanged."""
-    base = os.environ.get("XLA_FLAGS", "")
-    flags = f"{base} {FAST_COMPILE_FLAGS}".strip()
-    probe = subprocess.run(
-        [sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"],
-        env={**os.environ, "XLA_FLAGS": flags},
-        capture_output=True,
-        timeout=120,
-    )
-    return flags if probe.returncode == 0 else base
 
 
 def _load(path: Path) -> dict:
@@ -87,7 +64,6 @@ def test_notebook_executes(path, monkeypatch):
         if importlib.util.find_spec(module.split(".")[0]) is None:
             pytest.skip(f"{path.name} needs {module}")
     monkeypatch.setenv("JAXPOSE_NOTEBOOK_SMOKE", "1")
-    monkeypatch.setenv("XLA_FLAGS", _xla_flags())
     monkeypatch.setenv("PYDEVD_DISABLE_FILE_VALIDATION", "1")  # quiet debugger warning
     client = nbclient.NotebookClient(
         nb,
