@@ -17,7 +17,7 @@ from .preintegration import (
     SCHEMES,
     ImuPreintegrator,
     Preintegrated,
-    integrate,
+    dead_reckon,
     predict,
     preintegrate,
 )
@@ -38,7 +38,7 @@ __all__ = [
     "gps_residual",
     "imu_factor",
     "imu_residual",
-    "integrate",
+    "dead_reckon",
     "predict",
     "preintegrate",
     "preintegrate_windows",

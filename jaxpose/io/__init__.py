@@ -4,7 +4,7 @@ All readers return plain float64/int64 numpy containers (:class:`PoseGraph`,
 :class:`BALProblem`) and raise :class:`FormatError` (``"FILE:LINE: ..."``) on malformed input.
 """
 
-from .bal import BALProblem, project_bal, read_bal, write_bal
+from .bal import BALProblem, read_bal, write_bal
 from .errors import FormatError
 from .g2o import (
     INFORMATION_POLICIES,
@@ -22,7 +22,6 @@ __all__ = [
     "PoseGraph",
     "apply_information_policy",
     "connected_components",
-    "project_bal",
     "read_bal",
     "read_g2o",
     "write_bal",
