@@ -2,6 +2,9 @@
 
 All readers return plain float64/int64 numpy containers (:class:`PoseGraph`,
 :class:`BALProblem`) and raise :class:`FormatError` (``"FILE:LINE: ..."``) on malformed input.
+``INFORMATION_POLICIES``: the policies for information matrices that are not positive
+definite (:func:`apply_information_policy`, ``read_g2o(information=...)``). The BAL camera
+model itself is :func:`jaxpose.geometry.bal_project`.
 """
 
 from .bal import BALProblem, read_bal, write_bal
