@@ -61,7 +61,7 @@ def default_tol(dtype: Any) -> float:
     return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-5
 
 
-def dynamics_jacobians(system: System, xs: Array, us: Array, ts: Array) -> Array:
+def _dynamics_jacobians(system: System, xs: Array, us: Array, ts: Array) -> Array:
     """``F_t = [∂f/∂x, ∂f/∂u]`` (T, n, n+m) along a trajectory (per step ``jacfwd``)."""
     if isinstance(system, LTI):
         F = jnp.concatenate([system.A, system.B], -1)
@@ -216,7 +216,7 @@ def _ilqr(
         return jnp.concatenate([x0[None], xn], 0), un, jnp.sum(cs) + cost.terminal(xT)
 
     def backward(xs: Array, us: Array, mu: Array, k_warm: Array):
-        F = dynamics_jacobians(system, xs[:-1], us, ts)
+        F = _dynamics_jacobians(system, xs[:-1], us, ts)
         H, g = jax.vmap(cost.quadratize)(xs[:-1], us, ts)
         HT, gT = cost.quadratize_terminal(xs[-1])
         zero_f = jnp.zeros((n,), dtype)
