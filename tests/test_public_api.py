@@ -42,9 +42,13 @@ def _exports(pkg_name: str) -> list[tuple[str, object]]:
 def _public_modules() -> list[types.ModuleType]:
     mods = [jaxpose]
     for info in pkgutil.walk_packages(jaxpose.__path__, "jaxpose."):
-        if info.name in OPTIONAL or any(p.startswith("_") for p in info.name.split(".")):
+        if any(p.startswith("_") for p in info.name.split(".")):
             continue
-        mods.append(importlib.import_module(info.name))
+        try:
+            mods.append(importlib.import_module(info.name))
+        except ImportError:
+            if info.name not in OPTIONAL:
+                raise
     return mods
 
 

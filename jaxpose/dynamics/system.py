@@ -30,7 +30,9 @@ Array = jax.Array
 
 
 class LinearizedSystem(eqx.Module):
-    """Affine model at a reference point (shapes for one element; batches lead).
+    """A system linearised at a reference point (:meth:`System.linearize`): the affine
+    model ``x⁺ ≈ A x + B u + c1``, ``y ≈ C x + D u + c2`` (shapes for one element;
+    batches lead).
 
     ``A`` (n, n), ``B`` (n, m), ``C`` (p, n), ``D`` (p, m), ``c1`` (n,), ``c2`` (p,)."""
 

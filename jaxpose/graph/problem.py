@@ -122,7 +122,8 @@ class FactorGraph(eqx.Module):
 # Evaluation
 # ----------------------------------------------------------------------------------
 class GraphLinearization(eqx.Module):
-    """Whitened residuals and Jacobian blocks of every factor group at one point."""
+    """A factor graph linearised at one point (:func:`linearize`): whitened residuals and
+    Jacobian blocks of every factor group, and the cost."""
 
     residuals: tuple[Array, ...]  # per factor group: (m, r) whitened (and robustified)
     jacobians: tuple[tuple[Array, ...], ...]  # per group, per slot: (m, r, d_slot)

@@ -49,7 +49,8 @@ _PATTERNS: dict[tuple[Any, ...], Pattern] = {}
 
 
 class LinearizedResidual(NamedTuple):
-    """Whitened, kernel-corrected residual ẽ (m,) and Jacobian J̃ (m, n) plus the cost.
+    """The dense problem linearised at one point (:meth:`Problem.linearize`): whitened,
+    kernel-corrected residual ẽ (m,) and Jacobian J̃ (m, n) plus the cost.
 
     ``jac`` is a :class:`~jaxpose.optim.colouring.SparseJacobian` on the coloured path of
     :meth:`Problem.linearize_structured`; :meth:`Problem.linearize` always gives (m, n)."""

@@ -29,7 +29,8 @@ Array = jax.Array
 
 
 class NormalEquations(NamedTuple):
-    """Linearised least-squares system at the current estimate (all whitened/corrected).
+    """Gauss-Newton normal equations at the current estimate, handed to
+    :meth:`Strategy.step` (all whitened/corrected; the strategy adds the damping).
 
     jac (m, n), res (m,), hess = jacᵀjac (n, n), grad = jacᵀres (n,),
     scale = clamp(diag hess, diag_min, diag_max) (n,), lift = scale − diag hess ≥ 0 on
