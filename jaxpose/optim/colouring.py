@@ -86,6 +86,7 @@ class Pattern:
 
     @property
     def seeds(self) -> np.ndarray:
+        """(num_colours, n) 0/1 seed matrix: row c selects the columns of colour c."""
         s = np.zeros((self.num_colours, self.n))
         s[self.colour, np.arange(self.n)] = 1.0
         return s
@@ -156,6 +157,7 @@ class SparseJacobian(eqx.Module):
 
     @property
     def shape(self) -> tuple[int, int]:
+        """(m, n) of the Jacobian."""
         return (self.pattern.m, self.pattern.n)
 
     def dense(self) -> Array:
@@ -200,6 +202,7 @@ class BlockHessian(eqx.Module):
 
     @property
     def shape(self) -> tuple[int, int]:
+        """(n, n) of the Gauss-Newton matrix."""
         return (self.pattern.n, self.pattern.n)
 
     def _scatter(self, parts: list[Array]) -> Array:
@@ -213,9 +216,11 @@ class BlockHessian(eqx.Module):
                               for b, g in zip(self.blocks, self.pattern.groups)])
 
     def diagonal(self) -> Array:
+        """diag(H) (n,)."""
         return self._scatter([jnp.diagonal(b, axis1=1, axis2=2) for b in self.blocks])
 
     def dense(self) -> Array:
+        """The (n, n) matrix."""
         n = self.pattern.n
         out = jnp.zeros((n, n), self.blocks[0].dtype)
         for b, g in zip(self.blocks, self.pattern.groups):
