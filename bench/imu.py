@@ -18,7 +18,7 @@ preintegrated deltas):
   delta, ``prefix=True``, plus the window covariance) in one jitted function;
 * ``values + covariance + bias Jacobians``: jaxpose only (PyPose has no bias Jacobians),
   its ratio taken against PyPose's values + covariance;
-* ``per-sample states``: jaxpose ``integrate`` (dead reckoning) vs PyPose
+* ``per-sample states``: jaxpose ``dead_reckon`` (dead reckoning) vs PyPose
   ``prop_cov=False``.
 
 jaxpose runs under ``jit`` (compile time reported separately); PyPose eagerly under
@@ -94,7 +94,7 @@ def make_samples(batch: int, n: int, dtype: str, seed: int = 0) -> tuple[np.ndar
 def jaxpose_tasks() -> dict[str, Any]:
     import jax.numpy as jnp
 
-    from jaxpose.imu import integrate, preintegrate
+    from jaxpose.imu import dead_reckon, preintegrate
 
     noise = dict(gyro_noise=SIGMA_G, acc_noise=SIGMA_A)
 
@@ -112,7 +112,7 @@ def jaxpose_tasks() -> dict[str, Any]:
         return out.rot.data, out.vel, out.pos, out.cov, out.jac
 
     def states(g, a, d):
-        s = integrate(g, a, d, jnp.zeros(3, g.dtype))
+        s = dead_reckon(g, a, d, jnp.zeros(3, g.dtype))
         return s.rot.data, s.vel, s.pos
 
     return dict(zip(TASKS, (values_cov, states_cov, with_jac, states), strict=True))

@@ -67,14 +67,14 @@ PRIOR = (0.01, 0.5, 0.1, 1e-3)  # rotation, position, velocity, bias σ
 
 def load(stride: int, samples: int | None):
     """Samples, keyframe sample indices, dead-reckoned states at the keyframes."""
-    from jaxpose.imu import NavState, integrate, read_imu_gps
+    from jaxpose.imu import NavState, dead_reckon, read_imu_gps
     from jaxpose.lie import SO3
 
     d = read_imu_gps(DATA)
     n = d.acc.shape[0] if samples is None else samples
     gyro, acc = d.gyro[:n], d.acc[:n]
     init = NavState(SO3(jnp.asarray(d.init_rotation)), d.init_velocity, d.init_position)
-    states = jax.jit(integrate)(gyro, acc, 0.005, jnp.zeros(3), init)
+    states = jax.jit(dead_reckon)(gyro, acc, 0.005, jnp.zeros(3), init)
     kf = np.arange(stride, n + 1, stride)
     dr = states[kf - 1]
     return gyro, acc, init, kf, dr

@@ -1,7 +1,8 @@
 """jaxpose: JAX-native Lie groups, least squares and differentiable robotics modules.
 
 Public API: ``jaxpose.lie`` (groups, algebras, manifold calculus), re-exported here as
-``jp.SO3``, ``jp.SE3``, ... and the functional ops ``jp.exp``, ``jp.log``, ...; the
+``jp.SO3``, ``jp.SE3``, ... (``jp.GROUPS`` and ``jp.ALGEBRAS``: tuples of the group and
+algebra classes) and the functional ops ``jp.exp``, ``jp.log``, ...; the
 subpackages ``optim`` (dense least squares), ``graph`` (sparse factor graphs, PGO, BA),
 ``io`` (g2o, BAL), ``dynamics``, ``filters``, ``control``, ``imu``, ``geometry``,
 ``sharding``, ``smoothing`` (fixed-lag smoother), ``interop`` and ``testing`` (a Lie-aware

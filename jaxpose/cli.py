@@ -411,7 +411,8 @@ def ba_command(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .graph import ba, solve
-    from .io import BALProblem, FormatError, project_bal, read_bal, write_bal
+    from .io import BALProblem, FormatError, read_bal, write_bal
+    from .io.bal import _bal_project_numpy
 
     _check_output(args.out, "--out")
     kernel = _kernel(args.kernel, args.kernel_delta)
@@ -425,7 +426,7 @@ def ba_command(args: argparse.Namespace) -> int:
     if problem.n_observations == 0:
         raise CLIError(f"{args.file}: the problem has no observations, nothing to optimise")
     with np.errstate(all="ignore"):
-        pred = project_bal(problem.cameras, problem.points, problem.camera_index,
+        pred = _bal_project_numpy(problem.cameras, problem.points, problem.camera_index,
                            problem.point_index)
     bad = np.flatnonzero(~np.isfinite(pred - problem.observations).all(axis=1))
     if bad.size:

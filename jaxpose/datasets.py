@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .io.bal import BALProblem, project_bal
+from .io.bal import BALProblem, _bal_project_numpy
 from .io.g2o import PoseGraph
 from .lie._numpy import (
     compose,
@@ -332,7 +332,7 @@ def synthetic_bal(
     start = rng.integers(0, n_cam, n_pt)
     cam_idx = np.sort((start[:, None] + np.arange(k)) % n_cam, axis=1).reshape(-1)
     pt_idx = np.repeat(np.arange(n_pt, dtype=np.int64), k)
-    obs = project_bal(cameras, points, cam_idx, pt_idx)
+    obs = _bal_project_numpy(cameras, points, cam_idx, pt_idx)
     obs = obs + rng.normal(scale=float(pixel_noise), size=obs.shape)
     truth = BALProblem(cameras, points, cam_idx, pt_idx, obs)
 

@@ -257,9 +257,9 @@ def test_fuzz_cli(tmp_path, case):
         assert reached and len(reached) == 1
         if command == "ba":
             p = reached[0]
-            from jaxpose.io import project_bal
+            from jaxpose.io.bal import _bal_project_numpy
 
-            r = project_bal(p.cameras, p.points, p.camera_index, p.point_index)
+            r = _bal_project_numpy(p.cameras, p.points, p.camera_index, p.point_index)
             assert np.isfinite(0.5 * np.sum((r - p.observations) ** 2))
         else:
             assert np.isfinite(cli._pose_graph_edge_costs(reached[0]).sum())

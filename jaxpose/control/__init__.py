@@ -6,7 +6,7 @@ Solutions carry an int32 ``status`` holding a :class:`jaxpose.Results` code.
 
 from .boxqp import BoxQPResult, box_qp
 from .cost import Cost, FunctionCost, QuadraticCost
-from .ilqr import ILQRSolution, dynamics_jacobians, ilqr
+from .ilqr import ILQRSolution, ilqr
 from .lqr import (
     LQR,
     LQRSolution,
@@ -15,7 +15,7 @@ from .lqr import (
     lqr_solve,
     riccati,
 )
-from .mpc import MPC, MPCSolution, closed_loop, implicit_vjp
+from .mpc import MPC, MPCSolution, closed_loop
 
 __all__ = [
     "LQR",
@@ -29,9 +29,7 @@ __all__ = [
     "QuadraticCost",
     "box_qp",
     "closed_loop",
-    "dynamics_jacobians",
     "ilqr",
-    "implicit_vjp",
     "lq_problem",
     "lqr",
     "lqr_solve",

@@ -56,12 +56,12 @@ class ILQRSolution(eqx.Module):
         return Results.name_of(self.status)
 
 
-def default_tol(dtype: Any) -> float:
+def _default_tol(dtype: Any) -> float:
     """Relative cost-decrease tolerance: 1e-10 (float64), 1e-5 (float32)."""
     return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-5
 
 
-def dynamics_jacobians(system: System, xs: Array, us: Array, ts: Array) -> Array:
+def _dynamics_jacobians(system: System, xs: Array, us: Array, ts: Array) -> Array:
     """``F_t = [∂f/∂x, ∂f/∂u]`` (T, n, n+m) along a trajectory (per step ``jacfwd``)."""
     if isinstance(system, LTI):
         F = jnp.concatenate([system.A, system.B], -1)
@@ -127,7 +127,7 @@ def ilqr(
 
     ``x0`` (n,), ``u_init`` (T, m) (sets the horizon T; clipped to the box). For
     batches use ``jax.vmap``. ``max_iter`` may be a traced integer unless ``unroll``.
-    ``tol``: relative cost decrease at which to stop (default :func:`default_tol`).
+    ``tol``: relative cost decrease at which to stop (default 1e-10 for float64, 1e-5 for float32).
 
     Argument checks run here (eagerly: NaN or crossed box limits raise); the solve is
     compiled with ``eqx.filter_jit`` (Python numbers and ``unroll``/``alphas`` static,
@@ -145,7 +145,7 @@ def ilqr(
     T, m = u_init.shape
     dtype = jnp.result_type(x0.dtype, u_init.dtype)
     x0, u_init = x0.astype(dtype), u_init.astype(dtype)
-    tol = default_tol(dtype) if tol is None else float(tol)
+    tol = _default_tol(dtype) if tol is None else float(tol)
     box = _bounds(u_lower, u_upper, T, m, dtype)
     # t0 traced (a new start time must not recompile); the options static or traced as given
     return _ilqr(system, cost, x0, u_init, box, max_iter, tol, reg_init, reg_min, reg_max,
@@ -216,7 +216,7 @@ def _ilqr(
         return jnp.concatenate([x0[None], xn], 0), un, jnp.sum(cs) + cost.terminal(xT)
 
     def backward(xs: Array, us: Array, mu: Array, k_warm: Array):
-        F = dynamics_jacobians(system, xs[:-1], us, ts)
+        F = _dynamics_jacobians(system, xs[:-1], us, ts)
         H, g = jax.vmap(cost.quadratize)(xs[:-1], us, ts)
         HT, gT = cost.quadratize_terminal(xs[-1])
         zero_f = jnp.zeros((n,), dtype)

@@ -35,7 +35,7 @@ from ..dynamics.system import LTI, LTV, System
 from ..optim.implicit import first_order_only
 from ..results import Results
 from .cost import Cost, QuadraticCost
-from .ilqr import ILQRSolution, _bounds, dynamics_jacobians, ilqr
+from .ilqr import ILQRSolution, _bounds, _dynamics_jacobians, ilqr
 from .lqr import (
     lq_problem,
     lqr_resolve,
@@ -149,13 +149,13 @@ def _solve_implicit_bwd(
     gx, gu = grad_obj[0], grad_obj[1]
     gx = jnp.zeros_like(xs) if gx is None else gx
     gu = jnp.zeros_like(us) if gu is None else gu
-    grads = implicit_vjp(params, xs, us, gx, gu, bounds, factors=factors)
+    grads = _implicit_vjp(params, xs, us, gx, gu, bounds, factors=factors)
     return jax.tree.map(
         lambda g, p: g if p else None, grads, perturbed, is_leaf=lambda v: v is None
     )
 
 
-def implicit_vjp(
+def _implicit_vjp(
     params: tuple[System, Cost, Array],
     xs: Array,
     us: Array,
@@ -176,7 +176,7 @@ def implicit_vjp(
     ts = jnp.asarray(t0) + jnp.arange(T)
     xs, us = first_order_only((xs, us), "MPC(gradient='implicit')")
     f = system.state_transition
-    F = dynamics_jacobians(system, xs[:-1], us, ts)
+    F = _dynamics_jacobians(system, xs[:-1], us, ts)
     # Costates λ_t (λ_0 is the multiplier of x_0 = x0): λ_T = ∇ℓ_T, λ_t = ∇_x ℓ_t + A_tᵀ λ_{t+1}.
     H, g = jax.vmap(cost.quadratize)(xs[:-1], us, ts)
     HT, gT = cost.quadratize_terminal(xs[-1])

@@ -13,7 +13,7 @@ from .integrators import (
     rk4_step,
 )
 from .models import Bicycle, CartPole, Pendulum
-from .system import LTI, LTV, NLS, Linearization, System, rollout
+from .system import LTI, LTV, NLS, LinearizedSystem, System, rollout
 
 __all__ = [
     "LTI",
@@ -23,7 +23,7 @@ __all__ = [
     "CartPole",
     "ContinuousSystem",
     "Discretized",
-    "Linearization",
+    "LinearizedSystem",
     "Pendulum",
     "System",
     "euler_step",

@@ -29,8 +29,10 @@ from ._checks import as_array, check_last
 Array = jax.Array
 
 
-class Linearization(eqx.Module):
-    """Affine model at a reference point (shapes for one element; batches lead).
+class LinearizedSystem(eqx.Module):
+    """A system linearised at a reference point (:meth:`System.linearize`): the affine
+    model ``x⁺ ≈ A x + B u + c1``, ``y ≈ C x + D u + c2`` (shapes for one element;
+    batches lead).
 
     ``A`` (n, n), ``B`` (n, m), ``C`` (p, n), ``D`` (p, m), ``c1`` (n,), ``c2`` (p,)."""
 
@@ -61,7 +63,7 @@ class System(eqx.Module):
         """``(f(x, u, t), h(x, u, t))``."""
         return self.state_transition(x, u, t), self.observation(x, u, t)
 
-    def linearize(self, x: Array, u: Array, t: Any = 0) -> Linearization:
+    def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:
         """Jacobians at ``(x, u, t)``; batched inputs (..., n), (..., m) are linearised
         element by element (``vmap(jacfwd)``), giving (..., n, n) etc."""
         x = as_array(x, "x")
@@ -80,14 +82,14 @@ class System(eqx.Module):
         lin = jax.vmap(self._linearize_one)(xb, ub, tb)
         return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), lin)
 
-    def _linearize_one(self, x: Array, u: Array, t: Any) -> Linearization:
+    def _linearize_one(self, x: Array, u: Array, t: Any) -> LinearizedSystem:
         f = lambda x_, u_: self.state_transition(x_, u_, t)
         h = lambda x_, u_: self.observation(x_, u_, t)
         fx, (A, B) = f(x, u), jax.jacfwd(f, argnums=(0, 1))(x, u)
         hx, (C, D) = h(x, u), jax.jacfwd(h, argnums=(0, 1))(x, u)
         c1 = fx - A @ x - B @ u
         c2 = hx - C @ x - D @ u
-        return Linearization(A, B, C, D, c1, c2)
+        return LinearizedSystem(A, B, C, D, c1, c2)
 
 
 class NLS(System):
@@ -169,11 +171,11 @@ class LTI(System):
         check_last(u, self.D.shape[-1], "u", "input size m = D.shape[-1]")
         return _mv(self.C, x) + _mv(self.D, u) + self.c2
 
-    def linearize(self, x: Array, u: Array, t: Any = 0) -> Linearization:
+    def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:
         x, u = jnp.asarray(x), jnp.asarray(u)
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], jnp.shape(t))
         b = lambda a: jnp.broadcast_to(a, (*batch, *a.shape))
-        return Linearization(b(self.A), b(self.B), b(self.C), b(self.D), b(self.c1), b(self.c2))
+        return LinearizedSystem(b(self.A), b(self.B), b(self.C), b(self.D), b(self.c1), b(self.c2))
 
     def matrices(self, horizon: int) -> tuple[Array, Array]:
         """``(F, f)`` stacked over the horizon: F (T, n, n+m) = [A B], f (T, n) = c1."""
@@ -248,11 +250,11 @@ class LTV(System):
         t = jnp.asarray(t, jnp.int32)
         return _mv(self.C[t], x) + _mv(self.D[t], u) + self.c2[t]
 
-    def linearize(self, x: Array, u: Array, t: Any = 0) -> Linearization:
+    def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:
         x, u, t = jnp.asarray(x), jnp.asarray(u), jnp.asarray(t, jnp.int32)
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], t.shape)
         tb = jnp.broadcast_to(t, batch)
-        return Linearization(
+        return LinearizedSystem(
             self.A[tb], self.B[tb], self.C[tb], self.D[tb], self.c1[tb], self.c2[tb]
         )
 

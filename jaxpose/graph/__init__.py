@@ -1,9 +1,12 @@
 """Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM.
 
 Marginal covariances of a solution: :func:`marginals` (:mod:`jaxpose.graph.marginals`).
-Pose graphs: :mod:`jaxpose.graph.pgo` (global initialisation: :mod:`jaxpose.graph.init`);
-outlier-robust solves by graduated non-convexity: :mod:`jaxpose.graph.robust`; bundle
-adjustment (BAL camera model, Schur elimination of the points): :mod:`jaxpose.graph.ba`.
+The two ready-made problems are reached the same way: pose graphs by
+:func:`optimize_pose_graph` / :func:`pose_graph_problem` (module :mod:`jaxpose.graph.pgo`;
+global initialisation: :mod:`jaxpose.graph.init`) and bundle adjustment (BAL camera model,
+Schur elimination of the points) by :func:`optimize_bal` / :func:`bundle_adjustment_problem`
+(module :mod:`jaxpose.graph.ba`). Outlier-robust solves by graduated non-convexity:
+:mod:`jaxpose.graph.robust`.
 """
 
 from . import ba, init, pgo, robust
@@ -22,7 +25,8 @@ from .factor import (
 )
 from .init import chordal_initialization, initial_poses, pose_graph_cost
 from .marginals import Marginals, marginals, se3_to_gtsam
-from .problem import FactorGraph, Linearization, cost, linearize
+from .pgo import optimize_pose_graph, pose_graph_problem
+from .problem import FactorGraph, GraphLinearization, cost, linearize
 from .robust import GNCSolution, gm_weights, gnc, tls_weights, weighted_graph
 from .solve import GraphSolution, solve, summary
 from .strategies import LambdaFactor, Nielsen
@@ -33,7 +37,7 @@ __all__ = [
     "FactorGraph",
     "GraphSolution",
     "LambdaFactor",
-    "Linearization",
+    "GraphLinearization",
     "Marginals",
     "Nielsen",
     "ba",
@@ -49,8 +53,10 @@ __all__ = [
     "linearize",
     "marginals",
     "optimize_bal",
+    "optimize_pose_graph",
     "pgo",
     "pose_graph_cost",
+    "pose_graph_problem",
     "prior_residual",
     "reprojection_jacobian",
     "reprojection_residual",

@@ -7,7 +7,7 @@ Variables (types sorted by name, as every :class:`~jaxpose.graph.FactorGraph`):
 * ``"pose"`` SE3 (n_cam,): world → camera, ``P = pose · X``; right-perturbed.
 
 BAL stores a camera as ``[r(3) Rodrigues, t(3), f, k1, k2]`` with ``P = Exp(r)·X + t``,
-i.e. ``pose = (t, Exp(r))``. Camera model (:func:`jaxpose.io.project_bal`): ``p = −P[:2] /
+i.e. ``pose = (t, Exp(r))``. Camera model (:func:`jaxpose.geometry.bal_project`): ``p = −P[:2] /
 P[2]``, ``pixel = f·(1 + k1‖p‖² + k2‖p‖⁴)·p``. One reprojection factor per observation,
 residual ``pixel(pose, intrinsics, X) − z`` (pixels), cost ``0.5·Σ ρ(‖r‖²)`` (unit
 information unless given).
@@ -144,11 +144,11 @@ def bundle_adjustment_problem(
 
 def reprojection_rmse(problem: BALProblem, variables: dict[str, Any] | None = None) -> float:
     """Root-mean-square reprojection error per coordinate (pixels), numpy float64."""
-    from ..io.bal import project_bal
+    from ..io.bal import _bal_project_numpy
 
     cams, pts = (problem.cameras, problem.points) if variables is None else (
         variables_to_bal(variables))
-    pred = project_bal(cams, pts, problem.camera_index, problem.point_index)
+    pred = _bal_project_numpy(cams, pts, problem.camera_index, problem.point_index)
     return float(np.sqrt(np.mean((pred - problem.observations) ** 2)))
 
 

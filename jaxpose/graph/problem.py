@@ -121,8 +121,9 @@ class FactorGraph(eqx.Module):
 # ----------------------------------------------------------------------------------
 # Evaluation
 # ----------------------------------------------------------------------------------
-class Linearization(eqx.Module):
-    """Whitened residuals and Jacobian blocks of every factor group at one point."""
+class GraphLinearization(eqx.Module):
+    """A factor graph linearised at one point (:func:`linearize`): whitened residuals and
+    Jacobian blocks of every factor group, and the cost."""
 
     residuals: tuple[Array, ...]  # per factor group: (m, r) whitened (and robustified)
     jacobians: tuple[tuple[Array, ...], ...]  # per group, per slot: (m, r, d_slot)
@@ -152,7 +153,7 @@ def cost(graph: FactorGraph, variables: Variables) -> Array:
     return jnp.asarray(total)
 
 
-def linearize(graph: FactorGraph, variables: Variables) -> Linearization:
+def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
     """Residuals and tangent-space Jacobian blocks (fixed variables get zero blocks).
 
     Robust kernels enter through each factor's corrector (default FastTriggs: residual
@@ -196,7 +197,7 @@ def linearize(graph: FactorGraph, variables: Variables) -> Linearization:
         residuals.append(r)
         jacobians.append(jac)
         total = total + 0.5 * jnp.sum(rho)
-    return Linearization(tuple(residuals), tuple(jacobians), jnp.asarray(total))
+    return GraphLinearization(tuple(residuals), tuple(jacobians), jnp.asarray(total))
 
 
 def _dtype(p: Any) -> Any:
@@ -208,7 +209,7 @@ def split(graph: FactorGraph, flat: Array) -> tuple[Array, ...]:
     return split_tangent(graph.structure, flat)
 
 
-def gradient(graph: FactorGraph, lin: Linearization) -> Array:
+def gradient(graph: FactorGraph, lin: GraphLinearization) -> Array:
     """g = J̃ᵀ r̃ (N,)."""
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
@@ -221,7 +222,7 @@ def gradient(graph: FactorGraph, lin: Linearization) -> Array:
     return join(out)
 
 
-def hessian_diagonal(graph: FactorGraph, lin: Linearization) -> Array:
+def hessian_diagonal(graph: FactorGraph, lin: GraphLinearization) -> Array:
     """diag(H) = column sums of J̃² (N,), without forming any block of H."""
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
@@ -234,7 +235,7 @@ def hessian_diagonal(graph: FactorGraph, lin: Linearization) -> Array:
     return join(out)
 
 
-def block_diagonal(graph: FactorGraph, lin: Linearization) -> tuple[Array, ...]:
+def block_diagonal(graph: FactorGraph, lin: GraphLinearization) -> tuple[Array, ...]:
     """Diagonal blocks of H per type: (n, d, d)."""
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
@@ -247,7 +248,7 @@ def block_diagonal(graph: FactorGraph, lin: Linearization) -> tuple[Array, ...]:
     return tuple(out)
 
 
-def hessian_vector(graph: FactorGraph, lin: Linearization, v: Array) -> Array:
+def hessian_vector(graph: FactorGraph, lin: GraphLinearization, v: Array) -> Array:
     """H v = J̃ᵀ(J̃ v) without forming H (N,)."""
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
@@ -263,7 +264,7 @@ def hessian_vector(graph: FactorGraph, lin: Linearization, v: Array) -> Array:
     return join(out)
 
 
-def hessian_blocks(graph: FactorGraph, lin: Linearization) -> list[Array]:
+def hessian_blocks(graph: FactorGraph, lin: GraphLinearization) -> list[Array]:
     """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``."""
     st = graph.structure
     contributions = []
@@ -280,7 +281,7 @@ def hessian_blocks(graph: FactorGraph, lin: Linearization) -> list[Array]:
     return scatter_blocks(st.pattern.zeros(lin.cost.dtype), contributions)
 
 
-def csr_values(graph: FactorGraph, lin: Linearization) -> Array:
+def csr_values(graph: FactorGraph, lin: GraphLinearization) -> Array:
     """Values of H in the precomputed CSR pattern (nnz,)."""
     return graph.structure.pattern.csr(hessian_blocks(graph, lin))
 

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from ..optim.stopping import Stopping, Trial, check, nonfinite_run, plateau_count
-from ..optim.strategies import Strategy, System
+from ..optim.strategies import NormalEquations, Strategy
 from ..results import Results
 from . import linear
 from .problem import (
@@ -250,7 +250,7 @@ def solve(
             scale = jnp.ones_like(g)
         else:
             scale = jnp.clip(hessian_diagonal(graph, lin), 1e-6, 1e32)
-        system = System(None, None, _Hessian(graph, lin), g, scale, jnp.zeros_like(g))
+        system = NormalEquations(None, None, _Hessian(graph, lin), g, scale, jnp.zeros_like(g))
         if cg_rtol == "inexact":
             eta = jnp.minimum(0.1, jnp.sqrt(jnp.linalg.norm(g) / jnp.maximum(g0_norm, 1e-300)))
         else:

@@ -1,6 +1,10 @@
 """Inertial navigation: on-manifold IMU preintegration (Forster et al.) with covariance
 and bias Jacobians, dead reckoning, IMU and GPS factors for the sparse least-squares
-path, and a reader for GTSAM's IMU+GPS example stream. Conventions: ``docs/imu.md``."""
+path, and a reader for GTSAM's IMU+GPS example stream. Conventions: ``docs/imu.md``.
+
+``SCHEMES``: the preintegration schemes accepted by ``preintegrate(..., scheme=)``,
+``"manifold"`` (Forster, associative scan) and ``"tangent"`` (GTSAM's first-order scheme).
+Dead reckoning (the navigation state after every sample): :func:`dead_reckon`."""
 
 from .data import ImuGpsData, read_imu_gps
 from .factors import (
@@ -17,7 +21,7 @@ from .preintegration import (
     SCHEMES,
     ImuPreintegrator,
     Preintegrated,
-    integrate,
+    dead_reckon,
     predict,
     preintegrate,
 )
@@ -38,7 +42,7 @@ __all__ = [
     "gps_residual",
     "imu_factor",
     "imu_residual",
-    "integrate",
+    "dead_reckon",
     "predict",
     "preintegrate",
     "preintegrate_windows",

@@ -25,7 +25,7 @@ from ..graph import Factor, FactorGraph, GraphSolution, solve
 from ..graph.factor import vector_prior_residual
 from ..lie import SE3
 from .factors import bias_walk_factor, gps_factor, imu_factor, pose_prior_factor
-from .preintegration import Preintegrated, integrate, preintegrate
+from .preintegration import Preintegrated, dead_reckon, preintegrate
 from .state import NavState
 
 Array = jax.Array
@@ -131,7 +131,7 @@ def fuse_imu_gps(
     win = np.arange(k - 1)
 
     # initial values: dead reckoning with zero bias
-    states = jax.jit(integrate)(gyro, acc, dt, grav, init)
+    states = jax.jit(dead_reckon)(gyro, acc, dt, grav, init)
     full = jax.tree.map(lambda i0, s: jnp.concatenate([i0[None], s], 0), init, states)
     dr = full[keyframes]  # the state after keyframes[k] samples
     variables = {"pose": dr.pose(), "vel": dr.vel, "bias": jnp.zeros((k, 6), g.dtype)}

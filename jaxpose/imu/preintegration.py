@@ -335,7 +335,7 @@ def predict(
     return NavState(rot, vel, pos)
 
 
-def integrate(
+def dead_reckon(
     gyro: Any,
     acc: Any,
     dt: Any,
@@ -357,7 +357,7 @@ def integrate(
     if init is None:
         init = NavState.identity(dtype=pre.vel.dtype)
     if not isinstance(init, NavState):
-        raise TypeError(f"integrate(init): expected NavState or None, got "
+        raise TypeError(f"dead_reckon(init): expected NavState or None, got "
                         f"{type(init).__name__}")
     expand = jax.tree.map(lambda x: x[..., None, :], init)
     return predict(expand, pre, gravity)
@@ -418,8 +418,8 @@ class ImuPreintegrator(eqx.Module):
         (see :func:`predict`)."""
         return predict(state, pre, self.gravity, gyro_bias, acc_bias)
 
-    def integrate(self, gyro: Any, acc: Any, dt: Any, init: NavState | None = None,
-                  gyro_bias: Any = None, acc_bias: Any = None) -> NavState:
-        """Dead-reckoned states after every sample (see :func:`integrate`)."""
-        return integrate(gyro, acc, dt, self.gravity, init, gyro_bias=gyro_bias,
-                         acc_bias=acc_bias, scheme=self.scheme)
+    def dead_reckon(self, gyro: Any, acc: Any, dt: Any, init: NavState | None = None,
+                    gyro_bias: Any = None, acc_bias: Any = None) -> NavState:
+        """Dead-reckoned states after every sample (see :func:`dead_reckon`)."""
+        return dead_reckon(gyro, acc, dt, self.gravity, init, gyro_bias=gyro_bias,
+                           acc_bias=acc_bias, scheme=self.scheme)

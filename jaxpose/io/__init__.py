@@ -2,9 +2,12 @@
 
 All readers return plain float64/int64 numpy containers (:class:`PoseGraph`,
 :class:`BALProblem`) and raise :class:`FormatError` (``"FILE:LINE: ..."``) on malformed input.
+``INFORMATION_POLICIES``: the policies for information matrices that are not positive
+definite (:func:`apply_information_policy`, ``read_g2o(information=...)``). The BAL camera
+model itself is :func:`jaxpose.geometry.bal_project`.
 """
 
-from .bal import BALProblem, project_bal, read_bal, write_bal
+from .bal import BALProblem, read_bal, write_bal
 from .errors import FormatError
 from .g2o import (
     INFORMATION_POLICIES,
@@ -22,7 +25,6 @@ __all__ = [
     "PoseGraph",
     "apply_information_policy",
     "connected_components",
-    "project_bal",
     "read_bal",
     "read_g2o",
     "write_bal",

@@ -1,5 +1,7 @@
 """Bundle Adjustment in the Large (BAL) problems: :class:`BALProblem`, :func:`read_bal`,
-:func:`write_bal` and the BAL camera model :func:`project_bal` (numpy, float64).
+:func:`write_bal`. The BAL camera model is :func:`jaxpose.geometry.bal_project`; this module
+keeps a private numpy float64 twin of it (``_bal_project_numpy``) for the seeded data generators
+and file checks, which must not depend on ``jax_enable_x64``.
 
 File layout (whitespace-separated tokens; line breaks are not significant)::
 
@@ -27,7 +29,7 @@ from ..lie._numpy import rodrigues_rotate
 from ._text import describe_bad_char, first_bad_char, read_text, refuse_nonfinite_rows
 from .errors import FormatError
 
-__all__ = ["BALProblem", "project_bal", "read_bal", "write_bal"]
+__all__ = ["BALProblem", "read_bal", "write_bal"]
 
 PathLike = str | os.PathLike[str]
 
@@ -90,13 +92,14 @@ class BALProblem:
         )
 
 
-def project_bal(
+def _bal_project_numpy(
     cameras: np.ndarray,
     points: np.ndarray,
     camera_index: np.ndarray | None = None,
     point_index: np.ndarray | None = None,
 ) -> np.ndarray:
-    """BAL projection in numpy float64.
+    """BAL projection in numpy float64: the host twin of :func:`jaxpose.geometry.bal_project`
+    (same model, argument order ``cameras, points``), independent of ``jax_enable_x64``.
 
     Args:
         cameras: (n_cam, 9) or (..., 9) camera parameters.

@@ -83,7 +83,7 @@ def as_batch_shape(shape: Any, argname: str) -> tuple[int, ...]:
     return out
 
 
-def default_tol(dtype: Any) -> float:
+def _default_tol(dtype: Any) -> float:
     """Default run-time check tolerance: 1e-5 for float32 (and narrower), 1e-9 for float64."""
     return 1e-9 if jnp.dtype(dtype) == jnp.float64 else 1e-5
 
@@ -361,7 +361,7 @@ class LieGroup(_Element):
         name = f"{type(self).__name__}(data, check=True)"
         if arr.size == 0:
             return arr
-        tol_ = default_tol(arr.dtype) if tol is None else tol
+        tol_ = _default_tol(arr.dtype) if tol is None else tol
         a, b = self.unit_slice
         what = "quaternion [qx, qy, qz, qw]" if b - a == 4 else "[cos θ, sin θ]"
         norm = scaled_norm(arr[..., a:b])
@@ -442,7 +442,7 @@ class LieGroup(_Element):
             )
         data = cls._from_matrix(m)
         if check and m.size:
-            tol_ = default_tol(m.dtype) if tol is None else tol
+            tol_ = _default_tol(m.dtype) if tol is None else tol
             p = cls.point_dim
             block = m[..., :p, :p]
             err = jnp.max(jnp.abs(cls._matrix(data)[..., :p, :p] - block), axis=(-2, -1))

@@ -28,18 +28,19 @@ from .kernels import (
     Welsch,
 )
 from .linear import CG, LU, QR, SVD, Cholesky, LinearSolver
-from .problem import Problem
+from .problem import LinearizedResidual, Problem
 from .solution import Solution
 from .solve import least_squares
 from .solver import GN, LM, AbstractSolver, GaussNewton, LevenbergMarquardt, SolverState
 from .stopping import StopOnPlateau, Stopping
-from .strategies import Adaptive, Constant, Dogleg, Strategy, TrustRegion
+from .strategies import Adaptive, Constant, Dogleg, NormalEquations, Strategy, TrustRegion
 
 __all__ = [
     "least_squares",
     "covariance",
     "Solution",
     "Problem",
+    "LinearizedResidual",
     "AbstractSolver",
     "GaussNewton",
     "LevenbergMarquardt",
@@ -47,6 +48,7 @@ __all__ = [
     "LM",
     "SolverState",
     "Strategy",
+    "NormalEquations",
     "Constant",
     "Adaptive",
     "TrustRegion",

@@ -86,7 +86,7 @@ class Pattern:
 
     @property
     def seeds(self) -> np.ndarray:
-        """(c, n) 0/1 seed matrix: row k is the sum of the tangent directions of colour k."""
+        """(num_colours, n) 0/1 seed matrix: row c selects the columns of colour c."""
         s = np.zeros((self.num_colours, self.n))
         s[self.colour, np.arange(self.n)] = 1.0
         return s
@@ -157,7 +157,7 @@ class SparseJacobian(eqx.Module):
 
     @property
     def shape(self) -> tuple[int, int]:
-        """(m, n) of the uncompressed Jacobian."""
+        """(m, n) of the Jacobian."""
         return (self.pattern.m, self.pattern.n)
 
     def dense(self) -> Array:
@@ -202,7 +202,7 @@ class BlockHessian(eqx.Module):
 
     @property
     def shape(self) -> tuple[int, int]:
-        """(n, n) of the uncompressed matrix."""
+        """(n, n) of the Gauss-Newton matrix."""
         return (self.pattern.n, self.pattern.n)
 
     def _scatter(self, parts: list[Array]) -> Array:
@@ -216,7 +216,7 @@ class BlockHessian(eqx.Module):
                               for b, g in zip(self.blocks, self.pattern.groups)])
 
     def diagonal(self) -> Array:
-        """diag(H), shape (n,)."""
+        """diag(H) (n,)."""
         return self._scatter([jnp.diagonal(b, axis1=1, axis2=2) for b in self.blocks])
 
     def dense(self) -> Array:

@@ -48,8 +48,9 @@ AUTO_MAX_COLOUR_FRACTION = 0.25
 _PATTERNS: dict[tuple[Any, ...], Pattern] = {}
 
 
-class Linearization(NamedTuple):
-    """Whitened, kernel-corrected residual ẽ (m,) and Jacobian J̃ (m, n) plus the cost.
+class LinearizedResidual(NamedTuple):
+    """The dense problem linearised at one point (:meth:`Problem.linearize`): whitened,
+    kernel-corrected residual ẽ (m,) and Jacobian J̃ (m, n) plus the cost.
 
     ``jac`` is a :class:`~jaxpose.optim.colouring.SparseJacobian` on the coloured path of
     :meth:`Problem.linearize_structured`; :meth:`Problem.linearize` always gives (m, n)."""
@@ -192,7 +193,7 @@ class Problem(eqx.Module):
     # ------------------------------------------------------------------------------
     # evaluation
     # ------------------------------------------------------------------------------
-    def _blocks(self, out: PyTree, jac: Array | None) -> Linearization:
+    def _blocks(self, out: PyTree, jac: Array | None) -> LinearizedResidual:
         """Whiten, robustify and flatten residual leaves (and Jacobian rows if given)."""
         leaves, treedef = jax.tree.flatten(out)
         weights = self._weight_leaves(leaves, treedef)
@@ -239,7 +240,7 @@ class Problem(eqx.Module):
                 jac_parts.append(jnp.reshape(jb, (size, -1)))
         res = jnp.concatenate(res_parts)
         jac_out = None if jac is None else jnp.concatenate(jac_parts, 0)
-        return Linearization(res, jac_out, cost)
+        return LinearizedResidual(res, jac_out, cost)
 
     def cost(self, params: PyTree, args: PyTree) -> Array:
         """``0.5 · Σ ρ(rᵀ W r)`` at ``params`` (a scalar)."""
@@ -288,14 +289,14 @@ class Problem(eqx.Module):
                 return "sparse", pat
         return ("fwd" if n <= m else "rev"), None
 
-    def linearize(self, params: PyTree, args: PyTree) -> Linearization:
+    def linearize(self, params: PyTree, args: PyTree) -> LinearizedResidual:
         """Residual, tangent-space Jacobian (whitened, corrected; dense (m, n)) and cost."""
         lin = self.linearize_structured(params, args)
         if isinstance(lin.jac, SparseJacobian):
-            return Linearization(lin.res, lin.jac.dense(), lin.cost)
+            return LinearizedResidual(lin.res, lin.jac.dense(), lin.cost)
         return lin
 
-    def linearize_structured(self, params: PyTree, args: PyTree) -> Linearization:
+    def linearize_structured(self, params: PyTree, args: PyTree) -> LinearizedResidual:
         """:meth:`linearize`, with the Jacobian as a :class:`SparseJacobian` (compressed
         values (m, c)) on the coloured path."""
         mode, pat = self.jacobian_mode(params, args)
@@ -315,7 +316,7 @@ class Problem(eqx.Module):
         if mode == "sparse":
             flat_out, comp = compressed_jacobian(f, flat0, pat)
             lin = self._blocks(holder[-1](flat_out), comp)
-            return Linearization(lin.res, SparseJacobian(lin.jac, pat), lin.cost)
+            return LinearizedResidual(lin.res, SparseJacobian(lin.jac, pat), lin.cost)
 
         def f_aux(eps: Array) -> tuple[Array, Array]:
             flat = f(eps)
@@ -340,4 +341,4 @@ def as_problem(residual_fn: Callable[..., PyTree] | Problem, **kwargs: Any) -> P
     return Problem(residual_fn, **kwargs)
 
 
-__all__ = ["Problem", "Linearization", "as_problem"]
+__all__ = ["Problem", "LinearizedResidual", "as_problem"]

@@ -29,9 +29,9 @@ from ..lie import manifold
 from ..results import Results
 from .colouring import BlockHessian, SparseJacobian, diagonal, normal_equations
 from .linear import Cholesky, LinearSolver
-from .problem import Linearization, Problem, as_problem
+from .problem import LinearizedResidual, Problem, as_problem
 from .stopping import Stopping, Trial, check, nonfinite_run, plateau_count
-from .strategies import Strategy, System, TrustRegion
+from .strategies import NormalEquations, Strategy, TrustRegion
 
 Array = jax.Array
 PyTree = Any
@@ -45,7 +45,7 @@ class SolverState(eqx.Module):
     cost: Array
     best_cost: Array
     initial_cost: Array
-    system: System  # linearisation at ``params``
+    system: NormalEquations  # linearisation at ``params``
     strategy_state: Any
     num_steps: Array  # int32, trials so far
     num_accepted: Array  # int32
@@ -117,13 +117,13 @@ class AbstractSolver(eqx.Module):
         return 0.0, float("inf")
 
     # -- shared ------------------------------------------------------------------------
-    def _system(self, lin: Linearization) -> System:
+    def _system(self, lin: LinearizedResidual) -> NormalEquations:
         hess, grad = normal_equations(lin.jac, lin.res)
         diag = diagonal(hess)
         lo, hi = self._diag_bounds()
         scale = jnp.clip(diag, lo, hi)
         lift = jnp.maximum(scale - diag, 0.0)
-        return System(lin.jac, lin.res, hess, grad, scale, lift)
+        return NormalEquations(lin.jac, lin.res, hess, grad, scale, lift)
 
     def init(
         self,
@@ -171,7 +171,7 @@ class AbstractSolver(eqx.Module):
                 hess0 = jnp.eye(n, dtype=dtype)
         else:
             jac0, hess0 = jnp.zeros((m, n), dtype), jnp.eye(n, dtype=dtype)
-        system = System(
+        system = NormalEquations(
             jac0,
             jnp.zeros((m,), dtype),
             hess0,
@@ -254,7 +254,7 @@ class AbstractSolver(eqx.Module):
         step_norm = jnp.linalg.norm(delta)
         accepted = jnp.where(fresh, finite, self._accept(finite, actual, ratio))
 
-        new_lin = Linearization(
+        new_lin = LinearizedResidual(
             jnp.where(finite, lin.res, 0.0),
             jax.tree.map(lambda j: jnp.where(finite, j, 0.0), lin.jac),
             jnp.where(finite, lin.cost, state.cost),

@@ -28,8 +28,9 @@ from .linear import LinearSolver
 Array = jax.Array
 
 
-class System(NamedTuple):
-    """Linearised least-squares system at the current estimate (all whitened/corrected).
+class NormalEquations(NamedTuple):
+    """Gauss-Newton normal equations at the current estimate, handed to
+    :meth:`Strategy.step` (all whitened/corrected; the strategy adds the damping).
 
     jac (m, n), res (m,), hess = jacᵀjac (n, n), grad = jacᵀres (n,),
     scale = clamp(diag hess, diag_min, diag_max) (n,), lift = scale − diag hess ≥ 0 on
@@ -61,7 +62,7 @@ class Strategy(eqx.Module):
         Called after every trial, accepted or rejected.
         """
 
-    def step(self, state: Any, system: System, linear_solver: LinearSolver) -> Array:
+    def step(self, state: Any, system: NormalEquations, linear_solver: LinearSolver) -> Array:
         """Trial step δ (n,): solves (H + diag(c) + λ·diag(D)) δ = −g with ``linear_solver``.
 
         λ comes from ``state`` afresh for every trial (damping never compounds).
@@ -248,7 +249,7 @@ class Dogleg(Strategy):
         )
         return jnp.clip(radius, self.min, self.max)
 
-    def step(self, state: Array, system: System, linear_solver: LinearSolver) -> Array:
+    def step(self, state: Array, system: NormalEquations, linear_solver: LinearSolver) -> Array:
         radius = state
         g, h = system.grad, system.hess
         gn = linear_solver.solve(system.jac, system.res, h, g, system.lift)
@@ -280,7 +281,7 @@ class Dogleg(Strategy):
 
 
 __all__ = [
-    "System",
+    "NormalEquations",
     "Strategy",
     "Constant",
     "Adaptive",

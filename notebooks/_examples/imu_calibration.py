@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxpose.imu import NavState, integrate, predict, preintegrate
+from jaxpose.imu import NavState, dead_reckon, predict, preintegrate
 from jaxpose.lie import SO3
 from jaxpose.lie import quaternion as quat
 
@@ -120,14 +120,14 @@ def simulate(key: jax.Array, sensor: SensorModel, num_seq: int, num_samples: int
     rot0 = SO3.random(kr, (num_seq,), dtype=dtype)
     zeros = jnp.zeros((num_seq, num_samples, 3), dtype)
     # rotations before each sample (dead reckoning of the rates alone)
-    rots = integrate(omega, zeros, DT, jnp.zeros(3, dtype),
-                     NavState(rot0, jnp.zeros((num_seq, 3), dtype),
-                              jnp.zeros((num_seq, 3), dtype))).rot.data
+    rots = dead_reckon(omega, zeros, DT, jnp.zeros(3, dtype),
+                       NavState(rot0, jnp.zeros((num_seq, 3), dtype),
+                                jnp.zeros((num_seq, 3), dtype))).rot.data
     before = jnp.concatenate([rot0.data[:, None], rots[:, :-1]], 1)
     g = jnp.asarray(GRAVITY, dtype)
     f_true = quat.rotate(quat.conjugate(before), a_nav - g)  # Rᵀ(a − g)
     init = NavState(rot0, jnp.zeros((num_seq, 3), dtype), jnp.zeros((num_seq, 3), dtype))
-    after = integrate(omega, f_true, DT, g, init)
+    after = dead_reckon(omega, f_true, DT, g, init)
     states = jax.tree.map(lambda i, s: jnp.concatenate([i[:, None], s], 1), init, after)
     gyro, acc = sensor.apply(kn, omega, f_true)
     return Trajectories(gyro, acc, omega, f_true, states)

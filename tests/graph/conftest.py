@@ -9,7 +9,7 @@
 * References: ``dense_residual_fn`` (whitened residuals of the whole graph as a function
   of the full tangent vector, laid out as documented in ``jaxpose.graph.problem``: types
   in sorted-name order, each variable a contiguous slice) and ``assemble_jacobian``
-  (Jacobian blocks of a ``Linearization`` scattered into one dense matrix).
+  (Jacobian blocks of a ``GraphLinearization`` scattered into one dense matrix).
 * ``jit_solve(**options)``: one jitted ``solve`` per option set, shared by the whole
   worker. XLA compilation of the LM loop dominates this suite's time (20–40 s per
   configuration on a loaded 2-core machine), so tests reuse compiled solvers: graphs of

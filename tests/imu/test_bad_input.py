@@ -11,9 +11,9 @@ from jaxpose.imu import (
     ImuPreintegrator,
     NavState,
     Preintegrated,
+    dead_reckon,
     gps_factor,
     imu_factor,
-    integrate,
     predict,
     preintegrate,
     read_imu_gps,
@@ -110,8 +110,8 @@ def test_predict_integrate_and_module_errors():
         predict(state, pre, [0.0, -9.81])
     with pytest.raises(ValueError, match=r"corrected\(gyro_bias\): expected shape"):
         pre.corrected(np.zeros(4))
-    with pytest.raises(TypeError, match=r"integrate\(init\): expected NavState"):
-        integrate(G, A, DT, [0.0, 0.0, -9.81], init=SE3.identity())
+    with pytest.raises(TypeError, match=r"dead_reckon\(init\): expected NavState"):
+        dead_reckon(G, A, DT, [0.0, 0.0, -9.81], init=SE3.identity())
     with pytest.raises(TypeError, match=r"NavState\(rot\): expected SO3"):
         NavState(np.zeros(4), np.zeros(3), np.zeros(3))
     with pytest.raises(ValueError, match=r"NavState\(vel\): expected shape"):

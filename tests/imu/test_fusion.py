@@ -12,9 +12,9 @@ import pytest
 
 from jaxpose.imu import (
     NavState,
+    dead_reckon,
     fuse_imu_gps,
     imu_residual,
-    integrate,
     preintegrate,
     preintegrate_windows,
     read_imu_gps,
@@ -106,7 +106,7 @@ def test_reader_and_gps_fixes_equal_dead_reckoning_from_rest(stream):
     np.testing.assert_array_equal(d.gps_index[:3], [1, 201, 401])
     np.testing.assert_array_equal(d.init_rotation, [0, 0, 0, 1])
     init = NavState(SO3(jnp.asarray(d.init_rotation)), d.init_velocity, d.init_position)
-    states = jax.jit(integrate)(d.gyro, d.acc, 0.005, jnp.zeros(3), init)
+    states = jax.jit(dead_reckon)(d.gyro, d.acc, 0.005, jnp.zeros(3), init)
     pos = np.asarray(states.pos)[d.gps_index - 1]
     np.testing.assert_allclose(pos, d.gps_position, atol=1e-6, rtol=1e-9)
 

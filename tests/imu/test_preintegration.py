@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxpose.imu import ImuPreintegrator, NavState, Preintegrated, integrate, preintegrate
+from jaxpose.imu import ImuPreintegrator, NavState, Preintegrated, dead_reckon, preintegrate
 from jaxpose.lie import SO3
 
 from . import reference as ref
@@ -140,7 +140,7 @@ def test_constant_rotation_rate_and_constant_acceleration_closed_forms():
 
 def test_zero_motion_with_gravity_stays_at_rest():
     """A static IMU measures the specific force −Rᵀg; its deltas are gravity-free
-    (Δv = −Rᵀg·T, Δp = −½Rᵀg·T²) and predict / integrate keep the body at rest, for a
+    (Δv = −Rᵀg·T, Δp = −½Rᵀg·T²) and predict / dead_reckon keep the body at rest, for a
     level and two tilted attitudes."""
     g = np.array([0.0, 0.0, -9.81])
     R0 = np.stack([np.eye(3), ref.so3_exp(np.array([0.4, -0.7, 1.1])),
@@ -158,7 +158,7 @@ def test_zero_motion_with_gravity_stays_at_rest():
     np.testing.assert_allclose(end.vel, 0.0, atol=1e-12)
     np.testing.assert_allclose(end.pos, p0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(end.rot.matrix()), R0, atol=1e-14)
-    states = integrate(np.zeros((B, N, 3)), accs, dt, g, start)
+    states = dead_reckon(np.zeros((B, N, 3)), accs, dt, g, start)
     assert states.pos.shape == (B, N, 3)
     np.testing.assert_allclose(states.vel, 0.0, atol=1e-12)
     np.testing.assert_allclose(states.pos, np.broadcast_to(p0[:, None], (B, N, 3)), atol=1e-12)
@@ -171,7 +171,7 @@ def test_dead_reckoning_matches_strapdown_loop():
     v0 = np.array([[1.0, -0.5, 0.2]] * B)
     p0 = np.array([[3.0, 0.0, -1.0]] * B)
     init = NavState(SO3.from_matrix(jnp.asarray(R0)), v0, p0)
-    states = integrate(g, a, d, grav, init)
+    states = dead_reckon(g, a, d, grav, init)
     for k in range(B):
         loop = ref.dead_reckoning(g[k], a[k], d[k], grav, R0[k], v0[k], p0[k])
         for n in (0, 17, N - 1):
@@ -227,7 +227,7 @@ def test_module_equals_function():
     np.testing.assert_allclose(out.jac, expect.jac, rtol=1e-12, atol=1e-15)
     end = imu.predict(NavState.identity((B,)), out)
     np.testing.assert_allclose(end.vel, out.vel + imu.gravity * out.dt[:, None], atol=1e-12)
-    states = imu.integrate(g, a, d)
+    states = imu.dead_reckon(g, a, d)
     assert states.pos.shape == (B, N, 3)
 
 

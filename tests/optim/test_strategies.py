@@ -8,7 +8,7 @@ import pytest
 
 import jaxpose.optim as jo
 from jaxpose.optim.linear import Cholesky
-from jaxpose.optim.strategies import System
+from jaxpose.optim.strategies import NormalEquations
 
 F64 = jnp.float64
 
@@ -96,7 +96,7 @@ def _system(h, g):
     g = jnp.asarray(g, F64)
     n = g.shape[0]
     jac = jnp.linalg.cholesky(h).T  # any J with JᵀJ = H
-    return System(jac, jnp.linalg.solve(jac.T, g), h, g, jnp.diagonal(h), jnp.zeros(n))
+    return NormalEquations(jac, jnp.linalg.solve(jac.T, g), h, g, jnp.diagonal(h), jnp.zeros(n))
 
 
 def test_lm_step_uses_fresh_damping():
