@@ -246,12 +246,18 @@ class Problem(eqx.Module):
         """``0.5 · Σ ρ(rᵀ W r)`` at ``params`` (a scalar)."""
         return self._blocks(self.residual_fn(params, args), None).cost
 
-    def _flat_fn(self, params: PyTree, args: PyTree) -> tuple[Array, Callable[..., Any]]:
+    def _flat_fn(self, params: PyTree, args: PyTree, holder: list[Any] | None = None
+                 ) -> tuple[Array, Callable[[Array], Array]]:
+        """(zeros (n,), g): g(ε) is the flattened residual at ``params ⊕ ε``; each call
+        appends the residual's unravel function to ``holder`` when one is given."""
         flat0, unravel = manifold.flat_tangent(params)
 
         def g(eps: Array) -> Array:
             out = self.residual_fn(manifold.retract(params, unravel(eps)), args)
-            return ravel_pytree(out)[0]
+            flat, unravel_out = ravel_pytree(out)
+            if holder is not None:
+                holder.append(unravel_out)
+            return flat
 
         return flat0, g
 
@@ -304,15 +310,8 @@ class Problem(eqx.Module):
             out = self.residual_fn(params, args)
             jac = jnp.asarray(self.jacobian(params, args))
             return self._blocks(out, jac)
-        flat0, unravel = manifold.flat_tangent(params)
         holder: list[Any] = []
-
-        def f(eps: Array) -> Array:
-            out = self.residual_fn(manifold.retract(params, unravel(eps)), args)
-            flat, unravel_out = ravel_pytree(out)
-            holder.append(unravel_out)
-            return flat
-
+        flat0, f = self._flat_fn(params, args, holder)
         if mode == "sparse":
             flat_out, comp = compressed_jacobian(f, flat0, pat)
             lin = self._blocks(holder[-1](flat_out), comp)
