@@ -93,3 +93,30 @@ def test_spawn_worker_answer_failure_and_timeout():
     assert bad == {"failed": "exit 3: boom"}
     slow = spawn_worker(["-c", "import time; time.sleep(30)"], timeout=1)
     assert slow == {"failed": "timed out after 1 s"}
+
+
+def test_merge_keeps_other_sections(tmp_path, monkeypatch):
+    """``--merge`` re-runs the selected workload and carries the others over verbatim,
+    with the date each was measured; an old report without that column gets its date."""
+    from bench import run
+
+    old = run.render([
+        run.Outcome("optim", ["py", "bench/optim.py"], "ok", 3.0, "Result: old optim 2x"),
+        run.Outcome("pgo", ["py", "bench/pgo.py"], "ok", 4.0, "# PGO\n\nResult: pgo 1.5x\n\nbody"),
+    ], quick=False, load=(0.5, 0.5))
+    report = tmp_path / "RESULTS.md"
+    report.write_text(old, encoding="utf-8")
+    kept = run.previous_sections(old)
+    assert set(kept) == {"optim", "pgo"}
+    assert "## pgo" in kept["pgo"][1] and "body" in kept["pgo"][1]
+
+    def fake_run_one(name, quick, timeout, log=None):
+        return run.Outcome(name, ["py", f"bench/{name}.py"], "ok", 1.0, "Result: new optim 9x")
+
+    monkeypatch.setattr(run, "run_one", fake_run_one)
+    assert run.main(["--only", "optim", "--merge", "--out", str(report)]) == 0
+    text = report.read_text(encoding="utf-8")
+    assert "new optim 9x" in text and "old optim 2x" not in text
+    assert "pgo 1.5x" in text and "body" in text  # kept verbatim
+    assert text.index('<a id="optim">') < text.index('<a id="pgo">')  # registry order
+    assert "--merge" in text
