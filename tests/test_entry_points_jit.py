@@ -203,3 +203,62 @@ def test_preintegrate_compiles_once(monkeypatch, rng=np.random.default_rng(5)):
         lambda: preintegrate(g[0, :10], a[0, :10], np.full(10, 0.01), gyro_noise=1e-3,
                              acc_noise=1e-2),
     )
+
+
+def _pose_graph(seed, n):
+    """A small synthetic SE3 pose graph as a FactorGraph (first pose fixed)."""
+    from jaxpose import synthetic_pose_graph
+    from jaxpose.graph import pose_graph_problem
+
+    return pose_graph_problem(synthetic_pose_graph("SE3", n_poses=n, seed=seed)[0])
+
+
+def test_marginals_compile_once(monkeypatch):
+    import scipy.sparse
+
+    from jaxpose.graph import marginals
+
+    marg_mod = importlib.import_module("jaxpose.graph.marginals")
+    g4, g4b, g5 = _pose_graph(0, 4), _pose_graph(1, 4), _pose_graph(0, 5)
+    calls = counter(monkeypatch, marg_mod, "linearize")
+    assert_traced_once(
+        calls,
+        lambda: marginals(g4, None, "pose"),
+        lambda: marginals(g4b, None, "pose"),
+        lambda: marginals(g5, None, "pose"),
+    )
+    # the compiled result is the inverse of H with the fixed first pose held (identity rows)
+    st = g4b.structure
+    lin = marg_mod.linearize(g4b, g4b.variables)
+    data = np.asarray(marg_mod.csr_values(g4b, lin).at[st.diag_pos].add(
+        1.0 - np.repeat(np.asarray(st.free[0]), 6)))
+    H = scipy.sparse.csr_matrix((data, np.asarray(st.csr_indices), np.asarray(st.csr_indptr)))
+    cov = np.linalg.inv(H.toarray())
+    out = marginals(g4b, None, "pose", method="dense").covariances["pose"]
+    for k in range(1, 4):
+        np.testing.assert_allclose(np.asarray(out[k]), cov[6 * k:6 * k + 6, 6 * k:6 * k + 6],
+                                   rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(out[0]), 0.0)  # the fixed pose
+
+
+def test_covariance_compiles_once(monkeypatch, rng=np.random.default_rng(7)):
+    from jaxpose.optim import covariance
+
+    cov_mod = importlib.import_module("jaxpose.optim.covariance")
+    calls = counter(monkeypatch, cov_mod, "as_problem")
+
+    def res(p, a):
+        return jnp.r_[p - a, 0.5 * p[:1] * p[1:]]
+
+    a1, a2, a3 = rng.normal(size=3), rng.normal(size=3), rng.normal(size=4)
+    assert_traced_once(
+        calls,
+        lambda: covariance(res, jnp.asarray(a1), jnp.asarray(a1)),
+        lambda: covariance(res, jnp.asarray(a2), jnp.asarray(a2)),
+        lambda: covariance(res, jnp.asarray(a3), jnp.asarray(a3)),
+    )
+    # against (JᵀJ)⁻¹ with the Jacobian written out by hand
+    p = np.asarray(a2)
+    J = np.r_[np.eye(3), np.c_[0.5 * p[1:, None], 0.5 * p[0] * np.eye(2)]]
+    np.testing.assert_allclose(np.asarray(covariance(res, jnp.asarray(p), jnp.asarray(p))),
+                               np.linalg.inv(J.T @ J), rtol=1e-10)

@@ -190,6 +190,9 @@ def marginals(
         perturbation, jaxpose's tangent layout; :func:`se3_to_gtsam` maps se3 blocks to
         GTSAM's order); fixed variables have zero blocks. A singular H (an unobserved
         direction with no gauge fixed) gives non-finite values.
+
+    The selection is checked eagerly; the computation is compiled (``eqx.filter_jit``), so
+    a repeated call on a graph of the same structure with new values reuses the program.
     """
     if method not in METHODS:
         raise ValueError(f"marginals(method={method!r}): expected one of {METHODS}")
@@ -264,31 +267,9 @@ def marginals(
     flat_j = np.concatenate([c.reshape(-1) for _, c in requests]) if requests else np.zeros(
         0, np.int64)
 
-    lin = linearize(graph, values)
-    dtype = lin.cost.dtype
-    free = jnp.concatenate(
-        [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]).astype(dtype)
-    if method == "schur":
-        data, _, _, _ = _reduced(graph, lin, free)
-        free_l = jnp.concatenate([jnp.repeat(st.free[type_of[n]], st.dims[type_of[n]])
-                                  for n in layout_names]).astype(dtype)
-        pattern = schur.pattern
-        vals = _sparse_entries(data, pattern.indices, pattern.indptr, flat_i, flat_j)
-    else:
-        free_l = free
-        if method == "pcg":
-            vals = _pcg_entries(graph, lin, free, flat_i, flat_j, cg_rtol, cg_max_iters,
-                                batch_size)
-        else:
-            data = csr_values(graph, lin).at[st.diag_pos].add(1.0 - free)
-            entries = _sparse_entries if method == "sparse" else _dense_entries
-            vals = entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j)
-    vals = vals * free_l[flat_i] * free_l[flat_j]
-
-    out, start = [], 0
-    for r, _ in requests:
-        out.append(vals[start : start + r.size].reshape(r.shape))
-        start += r.size
+    plan = _Plan(method, layout_names, flat_i, flat_j, tuple(r.shape for r, _ in requests),
+                 cg_rtol, cg_max_iters, batch_size)
+    out = _entries(graph, values, plan)
     covs = {name: out[k] for k, name in enumerate(sel)}
     joint_list = out[len(sel):]
     if not pair_list:
@@ -302,6 +283,62 @@ def marginals(
         indices={n: jnp.asarray(i, jnp.int32) for n, i in sel.items()},
         joint=joint,
     )
+
+
+class _Plan:
+    """What :func:`_entries` computes, fixed before compilation (static under
+    ``eqx.filter_jit``, so equal plans share one compiled program): the method, the
+    layout of the inverted matrix, the requested entries (flat row/column indices) and
+    the shape each request is cut into."""
+
+    def __init__(self, method: str, layout_names: tuple[str, ...], flat_i: np.ndarray,
+                 flat_j: np.ndarray, shapes: tuple[tuple[int, ...], ...], cg_rtol: float,
+                 cg_max_iters: int, batch_size: int | None):
+        self.method, self.layout_names, self.shapes = method, tuple(layout_names), shapes
+        self.flat_i, self.flat_j = flat_i.astype(np.int64), flat_j.astype(np.int64)
+        self.cg = (cg_rtol, cg_max_iters, batch_size)
+        self._key = (method, self.layout_names, shapes, self.flat_i.tobytes(),
+                     self.flat_j.tobytes(), self.cg)
+
+    def __hash__(self) -> int:
+        return hash(self._key)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Plan) and self._key == other._key
+
+
+@eqx.filter_jit
+def _entries(graph: FactorGraph, values: Any, plan: _Plan) -> list[Array]:
+    """The requested entries of H⁻¹ at ``values``, one array per request (compiled: a
+    repeated call with new values of the same structure reuses the program)."""
+    st = graph.structure
+    type_of = {n: k for k, n in enumerate(st.names)}
+    flat_i, flat_j = plan.flat_i, plan.flat_j
+    lin = linearize(graph, values)
+    dtype = lin.cost.dtype
+    free = jnp.concatenate(
+        [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]).astype(dtype)
+    if plan.method == "schur":
+        data, _, _, _ = _reduced(graph, lin, free)
+        free_l = jnp.concatenate([jnp.repeat(st.free[type_of[n]], st.dims[type_of[n]])
+                                  for n in plan.layout_names]).astype(dtype)
+        pattern = st.schur.pattern
+        vals = _sparse_entries(data, pattern.indices, pattern.indptr, flat_i, flat_j)
+    else:
+        free_l = free
+        if plan.method == "pcg":
+            vals = _pcg_entries(graph, lin, free, flat_i, flat_j, *plan.cg)
+        else:
+            data = csr_values(graph, lin).at[st.diag_pos].add(1.0 - free)
+            entries = _sparse_entries if plan.method == "sparse" else _dense_entries
+            vals = entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j)
+    vals = vals * free_l[flat_i] * free_l[flat_j]
+    out, start = [], 0
+    for shape in plan.shapes:
+        size = int(np.prod(shape))
+        out.append(vals[start : start + size].reshape(shape))
+        start += size
+    return out
 
 
 def _reduced(graph: FactorGraph, lin: Any, free: Array) -> Any:

@@ -34,6 +34,7 @@ Array = jax.Array
 METHODS = ("cholesky", "svd")
 
 
+@eqx.filter_jit
 def covariance(
     residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem,
     params: PyTree | Solution,
@@ -63,6 +64,9 @@ def covariance(
 
     Returns:
         The (n, n) covariance, or its nested-pytree form.
+
+    Compiled with ``eqx.filter_jit`` like :func:`~jaxpose.optim.least_squares`: a repeated
+    call with new arrays of the same shapes reuses the program.
     """
     if method not in METHODS:
         raise ValueError(f"covariance(method={method!r}): expected one of {METHODS}")
