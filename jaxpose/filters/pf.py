@@ -37,6 +37,7 @@ from ._common import (
     relative_loglik,
     select_tree,
 )
+from ._kalman import NoisyModelFilter
 
 Array = jax.Array
 
@@ -65,16 +66,12 @@ def systematic_resample(key: Array, log_weights: Array) -> Array:
     return jnp.clip(jnp.searchsorted(cdf, pos, side="right"), 0, N - 1)
 
 
-class ParticleFilter(eqx.Module):
+class ParticleFilter(NoisyModelFilter):
     """``ParticleFilter(model, Q, R, num_particles=1000, resample_threshold=0.5,
     skip_nonfinite=False)``."""
 
-    model: System
-    Q: Array
-    R: Array
     num_particles: int = eqx.field(static=True, default=1000)
     resample_threshold: float = eqx.field(static=True, default=0.5)
-    skip_nonfinite: bool = eqx.field(static=True, default=False)
 
     def __init__(
         self,
