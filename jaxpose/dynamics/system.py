@@ -29,12 +29,8 @@ from ._checks import as_array, check_last
 Array = jax.Array
 
 
-class LinearizedSystem(eqx.Module):
-    """A system linearised at a reference point (:meth:`System.linearize`): the affine
-    model ``x⁺ ≈ A x + B u + c1``, ``y ≈ C x + D u + c2`` (shapes for one element;
-    batches lead).
-
-    ``A`` (n, n), ``B`` (n, m), ``C`` (p, n), ``D`` (p, m), ``c1`` (n,), ``c2`` (p,)."""
+class _Affine(eqx.Module):
+    """The terms of an affine model ``x⁺ = A x + B u + c1``, ``y = C x + D u + c2``."""
 
     A: Array
     B: Array
@@ -42,6 +38,14 @@ class LinearizedSystem(eqx.Module):
     D: Array
     c1: Array
     c2: Array
+
+
+class LinearizedSystem(_Affine):
+    """A system linearised at a reference point (:meth:`System.linearize`): the affine
+    model ``x⁺ ≈ A x + B u + c1``, ``y ≈ C x + D u + c2`` (shapes for one element;
+    batches lead).
+
+    ``A`` (n, n), ``B`` (n, m), ``C`` (p, n), ``D`` (p, m), ``c1`` (n,), ``c2`` (p,)."""
 
 
 class System(eqx.Module):
@@ -139,16 +143,10 @@ def _output_terms(
     return C, *checked
 
 
-class _Linear(System):
-    """Shared by :class:`LTI` and :class:`LTV`: the affine matrices (fields), their sizes
+class _Linear(_Affine, System):
+    """Shared by :class:`LTI` and :class:`LTV`: the affine terms (fields), their sizes
     and the affine maps; ``_at(t)`` gives ``(A, B, C, D, c1, c2)`` of step ``t``."""
 
-    A: Array
-    B: Array
-    C: Array
-    D: Array
-    c1: Array
-    c2: Array
     is_linear: ClassVar[bool] = True
 
     @property

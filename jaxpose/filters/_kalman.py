@@ -19,6 +19,7 @@ from ._common import (
     check_sequence,
     finite_tree,
     innovation_ok,
+    model_and_noise,
     select_tree,
     symmetrize,
 )
@@ -35,6 +36,10 @@ class NoisyModelFilter(eqx.Module):
     Q: Array
     R: Array
     skip_nonfinite: bool = eqx.field(static=True, default=False)
+
+    def __init__(self, model: System, Q: Any, R: Any, skip_nonfinite: bool = False):
+        self.model, self.Q, self.R = model_and_noise(model, Q, R)
+        self.skip_nonfinite = bool(skip_nonfinite)
 
 
 class KalmanFilter(NoisyModelFilter):

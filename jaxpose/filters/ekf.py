@@ -31,7 +31,7 @@ import jax.numpy as jnp
 
 from ..dynamics._tangent import tangent_jacobian, tangent_space
 from ..dynamics.system import System
-from ._common import check_measurement, check_noise_dim, kalman_gain, model_and_noise, symmetrize
+from ._common import check_measurement, check_noise_dim, kalman_gain, symmetrize
 from ._kalman import KalmanFilter, safe_measurement
 
 Array = jax.Array
@@ -48,9 +48,8 @@ class EKF(KalmanFilter):
     def __init__(
         self, model: System, Q: Any, R: Any, joseph: bool = True, skip_nonfinite: bool = False
     ):
-        self.model, self.Q, self.R = model_and_noise(model, Q, R)
+        super().__init__(model, Q, R, skip_nonfinite)
         self.joseph = joseph
-        self.skip_nonfinite = bool(skip_nonfinite)
 
     def predict(self, x: Any, P: Array, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """``x⁻ = f(x, u, t)``, ``P⁻ = F P Fᵀ + Q``."""

@@ -32,7 +32,6 @@ from ._common import (
     check_noise_dim,
     check_sequence,
     finite_tree,
-    model_and_noise,
     psd_cholesky,
     relative_loglik,
     select_tree,
@@ -82,7 +81,7 @@ class ParticleFilter(NoisyModelFilter):
         resample_threshold: float = 0.5,
         skip_nonfinite: bool = False,
     ):
-        self.model, self.Q, self.R = model_and_noise(model, Q, R)
+        super().__init__(model, Q, R, skip_nonfinite)
         if not isinstance(num_particles, int) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
         if not 0.0 <= resample_threshold <= 1.0:
@@ -91,7 +90,6 @@ class ParticleFilter(NoisyModelFilter):
             )
         self.num_particles = num_particles
         self.resample_threshold = float(resample_threshold)
-        self.skip_nonfinite = bool(skip_nonfinite)
 
     def init(self, key: Array, x0: Any, P0: Any) -> ParticleState:
         """Particles drawn from ``x0 ⊕ N(0, P0)`` with equal weights."""

@@ -30,7 +30,6 @@ from ._common import (
     check_measurement,
     check_noise_dim,
     kalman_gain,
-    model_and_noise,
     psd_cholesky,
     symmetrize,
 )
@@ -76,11 +75,10 @@ class UKF(KalmanFilter):
         kappa: float = 0.0,
         skip_nonfinite: bool = False,
     ):
-        self.model, self.Q, self.R = model_and_noise(model, Q, R)
+        super().__init__(model, Q, R, skip_nonfinite)
         if not alpha > 0:
             raise ValueError(f"alpha: expected > 0, got {alpha}")
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
-        self.skip_nonfinite = bool(skip_nonfinite)
 
     def sigma_points(self, x: Any, P: Array) -> tuple[Any, Array, Array, Array]:
         """Stacked sigma points (2k+1, …), their tangent offsets (2k+1, k), Wm, Wc."""

@@ -162,13 +162,15 @@ def imu_gps_steps(
 
 def imu_gps_smoother(steps: Steps, window: int, **kwargs: Any) -> FixedLagSmoother:
     """An empty :class:`FixedLagSmoother` for :func:`imu_gps_steps` (``kwargs`` go to it)."""
+    return _empty_smoother(steps, window, imu_motion, imu_unary, **kwargs)
+
+
+def _empty_smoother(
+    steps: Steps, window: int, motion: Callable, unary: Callable, **kwargs: Any
+) -> FixedLagSmoother:
+    """A :class:`FixedLagSmoother` with the stream's first state and step-0 data."""
     return FixedLagSmoother(
-        steps.first,
-        _take(steps.data, 0),
-        window=window,
-        motion=imu_motion,
-        unary=imu_unary,
-        **kwargs,
+        steps.first, _take(steps.data, 0), window=window, motion=motion, unary=unary, **kwargs
     )
 
 
@@ -256,12 +258,11 @@ def pose_graph_steps(graph: Any, *, num_poses: int | None = None, dtype: Any = N
 def pose_graph_smoother(steps: Steps, window: int, **kwargs: Any) -> FixedLagSmoother:
     """An empty :class:`FixedLagSmoother` for :func:`pose_graph_steps`."""
     lag, _, ld = steps.loops
-    return FixedLagSmoother(
-        steps.first,
-        _take(steps.data, 0),
-        window=window,
-        motion=se2_between,
-        unary=se2_prior,
+    return _empty_smoother(
+        steps,
+        window,
+        se2_between,
+        se2_prior,
         loop=se2_loop,
         loop_data=_take(_take(ld, 0), 0),
         max_loops=lag.shape[1],
