@@ -169,7 +169,7 @@ def fuse_imu_gps(
                          acc_walk, gps_sigma, prior_sigmas)
     keyframes, gi, z, grav, pre = _gps_keyframes("fuse_imu_gps", gyro, acc, dt, gps_index,
                                                  gps_position, init, opts)
-    g = jnp.asarray(gyro)
+    dtype = grav.dtype
     k = keyframes.size
     win = np.arange(k - 1)
 
@@ -177,7 +177,7 @@ def fuse_imu_gps(
     states = jax.jit(dead_reckon)(gyro, acc, dt, grav, init)
     full = jax.tree.map(lambda i0, s: jnp.concatenate([i0[None], s], 0), init, states)
     dr = full[keyframes]  # the state after keyframes[k] samples
-    variables = {"pose": dr.pose(), "vel": dr.vel, "bias": jnp.zeros((k, 6), g.dtype)}
+    variables = {"pose": dr.pose(), "vel": dr.vel, "bias": jnp.zeros((k, 6), dtype)}
 
     s_rot, s_pos, s_vel, s_bias = prior_sigmas
     pose0 = init.pose()
@@ -190,7 +190,7 @@ def fuse_imu_gps(
                data=jnp.asarray(init.vel)[None], name="vel_prior",
                information=np.eye(3) / s_vel**2),
         Factor(vector_prior_residual, [("bias", np.zeros(1, np.int64))],
-               data=jnp.zeros((1, 6), g.dtype), name="bias_prior",
+               data=jnp.zeros((1, 6), dtype), name="bias_prior",
                information=np.eye(6) / s_bias**2),
     ]
     graph = FactorGraph(factors, variables)
