@@ -86,6 +86,14 @@ def early_threads(argv: Sequence[str] | None = None, default: int = DEFAULT_THRE
     return threads
 
 
+def script_threads(module: str) -> int:
+    """A script's start-up, ``THREADS = script_threads(__name__)`` before numpy, jax or
+    torch are imported: run as ``__main__``, :func:`early_threads` (pools capped to
+    ``--threads``, which it returns); imported (tests, :mod:`bench.run`), nothing is
+    changed and :data:`DEFAULT_THREADS` returned."""
+    return early_threads() if module == "__main__" else DEFAULT_THREADS
+
+
 def set_threads(threads: int, *, pin: bool = False) -> None:
     """The same thread budget for jaxpose and the peers (before JAX's first computation):
     XLA's Eigen pool off and ``torch.set_num_threads``; with ``pin`` also the CPU affinity

@@ -40,10 +40,9 @@ from typing import Any
 if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from bench._common import early_threads  # noqa: E402 - imports no jax
+from bench._common import script_threads  # noqa: E402 - imports no jax
 
-if __name__ == "__main__":
-    early_threads()  # caps the BLAS/OpenMP pools before numpy, jax or torch load them
+THREADS = script_threads(__name__)  # caps the BLAS/OpenMP pools before numpy/jax/torch load
 
 import jax  # noqa: E402 - after the BLAS thread caps
 import numpy as np  # noqa: E402
@@ -332,8 +331,6 @@ def fmt_seconds_fine(s: float | None) -> str:
         return f"{s * 1e6:.0f} µs"
     return fmt_seconds(s) if s >= 0.01 else f"{s * 1e3:.1f} ms"
 
-
-THREADS = 0
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:

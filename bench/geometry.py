@@ -54,10 +54,9 @@ if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` imp
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
-from bench._common import DEFAULT_THREADS, early_threads  # noqa: E402 - imports no jax
+from bench._common import script_threads  # noqa: E402 - imports no jax
 
-# caps the BLAS/OpenMP pools before numpy, jax or torch load them
-THREADS = early_threads() if __name__ == "__main__" else DEFAULT_THREADS
+THREADS = script_threads(__name__)  # caps the BLAS/OpenMP pools before numpy/jax/torch load
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

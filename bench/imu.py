@@ -50,10 +50,9 @@ from typing import Any
 if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from bench._common import early_threads  # noqa: E402 - imports no jax
+from bench._common import script_threads  # noqa: E402 - imports no jax
 
-if __name__ == "__main__":
-    early_threads()  # caps the BLAS/OpenMP pools before numpy, jax or torch load them
+THREADS = script_threads(__name__)  # caps the BLAS/OpenMP pools before numpy/jax/torch load
 
 import jax  # noqa: E402 - after the BLAS thread caps
 import numpy as np  # noqa: E402
@@ -302,7 +301,6 @@ def report(cells: list[Cell], peer: Peer, extra: dict[str, Any], cfg: Config) ->
     return "\n".join(lines)
 
 
-THREADS = 0
 CLOCK = "wall"
 
 

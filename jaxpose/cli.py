@@ -30,7 +30,7 @@ import sys
 import time
 import traceback
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 EPILOG = (
     "Any failure prints one line 'jaxpose COMMAND: message' to stderr and exits with status 1 "
@@ -499,14 +499,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--float32", action="store_true", help="run in float32 instead of float64")
     p.set_defaults(func=demo)
 
-    q = add("pgo", help="optimise a g2o pose graph")
-    q.add_argument("file", help="input .g2o file (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or SE2)")
-    q.add_argument("--out", help="write the optimised graph to this .g2o file (its directory "
-                   "must exist; checked before solving)")
+    q = _solve_command(add, "pgo", "optimise a g2o pose graph",
+                       "input .g2o file (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or SE2)",
+                       "graph to this .g2o file")
     q.add_argument("--plot", help="write a before/after plot with 2σ position ellipses of the "
                    "pose marginals (PNG; needs matplotlib; directory checked before solving)")
-    q.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
-    q.add_argument("--kernel-delta", type=_positive_float, default=1.0, help="kernel scale δ")
+    _kernel_arguments(q, "kernel scale δ")
     q.add_argument("--robust", default=None, choices=["gnc"],
                    help="outlier-robust solve: graduated non-convexity (odometry edges are "
                         "known inliers; loop closures get inlier weights)")
@@ -524,13 +522,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--quiet", action="store_true", help="no per-iteration table")
     q.set_defaults(func=pgo_command)
 
-    b = add("ba", help="bundle-adjust a BAL problem")
-    b.add_argument("file", help="input BAL problem file (.txt)")
-    b.add_argument("--out", help="write the optimised problem to this BAL file (its directory "
-                   "must exist; checked before solving)")
-    b.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
-    b.add_argument("--kernel-delta", type=_positive_float, default=1.0,
-                   help="kernel scale δ (pixels)")
+    b = _solve_command(add, "ba", "bundle-adjust a BAL problem", "input BAL problem file (.txt)",
+                       "problem to this BAL file")
+    _kernel_arguments(b, "kernel scale δ (pixels)")
     b.add_argument("--solver", default="schur", choices=["schur", "sparse", "pcg", "dense"])
     b.add_argument("--fix-intrinsics", action="store_true", help="hold f, k1, k2 constant")
     b.add_argument("--max-steps", type=_int_at_least(0), default=100)
@@ -538,6 +532,24 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quiet", action="store_true", help="no per-iteration table")
     b.set_defaults(func=ba_command)
     return parser
+
+
+def _solve_command(
+    add: Callable[..., argparse.ArgumentParser], name: str, summary: str, file_help: str,
+    out_what: str,
+) -> argparse.ArgumentParser:
+    """A solving sub-command (``pgo``, ``ba``): its input ``file`` and ``--out``."""
+    p = add(name, help=summary)
+    p.add_argument("file", help=file_help)
+    p.add_argument("--out", help=f"write the optimised {out_what} (its directory must exist; "
+                   "checked before solving)")
+    return p
+
+
+def _kernel_arguments(p: argparse.ArgumentParser, delta_help: str) -> None:
+    """``--kernel`` and ``--kernel-delta`` (shared by ``pgo`` and ``ba``)."""
+    p.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
+    p.add_argument("--kernel-delta", type=_positive_float, default=1.0, help=delta_help)
 
 
 def _message(err: BaseException) -> str:

@@ -29,12 +29,8 @@ from ._checks import as_array, check_last
 Array = jax.Array
 
 
-class LinearizedSystem(eqx.Module):
-    """A system linearised at a reference point (:meth:`System.linearize`): the affine
-    model ``x⁺ ≈ A x + B u + c1``, ``y ≈ C x + D u + c2`` (shapes for one element;
-    batches lead).
-
-    ``A`` (n, n), ``B`` (n, m), ``C`` (p, n), ``D`` (p, m), ``c1`` (n,), ``c2`` (p,)."""
+class _Affine(eqx.Module):
+    """The terms of an affine model ``x⁺ = A x + B u + c1``, ``y = C x + D u + c2``."""
 
     A: Array
     B: Array
@@ -42,6 +38,14 @@ class LinearizedSystem(eqx.Module):
     D: Array
     c1: Array
     c2: Array
+
+
+class LinearizedSystem(_Affine):
+    """A system linearised at a reference point (:meth:`System.linearize`): the affine
+    model ``x⁺ ≈ A x + B u + c1``, ``y ≈ C x + D u + c2`` (shapes for one element;
+    batches lead).
+
+    ``A`` (n, n), ``B`` (n, m), ``C`` (p, n), ``D`` (p, m), ``c1`` (n,), ``c2`` (p,)."""
 
 
 class System(eqx.Module):
@@ -111,45 +115,39 @@ def _opt(x: Any, default: Array, name: str) -> Array:
     return default if x is None else as_array(x, name)
 
 
-class LTI(System):
-    """Linear time-invariant system ``x⁺ = A x + B u + c1``, ``y = C x + D u + c2``.
+def _shape(*dims: Any) -> str:
+    return f"({', '.join(map(str, dims))}{',' if len(dims) == 1 else ''})"
 
-    ``A`` (n, n), ``B`` (n, m); optional ``C`` (p, n) (default I), ``D`` (p, m) (default
-    0), ``c1`` (n,), ``c2`` (p,) (default 0). For a batch of systems, ``jax.vmap`` over a
-    module built from batched matrices."""
 
-    A: Array
-    B: Array
-    C: Array
-    D: Array
-    c1: Array
-    c2: Array
-    is_linear: ClassVar[bool] = True
-
-    def __init__(
-        self, A: Any, B: Any, C: Any = None, D: Any = None, c1: Any = None, c2: Any = None
+def _output_terms(
+    A: Array, lead: tuple[int, ...], n: int, m: int, C: Any, D: Any, c1: Any, c2: Any
+) -> tuple[Array, Array, Array, Array]:
+    """``(C, D, c1, c2)`` of an :class:`LTI` (``lead = ()``) or :class:`LTV` (``lead =
+    (T,)``), the defaults filled in (C = I, the others 0) and the shapes checked: C
+    (*lead, p, n), D (*lead, p, m), c1 (*lead, n), c2 (*lead, p)."""
+    notes = ("", "") if lead else (" (p observations, n = A.shape[0])", " (C rows, B columns)")
+    C = _opt(C, jnp.broadcast_to(jnp.eye(n, dtype=A.dtype), (*lead, n, n)), "C")
+    if C.ndim != len(lead) + 2 or C.shape[: len(lead)] != lead or C.shape[-1] != n:
+        raise ValueError(f"C: expected shape {_shape(*lead, 'p', n)}{notes[0]}, got {C.shape}")
+    p = C.shape[-2]
+    checked = []
+    for x, name, shape, note in (
+        (D, "D", (*lead, p, m), notes[1]),
+        (c1, "c1", (*lead, n), ""),
+        (c2, "c2", (*lead, p), ""),
     ):
-        A = as_array(A, "A", 2)
-        B = as_array(B, "B", 2)
-        n, m = _check_ab(A, B, "A", "B")
-        C = _opt(C, jnp.eye(n, dtype=A.dtype), "C")
-        if C.ndim != 2 or C.shape[1] != n:
-            raise ValueError(
-                f"C: expected shape (p, {n}) (p observations, n = A.shape[0]), got {tuple(C.shape)}"
-            )
-        p = C.shape[0]
-        D = _opt(D, jnp.zeros((p, m), A.dtype), "D")
-        if D.shape != (p, m):
-            raise ValueError(
-                f"D: expected shape ({p}, {m}) (C rows, B columns), got {tuple(D.shape)}"
-            )
-        c1 = _opt(c1, jnp.zeros(n, A.dtype), "c1")
-        if c1.shape != (n,):
-            raise ValueError(f"c1: expected shape ({n},), got {tuple(c1.shape)}")
-        c2 = _opt(c2, jnp.zeros(p, A.dtype), "c2")
-        if c2.shape != (p,):
-            raise ValueError(f"c2: expected shape ({p},), got {tuple(c2.shape)}")
-        self.A, self.B, self.C, self.D, self.c1, self.c2 = A, B, C, D, c1, c2
+        x = _opt(x, jnp.zeros(shape, A.dtype), name)
+        if x.shape != shape:
+            raise ValueError(f"{name}: expected shape {_shape(*shape)}{note}, got {x.shape}")
+        checked.append(x)
+    return C, *checked
+
+
+class _Linear(_Affine, System):
+    """Shared by :class:`LTI` and :class:`LTV`: the affine terms (fields), their sizes
+    and the affine maps; ``_at(t)`` gives ``(A, B, C, D, c1, c2)`` of step ``t``."""
+
+    is_linear: ClassVar[bool] = True
 
     @property
     def state_dim(self) -> int:
@@ -161,21 +159,46 @@ class LTI(System):
         """Input size m (``B.shape[-1]``)."""
         return self.B.shape[-1]
 
+    @abc.abstractmethod
+    def _at(self, t: Any) -> tuple[Array, ...]:
+        """``(A, B, C, D, c1, c2)`` at step ``t``."""
+
     def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:
         check_last(x, self.A.shape[-1], "x", "state size n = A.shape[-1]")
         check_last(u, self.B.shape[-1], "u", "input size m = B.shape[-1]")
-        return _mv(self.A, x) + _mv(self.B, u) + self.c1
+        A, B, _, _, c1, _ = self._at(t)
+        return _mv(A, x) + _mv(B, u) + c1
 
     def observation(self, x: Array, u: Array, t: Any = 0) -> Array:
         check_last(x, self.C.shape[-1], "x", "state size n = C.shape[-1]")
         check_last(u, self.D.shape[-1], "u", "input size m = D.shape[-1]")
-        return _mv(self.C, x) + _mv(self.D, u) + self.c2
+        _, _, C, D, _, c2 = self._at(t)
+        return _mv(C, x) + _mv(D, u) + c2
+
+
+class LTI(_Linear):
+    """Linear time-invariant system ``x⁺ = A x + B u + c1``, ``y = C x + D u + c2``.
+
+    ``A`` (n, n), ``B`` (n, m); optional ``C`` (p, n) (default I), ``D`` (p, m) (default
+    0), ``c1`` (n,), ``c2`` (p,) (default 0). For a batch of systems, ``jax.vmap`` over a
+    module built from batched matrices."""
+
+    def __init__(
+        self, A: Any, B: Any, C: Any = None, D: Any = None, c1: Any = None, c2: Any = None
+    ):
+        A = as_array(A, "A", 2)
+        B = as_array(B, "B", 2)
+        n, m = _check_ab(A, B, "A", "B")
+        self.A, self.B = A, B
+        self.C, self.D, self.c1, self.c2 = _output_terms(A, (), n, m, C, D, c1, c2)
+
+    def _at(self, t: Any) -> tuple[Array, ...]:
+        return self.A, self.B, self.C, self.D, self.c1, self.c2
 
     def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:
         x, u = jnp.asarray(x), jnp.asarray(u)
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], jnp.shape(t))
-        b = lambda a: jnp.broadcast_to(a, (*batch, *a.shape))
-        return LinearizedSystem(b(self.A), b(self.B), b(self.C), b(self.D), b(self.c1), b(self.c2))
+        return LinearizedSystem(*(jnp.broadcast_to(a, (*batch, *a.shape)) for a in self._at(t)))
 
     def matrices(self, horizon: int) -> tuple[Array, Array]:
         """``(F, f)`` stacked over the horizon: F (T, n, n+m) = [A B], f (T, n) = c1."""
@@ -186,19 +209,11 @@ class LTI(System):
         )
 
 
-class LTV(System):
+class LTV(_Linear):
     """Linear time-varying system: the matrices of :class:`LTI` with a leading time axis
     ``T``: ``A`` (T, n, n), ``B`` (T, n, m), ``C`` (T, p, n), ``D`` (T, p, m), ``c1``
     (T, n), ``c2`` (T, p). ``t`` selects the step (JAX indexing: out-of-range ``t``
     clamps to the last step)."""
-
-    A: Array
-    B: Array
-    C: Array
-    D: Array
-    c1: Array
-    c2: Array
-    is_linear: ClassVar[bool] = True
 
     def __init__(
         self, A: Any, B: Any, C: Any = None, D: Any = None, c1: Any = None, c2: Any = None
@@ -209,54 +224,22 @@ class LTV(System):
         if B.shape[0] != T:
             raise ValueError(f"B: expected {T} time steps (A.shape[0]), got shape {tuple(B.shape)}")
         n, m = _check_ab(A[0], B[0], "A", "B")
-        C = _opt(C, jnp.broadcast_to(jnp.eye(n, dtype=A.dtype), (T, n, n)), "C")
-        if C.ndim != 3 or C.shape[0] != T or C.shape[2] != n:
-            raise ValueError(f"C: expected shape ({T}, p, {n}), got {tuple(C.shape)}")
-        p = C.shape[1]
-        D = _opt(D, jnp.zeros((T, p, m), A.dtype), "D")
-        if D.shape != (T, p, m):
-            raise ValueError(f"D: expected shape ({T}, {p}, {m}), got {tuple(D.shape)}")
-        c1 = _opt(c1, jnp.zeros((T, n), A.dtype), "c1")
-        if c1.shape != (T, n):
-            raise ValueError(f"c1: expected shape ({T}, {n}), got {tuple(c1.shape)}")
-        c2 = _opt(c2, jnp.zeros((T, p), A.dtype), "c2")
-        if c2.shape != (T, p):
-            raise ValueError(f"c2: expected shape ({T}, {p}), got {tuple(c2.shape)}")
-        self.A, self.B, self.C, self.D, self.c1, self.c2 = A, B, C, D, c1, c2
+        self.A, self.B = A, B
+        self.C, self.D, self.c1, self.c2 = _output_terms(A, (T,), n, m, C, D, c1, c2)
 
     @property
     def horizon(self) -> int:
         """Number of time steps T covered by the stacked matrices (``A.shape[0]``)."""
         return self.A.shape[0]
 
-    @property
-    def state_dim(self) -> int:
-        """State size n (``A.shape[-1]``)."""
-        return self.A.shape[-1]
-
-    @property
-    def input_dim(self) -> int:
-        """Input size m (``B.shape[-1]``)."""
-        return self.B.shape[-1]
-
-    def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:
-        check_last(x, self.A.shape[-1], "x", "state size n = A.shape[-1]")
-        check_last(u, self.B.shape[-1], "u", "input size m = B.shape[-1]")
+    def _at(self, t: Any) -> tuple[Array, ...]:
         t = jnp.asarray(t, jnp.int32)
-        return _mv(self.A[t], x) + _mv(self.B[t], u) + self.c1[t]
-
-    def observation(self, x: Array, u: Array, t: Any = 0) -> Array:
-        check_last(x, self.C.shape[-1], "x", "state size n = C.shape[-1]")
-        t = jnp.asarray(t, jnp.int32)
-        return _mv(self.C[t], x) + _mv(self.D[t], u) + self.c2[t]
+        return self.A[t], self.B[t], self.C[t], self.D[t], self.c1[t], self.c2[t]
 
     def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:
         x, u, t = jnp.asarray(x), jnp.asarray(u), jnp.asarray(t, jnp.int32)
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], t.shape)
-        tb = jnp.broadcast_to(t, batch)
-        return LinearizedSystem(
-            self.A[tb], self.B[tb], self.C[tb], self.D[tb], self.c1[tb], self.c2[tb]
-        )
+        return LinearizedSystem(*self._at(jnp.broadcast_to(t, batch)))
 
     def matrices(self, horizon: int) -> tuple[Array, Array]:
         """``(F, f)`` for the first ``horizon`` steps: F (T, n, n+m), f (T, n)."""

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
 from ..dynamics._checks import as_array, check_psd
-from ..dynamics._tangent import TangentSpace, tangent_space
+from ..dynamics._tangent import tangent_space
 from ..dynamics.system import System
 
 Array = jax.Array
@@ -67,10 +67,6 @@ def symmetrize(P: Array) -> Array:
     return 0.5 * (P + P.T)
 
 
-def state_space(x: Any) -> TangentSpace:
-    return tangent_space(x)
-
-
 def finite_tree(*trees: Any) -> Array:
     leaves = [leaf for t in trees for leaf in jax.tree.leaves(t)]
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in leaves]))
@@ -81,10 +77,6 @@ def kalman_gain(PHt: Array, S: Array) -> tuple[Array, Array]:
     L = jnp.linalg.cholesky(symmetrize(S))
     K = cho_solve((L, True), PHt.T).T
     return K, L
-
-
-def measurement_space(y: Any) -> TangentSpace:
-    return tangent_space(y)
 
 
 def psd_cholesky(A: Array) -> Array:

@@ -32,11 +32,11 @@ from ._common import (
     check_noise_dim,
     check_sequence,
     finite_tree,
-    model_and_noise,
     psd_cholesky,
     relative_loglik,
     select_tree,
 )
+from ._kalman import NoisyModelFilter
 
 Array = jax.Array
 
@@ -65,16 +65,12 @@ def systematic_resample(key: Array, log_weights: Array) -> Array:
     return jnp.clip(jnp.searchsorted(cdf, pos, side="right"), 0, N - 1)
 
 
-class ParticleFilter(eqx.Module):
+class ParticleFilter(NoisyModelFilter):
     """``ParticleFilter(model, Q, R, num_particles=1000, resample_threshold=0.5,
     skip_nonfinite=False)``."""
 
-    model: System
-    Q: Array
-    R: Array
     num_particles: int = eqx.field(static=True, default=1000)
     resample_threshold: float = eqx.field(static=True, default=0.5)
-    skip_nonfinite: bool = eqx.field(static=True, default=False)
 
     def __init__(
         self,
@@ -85,7 +81,7 @@ class ParticleFilter(eqx.Module):
         resample_threshold: float = 0.5,
         skip_nonfinite: bool = False,
     ):
-        self.model, self.Q, self.R = model_and_noise(model, Q, R)
+        super().__init__(model, Q, R, skip_nonfinite)
         if not isinstance(num_particles, int) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
         if not 0.0 <= resample_threshold <= 1.0:
@@ -94,7 +90,6 @@ class ParticleFilter(eqx.Module):
             )
         self.num_particles = num_particles
         self.resample_threshold = float(resample_threshold)
-        self.skip_nonfinite = bool(skip_nonfinite)
 
     def init(self, key: Array, x0: Any, P0: Any) -> ParticleState:
         """Particles drawn from ``x0 ⊕ N(0, P0)`` with equal weights."""

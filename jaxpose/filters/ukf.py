@@ -27,19 +27,13 @@ import jax.numpy as jnp
 from ..dynamics._tangent import tangent_space
 from ..dynamics.system import System
 from ._common import (
-    FilterResult,
-    check_cov,
     check_measurement,
     check_noise_dim,
-    check_sequence,
-    innovation_ok,
     kalman_gain,
-    model_and_noise,
     psd_cholesky,
-    select_tree,
     symmetrize,
 )
-from .ekf import _safe_measurement, scan_filter
+from ._kalman import KalmanFilter, safe_measurement
 
 Array = jax.Array
 
@@ -60,20 +54,16 @@ def merwe_weights(
     return wm, wc, jnp.asarray(c, dtype)
 
 
-class UKF(eqx.Module):
+class UKF(KalmanFilter):
     """``UKF(model, Q, R, alpha=1.0, beta=2.0, kappa=0.0, skip_nonfinite=False)``; ``Q``
     (k, k), ``R`` (p, p); ``P`` may be positive semi-definite (``P0 = 0``).
 
     Defaults α = 1, β = 2, κ = 0 keep all weights non-negative except none (Wm_0 = 0);
     small α (e.g. 1e-3) gives large negative central weights and loses digits."""
 
-    model: System
-    Q: Array
-    R: Array
     alpha: float = eqx.field(static=True, default=1.0)
     beta: float = eqx.field(static=True, default=2.0)
     kappa: float = eqx.field(static=True, default=0.0)
-    skip_nonfinite: bool = eqx.field(static=True, default=False)
 
     def __init__(
         self,
@@ -85,11 +75,10 @@ class UKF(eqx.Module):
         kappa: float = 0.0,
         skip_nonfinite: bool = False,
     ):
-        self.model, self.Q, self.R = model_and_noise(model, Q, R)
+        super().__init__(model, Q, R, skip_nonfinite)
         if not alpha > 0:
             raise ValueError(f"alpha: expected > 0, got {alpha}")
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
-        self.skip_nonfinite = bool(skip_nonfinite)
 
     def sigma_points(self, x: Any, P: Array) -> tuple[Any, Array, Array, Array]:
         """Stacked sigma points (2k+1, …), their tangent offsets (2k+1, k), Wm, Wc."""
@@ -114,13 +103,6 @@ class UKF(eqx.Module):
         Pp = (wc[:, None] * dev).T @ dev + self.Q
         return mean, symmetrize(Pp)
 
-    def update(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
-        """Correct ``(x, P)`` with a measurement ``y`` (p,) of ``h(x, u, t)`` (sigma points).
-
-        Returns the posterior estimate and covariance (k, k).
-        """
-        return self._update(x, P, y, u, t)[:2]
-
     def _update(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         ts = tangent_space(x)
         check_noise_dim(P, ts.dim, "P", "state tangent size")
@@ -130,34 +112,12 @@ class UKF(eqx.Module):
         p = ydev.shape[-1]
         check_noise_dim(self.R, p, "R", f"measurement noise: h(x) gives {p} values")
         check_measurement(y, ymean, self.R)
-        y, y_ok = _safe_measurement(y, ymean, self.skip_nonfinite)
+        y, y_ok = safe_measurement(y, ymean, self.skip_nonfinite)
         Pyy = (wc[:, None] * ydev).T @ ydev + self.R
         Pxy = (wc[:, None] * offs).T @ ydev
         K, L = kalman_gain(Pxy, Pyy)
         r = tangent_space(ymean).minus(y, ymean)
-        use = y_ok & innovation_ok(L, r) if self.skip_nonfinite else y_ok
-        r = jnp.where(use, r, 0.0)
-        x_new = ts.plus(x, K @ r)
-        P_new = P - K @ Pyy @ K.T
-        if self.skip_nonfinite:
-            x_new, P_new = select_tree(use, (x_new, P_new), (x, P))
-        return x_new, symmetrize(P_new), use
-
-    def step(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
-        """Predict with ``u`` then update with ``y``; also ``ukf(x, P, y, u, t)``."""
-        return self._step(x, P, y, u, t)[:2]
-
-    def _step(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
-        xp, Pp = self.predict(x, P, u, t)
-        return self._update(xp, Pp, y, u, t)
-
-    __call__ = step
-
-    def run(self, x0: Any, P0: Any, ys: Any, us: Array, t0: Any = 0) -> FilterResult:
-        """Filter a sequence with ``lax.scan`` (see :meth:`EKF.run`; same size checks)."""
-        P0 = check_cov(P0, tangent_space(x0).dim, "P0")
-        us = check_sequence(self.model, self.R, x0, ys, us, t0)
-        return scan_filter(self._step, x0, P0, ys, us, t0)
+        return self._correct(ts, x, P, P - K @ Pyy @ K.T, K, L, r, y_ok)
 
 
 def _mean(pts: Any, wm: Array) -> tuple[Any, Array]:

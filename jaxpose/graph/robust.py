@@ -43,6 +43,7 @@ Weights enter the inner solve by scaling each factor's square-root information b
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -229,24 +230,37 @@ def _split(flat: Array, counts: list[int]) -> tuple[Array, ...]:
     return tuple(jnp.split(flat, np.cumsum(counts)[:-1].tolist()))
 
 
+def _by_group(
+    name: str, graph: FactorGraph, parts: list, expected: str, unit: str,
+    per_group: Callable[[int, Any, int], np.ndarray],
+) -> np.ndarray:
+    """``per_group(g, part, m)`` (m,) for each factor group ``g`` of ``m`` factors,
+    concatenated (M,); ``parts`` must hold one entry per group (``expected`` and ``unit``
+    word the error)."""
+    counts = [f.count for f in graph.factors]
+    if len(parts) != len(counts):
+        raise ValueError(
+            f"gnc({name}): expected {expected} per factor group ({len(counts)}), "
+            f"got {len(parts)}{unit}"
+        )
+    return np.concatenate(
+        [per_group(g, p, m) for g, (p, m) in enumerate(zip(parts, counts, strict=True))]
+    )
+
+
 def _per_factor(value: Any, name: str, graph: FactorGraph, default: Any, dtype: Any) -> np.ndarray:
     """A scalar, a (M,) array for a one-group graph, or one scalar/array per group -> (M,)."""
-    counts = [f.count for f in graph.factors]
+    n_groups = len(graph.factors)
     if value is None:
         value = default
     if np.ndim(value) == 0 or (
-        len(counts) == 1 and np.ndim(value) == 1 and not isinstance(value, (list, tuple))
+        n_groups == 1 and np.ndim(value) == 1 and not isinstance(value, (list, tuple))
     ):
-        parts = [value] if len(counts) == 1 else [value] * len(counts)
+        parts = [value] if n_groups == 1 else [value] * n_groups
     else:
         parts = list(value)
-    if len(parts) != len(counts):
-        raise ValueError(
-            f"gnc({name}): expected a scalar or one entry per factor group ({len(counts)}), "
-            f"got {len(parts)}"
-        )
-    out = []
-    for g, (p, m) in enumerate(zip(parts, counts, strict=True)):
+
+    def group(g: int, p: Any, m: int) -> np.ndarray:
         arr = np.asarray(p, dtype)
         if arr.ndim == 0:
             arr = np.full(m, arr, dtype)
@@ -255,28 +269,23 @@ def _per_factor(value: Any, name: str, graph: FactorGraph, default: Any, dtype: 
                 f"gnc({name}): factor group {g} ({graph.factors[g].name!r}) has {m} factors, "
                 f"got shape {arr.shape}"
             )
-        out.append(arr)
-    return np.concatenate(out)
+        return arr
+
+    return _by_group(name, graph, parts, "a scalar or one entry", "", group)
 
 
 def _known(value: Any, name: str, graph: FactorGraph) -> np.ndarray:
     """None, indices or a boolean mask (one-group graph), or one such per group -> (M,) bool."""
-    counts = [f.count for f in graph.factors]
     if value is None:
-        return np.zeros(sum(counts), bool)
-    one = len(counts) == 1 and not (
+        return np.zeros(sum(f.count for f in graph.factors), bool)
+    one = len(graph.factors) == 1 and not (
         isinstance(value, (list, tuple))
         and len(value) == 1
         and (value[0] is None or np.ndim(value[0]) == 1)
     )
     parts = [value] if one else list(value)
-    if len(parts) != len(counts):
-        raise ValueError(
-            f"gnc({name}): expected indices or a mask per factor group ({len(counts)}), "
-            f"got {len(parts)} entries"
-        )
-    out = []
-    for g, (p, m) in enumerate(zip(parts, counts, strict=True)):
+
+    def group(g: int, p: Any, m: int) -> np.ndarray:
         mask = np.zeros(m, bool)
         if p is not None:
             arr = np.asarray(p)
@@ -297,8 +306,9 @@ def _known(value: Any, name: str, graph: FactorGraph) -> np.ndarray:
                         f"got {p!r}"[:300]
                     )
                 mask[arr] = True
-        out.append(mask)
-    return np.concatenate(out)
+        return mask
+
+    return _by_group(name, graph, parts, "indices or a mask", " entries", group)
 
 
 # ----------------------------------------------------------------------------------

@@ -47,6 +47,16 @@ class Delta(NamedTuple):
     jac: Array | None
 
 
+class Noise(NamedTuple):
+    """Continuous-time noise variances σ² of the samples: ``gyro`` and ``acc`` (3,)
+    (discrete ones are σ²/dt) and ``integration`` () (GTSAM's integration covariance:
+    ``σ_i²·dt`` added to the position block)."""
+
+    gyro: Array
+    acc: Array
+    integration: Array
+
+
 def _mm(a: Array, b: Array) -> Array:
     """Batched (…, 3, 3) @ (…, 3, k) as a fused multiply-sum (faster than tiny dots on CPU)."""
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
@@ -104,34 +114,23 @@ def compose(a: Delta, b: Delta) -> Delta:
     return Delta(q, v, p, t, cov, jac)
 
 
-def samples(
-    omega: Array,
-    acc: Array,
-    dt: Array,
-    gyro_var: Array | None,
-    acc_var: Array | None,
-    int_var: Array | None,
-    with_jac: bool,
-) -> Delta:
+def samples(omega: Array, acc: Array, dt: Array, noise: Noise | None, with_jac: bool) -> Delta:
     """One element per bias-corrected sample (…, 3): ``ΔR = Exp(ω dt)``, ``Δv = a dt``,
-    ``Δp = ½ a dt²``; noise and bias Jacobians of a zero-order-hold sample.
-
-    ``gyro_var``/``acc_var`` (3,) are continuous-time variances σ² (discrete ones are
-    σ²/dt); ``int_var`` () adds ``σ_i²·dt`` to the position block (GTSAM's
-    integration covariance)."""
+    ``Δp = ½ a dt²``; noise covariance (``noise``: :class:`Noise`, ``None`` for none) and
+    bias Jacobians of a zero-order-hold sample."""
     phi = omega * dt[..., None]
     q = quat.exp(phi)
     v = acc * dt[..., None]
     p = 0.5 * v * dt[..., None]
     cov = jac = None
-    if gyro_var is not None or with_jac:
+    if noise is not None or with_jac:
         jr = quat.jl(-phi)  # right Jacobian of Exp at ω dt
-    if gyro_var is not None:
+    if noise is not None:
         eye = jnp.eye(3, dtype=omega.dtype)
         d = dt[..., None, None]
-        s_ff = jnp.einsum("...ij,j,...kj->...ik", jr, gyro_var, jr) * d
-        s_a = jnp.broadcast_to(eye * acc_var, (*dt.shape, 3, 3))
-        s_pp = s_a * d**3 / 4.0 + eye * (int_var * d)
+        s_ff = jnp.einsum("...ij,j,...kj->...ik", jr, noise.gyro, jr) * d
+        s_a = jnp.broadcast_to(eye * noise.acc, (*dt.shape, 3, 3))
+        s_pp = s_a * d**3 / 4.0 + eye * (noise.integration * d)
         z = jnp.zeros_like(s_ff)
         cov = jnp.concatenate(
             [
@@ -261,15 +260,7 @@ def _chart_map(rn_t: Array, x: Array) -> Array:
     return jnp.concatenate([rn_t @ x[0:3], x[3:9]], 0)
 
 
-def window(
-    omega: Array,
-    acc: Array,
-    dt: Array,
-    gyro_sigma: Array | None,
-    acc_sigma: Array | None,
-    int_var: Array | None,
-    with_jac: bool,
-) -> Delta:
+def window(omega: Array, acc: Array, dt: Array, noise: Noise | None, with_jac: bool) -> Delta:
     """The delta of a whole window of bias-corrected samples (N, 3), all at once.
 
     Instead of propagating the covariance sample by sample, each sample's noise is mapped
@@ -291,8 +282,7 @@ def window(
     covariance product."""
     q_incl, v_incl, p_incl, t_incl, q_excl, _ = prefix_values(omega, acc, dt)
     qn, vn, pn, tn = q_incl[-1], v_incl[-1], p_incl[-1], t_incl[-1]
-    with_cov = gyro_sigma is not None or acc_sigma is not None
-    if not (with_cov or with_jac):
+    if noise is None and not with_jac:
         return Delta(qn, vn, pn, tn, None, None)
     dtype = omega.dtype
     n = dt.shape[0]
@@ -315,10 +305,8 @@ def window(
     gain_p = 0.5 * dt + ts  # accelerometer gain of the position rows
     rn_t = quat.to_matrix(qn).T
     cov = jac = None
-    if with_cov:
-        zeros3 = jnp.zeros(3, dtype)
-        wg = (zeros3 if gyro_sigma is None else gyro_sigma) ** 2
-        wa = (zeros3 if acc_sigma is None else acc_sigma) ** 2
+    if noise is not None:
+        wg, wa = noise.gyro, noise.acc
         cg = zg @ (zg * (wg[:, None] * dt).reshape(-1)).T
         # accelerometer: Σ_k R_k diag(σ_a²) R_kᵀ·c_k for c = dt, gain_p·dt, gain_p²·dt
         e = jnp.stack([
@@ -331,8 +319,7 @@ def window(
         ca = jnp.block([[vv, vp], [vp, pp]])
         cov = cg + jnp.pad(ca, ((3, 0), (3, 0)))
         cov = _chart_map(rn_t, _chart_map(rn_t, cov).T)
-        if int_var is not None:
-            cov = cov.at[6:9, 6:9].add(jnp.eye(3, dtype=dtype) * (int_var * tn))
+        cov = cov.at[6:9, 6:9].add(jnp.eye(3, dtype=dtype) * (noise.integration * tn))
     if with_jac:
         jg = -(zg.reshape(27, n) @ dt).reshape(9, 3)
         ja = -(r_flat @ jnp.stack([dt, gain_p * dt], -1))  # (9, 2): rows (i, j)

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from ..lie import quaternion as quat
-from ._core import Delta
+from ._core import Delta, Noise
 
 Array = jax.Array
 
@@ -32,18 +32,11 @@ def _update(x: Array, a: Array, w: Array, dt: Array) -> Array:
 
 
 def preintegrate(
-    omega: Array,
-    acc: Array,
-    dt: Array,
-    gyro_var: Array | None,
-    acc_var: Array | None,
-    int_var: Array | None,
-    with_jac: bool,
-    prefix: bool,
+    omega: Array, acc: Array, dt: Array, noise: Noise | None, with_jac: bool, prefix: bool
 ) -> Delta:
     """Bias-corrected samples (N, 3), dt (N,) → Delta (final, or all N prefixes)."""
     dtype = omega.dtype
-    with_cov = gyro_var is not None
+    with_cov = noise is not None
     eye3 = jnp.eye(3, dtype=dtype)
 
     def step(carry, sample):
@@ -56,10 +49,10 @@ def preintegrate(
         if with_cov:
             cov = (
                 jx @ cov @ jx.T
-                + ja @ ((acc_var / d)[:, None] * ja.T)
-                + jw @ ((gyro_var / d)[:, None] * jw.T)
+                + ja @ ((noise.acc / d)[:, None] * ja.T)
+                + jw @ ((noise.gyro / d)[:, None] * jw.T)
             )
-            cov = cov.at[3:6, 3:6].add(eye3 * (int_var * d))
+            cov = cov.at[3:6, 3:6].add(eye3 * (noise.integration * d))
         if with_jac:
             h = jx @ h - jnp.concatenate([jw, ja], -1)  # columns [b_g, b_a]
         return (x_new, cov, h), (x_new, cov, h)

@@ -78,6 +78,60 @@ def preintegrate_windows(
     return cat
 
 
+class _FusionOptions(NamedTuple):
+    """The noise and prior options of :func:`fuse_imu_gps` (and of
+    :func:`jaxpose.smoothing.examples.imu_gps_steps`), defaults from GTSAM's
+    ``ImuFactorsExample`` (see :func:`fuse_imu_gps` for their meaning)."""
+
+    gravity: Any = (0.0, 0.0, 0.0)
+    gyro_noise: float = 2.05689024915e-4
+    acc_noise: float = 3.924e-4
+    integration_noise: float = 1e-4
+    gyro_walk: float = 1.454441043e-6
+    acc_walk: float = 4.905e-3
+    gps_sigma: float = 1.0
+    prior_sigmas: tuple[float, float, float, float] = (0.01, 0.5, 0.1, 1e-3)
+
+
+_DEFAULTS = _FusionOptions()
+
+
+def _fusion_options(fn: str, options: dict[str, Any]) -> _FusionOptions:
+    """``options`` (keyword arguments of ``fn``) over the defaults; unknown names raise."""
+    unknown = sorted(set(options) - set(_FusionOptions._fields))
+    if unknown:
+        raise TypeError(
+            f"{fn}: unexpected keyword arguments {unknown}; expected some of "
+            f"{list(_FusionOptions._fields)}"
+        )
+    return _DEFAULTS._replace(**options)
+
+
+def _gps_keyframes(
+    fn: str, gyro: Any, acc: Any, dt: Any, gps_index: Any, gps_position: Any, init: Any,
+    opts: _FusionOptions,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, Array, Preintegrated]:
+    """Checked IMU + GPS stream (errors name ``fn``): ``(keyframes, gps_index, z,
+    gravity, pre)`` with keyframes (K,) (sample 0 and every fix: IMU samples before
+    each), the fixes' sample counts (F,) and positions (F, 3), gravity (3,) and the
+    K − 1 windows between keyframes preintegrated with the options' noise."""
+    if not isinstance(init, NavState):
+        raise TypeError(f"{fn}(init): expected NavState, got {type(init).__name__}")
+    g = jnp.asarray(gyro)
+    n = g.shape[0]
+    gi = np.asarray(gps_index, dtype=np.int64).reshape(-1)
+    z = np.asarray(gps_position, dtype=np.float64)
+    if z.shape != (gi.size, 3):
+        raise ValueError(f"{fn}: {gi.size} GPS indices but gps_position has shape {z.shape}")
+    if gi.size == 0 or np.any(np.diff(gi) < 0) or gi[0] < 0 or gi[-1] > n:
+        raise ValueError(f"{fn}(gps_index): expected non-decreasing sample counts in [0, {n}]")
+    keyframes = np.unique(np.concatenate([[0], gi]))
+    pre = preintegrate_windows(gyro, acc, dt, keyframes, gyro_noise=opts.gyro_noise,
+                               acc_noise=opts.acc_noise,
+                               integration_noise=opts.integration_noise)
+    return keyframes, gi, z, jnp.asarray(opts.gravity, g.dtype), pre
+
+
 def fuse_imu_gps(
     gyro: Any,
     acc: Any,
@@ -86,14 +140,14 @@ def fuse_imu_gps(
     gps_position: Any,
     init: NavState,
     *,
-    gravity: Any = (0.0, 0.0, 0.0),
-    gyro_noise: float = 2.05689024915e-4,
-    acc_noise: float = 3.924e-4,
-    integration_noise: float = 1e-4,
-    gyro_walk: float = 1.454441043e-6,
-    acc_walk: float = 4.905e-3,
-    gps_sigma: float = 1.0,
-    prior_sigmas: tuple[float, float, float, float] = (0.01, 0.5, 0.1, 1e-3),
+    gravity: Any = _DEFAULTS.gravity,
+    gyro_noise: float = _DEFAULTS.gyro_noise,
+    acc_noise: float = _DEFAULTS.acc_noise,
+    integration_noise: float = _DEFAULTS.integration_noise,
+    gyro_walk: float = _DEFAULTS.gyro_walk,
+    acc_walk: float = _DEFAULTS.acc_walk,
+    gps_sigma: float = _DEFAULTS.gps_sigma,
+    prior_sigmas: tuple[float, float, float, float] = _DEFAULTS.prior_sigmas,
     **solve_kwargs: Any,
 ) -> FusionResult:
     """Fuse an IMU stream with GPS position fixes (module docstring).
@@ -111,22 +165,11 @@ def fuse_imu_gps(
             velocity [m/s], bias. Defaults: GTSAM's ``ImuFactorsExample``.
         solve_kwargs: passed to :func:`jaxpose.graph.solve`.
     """
-    if not isinstance(init, NavState):
-        raise TypeError(f"fuse_imu_gps(init): expected NavState, got {type(init).__name__}")
-    g = jnp.asarray(gyro)
-    n = g.shape[0]
-    gi = np.asarray(gps_index, dtype=np.int64).reshape(-1)
-    z = np.asarray(gps_position, dtype=np.float64)
-    if z.shape != (gi.size, 3):
-        raise ValueError(f"fuse_imu_gps: {gi.size} GPS indices but gps_position has shape "
-                         f"{z.shape}")
-    if gi.size == 0 or np.any(np.diff(gi) < 0) or gi[0] < 0 or gi[-1] > n:
-        raise ValueError(f"fuse_imu_gps(gps_index): expected non-decreasing sample counts "
-                         f"in [0, {n}]")
-    keyframes = np.unique(np.concatenate([[0], gi]))
-    grav = jnp.asarray(gravity, g.dtype)
-    pre = preintegrate_windows(gyro, acc, dt, keyframes, gyro_noise=gyro_noise,
-                               acc_noise=acc_noise, integration_noise=integration_noise)
+    opts = _FusionOptions(gravity, gyro_noise, acc_noise, integration_noise, gyro_walk,
+                         acc_walk, gps_sigma, prior_sigmas)
+    keyframes, gi, z, grav, pre = _gps_keyframes("fuse_imu_gps", gyro, acc, dt, gps_index,
+                                                 gps_position, init, opts)
+    dtype = grav.dtype
     k = keyframes.size
     win = np.arange(k - 1)
 
@@ -134,7 +177,7 @@ def fuse_imu_gps(
     states = jax.jit(dead_reckon)(gyro, acc, dt, grav, init)
     full = jax.tree.map(lambda i0, s: jnp.concatenate([i0[None], s], 0), init, states)
     dr = full[keyframes]  # the state after keyframes[k] samples
-    variables = {"pose": dr.pose(), "vel": dr.vel, "bias": jnp.zeros((k, 6), g.dtype)}
+    variables = {"pose": dr.pose(), "vel": dr.vel, "bias": jnp.zeros((k, 6), dtype)}
 
     s_rot, s_pos, s_vel, s_bias = prior_sigmas
     pose0 = init.pose()
@@ -147,7 +190,7 @@ def fuse_imu_gps(
                data=jnp.asarray(init.vel)[None], name="vel_prior",
                information=np.eye(3) / s_vel**2),
         Factor(vector_prior_residual, [("bias", np.zeros(1, np.int64))],
-               data=jnp.zeros((1, 6), g.dtype), name="bias_prior",
+               data=jnp.zeros((1, 6), dtype), name="bias_prior",
                information=np.eye(6) / s_bias**2),
     ]
     graph = FactorGraph(factors, variables)

@@ -281,23 +281,20 @@ def _preintegrate(
                                c["acc_noise"], c["integration_noise"])
     # keeps XLA from constant-folding cumulative sums of a constant dt (slow compiles)
     d = jax.lax.optimization_barrier(d)
-    gv = av = None
+    noise = None
     if gs is not None or as_ is not None:
-        gv = zero if gs is None else gs * gs
-        av = zero if as_ is None else as_ * as_
-    else:
-        iv = None
+        noise = _core.Noise(zero if gs is None else gs * gs, zero if as_ is None else as_ * as_, iv)
 
     def one(g1: Array, a1: Array, d1: Array, bg1: Array, ba1: Array) -> _core.Delta:
         w, f = g1 - bg1, a1 - ba1
         if scheme == "tangent":
-            return _tangent.preintegrate(w, f, d1, gv, av, iv, bias_jacobians, prefix)
+            return _tangent.preintegrate(w, f, d1, noise, bias_jacobians, prefix)
         if not prefix:
-            return _core.window(w, f, d1, gs, as_, iv, bias_jacobians)
-        if gv is None and not bias_jacobians:
+            return _core.window(w, f, d1, noise, bias_jacobians)
+        if noise is None and not bias_jacobians:
             q, v, p, t, _, _ = _core.prefix_values(w, f, d1)
             return _core.Delta(q, v, p, t, None, None)
-        return _core.prefix(_core.samples(w, f, d1, gv, av, iv, bias_jacobians))
+        return _core.prefix(_core.samples(w, f, d1, noise, bias_jacobians))
 
     out = _vmap_n(one, len(batch))(g, a, d, bg, ba)
     if check:

@@ -10,6 +10,7 @@ solution in its tangent chart (Ceres' ``Covariance``). See the module docstrings
 :mod:`~jaxpose.optim.implicit`.
 """
 
+from . import kernels
 from .correctors import Corrector, FastTriggs, Triggs
 from .covariance import covariance
 from .implicit import ImplicitAdjoint, UnrolledAdjoint
@@ -53,18 +54,7 @@ __all__ = [
     "Adaptive",
     "TrustRegion",
     "Dogleg",
-    "Kernel",
-    "Trivial",
-    "Huber",
-    "PseudoHuber",
-    "Cauchy",
-    "SoftLOne",
-    "Arctan",
-    "Tolerant",
-    "Scale",
-    "Tukey",
-    "GemanMcClure",
-    "Welsch",
+    *kernels.__all__,
     "Corrector",
     "FastTriggs",
     "Triggs",

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..graph.factor import _sqrt_information, between_residual
 from ..imu.factors import ImuFactorData, imu_residual, pose_prior_residual
-from ..imu.fusion import preintegrate_windows
+from ..imu.fusion import _fusion_options, _gps_keyframes
 from ..imu.state import NavState
 from ..lie import SE2, SE3, SO3
 from ._fixed_lag import FixedLagSmoother, _take
@@ -100,51 +100,19 @@ def _imu_predict(gravity: Array) -> Callable[[dict, dict], dict]:
 
 
 def imu_gps_steps(
-    gyro: Any,
-    acc: Any,
-    dt: Any,
-    gps_index: Any,
-    gps_position: Any,
-    init: NavState,
-    *,
-    gravity: Any = (0.0, 0.0, 0.0),
-    gyro_noise: float = 2.05689024915e-4,
-    acc_noise: float = 3.924e-4,
-    integration_noise: float = 1e-4,
-    gyro_walk: float = 1.454441043e-6,
-    acc_walk: float = 4.905e-3,
-    gps_sigma: float = 1.0,
-    prior_sigmas: tuple[float, float, float, float] = (0.01, 0.5, 0.1, 1e-3),
+    gyro: Any, acc: Any, dt: Any, gps_index: Any, gps_position: Any, init: NavState,
+    **options: Any,
 ) -> Steps:
-    """The IMU + GPS stream as smoother steps (arguments as :func:`jaxpose.imu.fuse_imu_gps`,
-    whose factors and defaults it reproduces). Keyframes: sample 0 and every fix."""
-    g = jnp.asarray(gyro)
-    n = g.shape[0]
-    gi = np.asarray(gps_index, dtype=np.int64).reshape(-1)
-    z = np.asarray(gps_position, dtype=np.float64)
-    if z.shape != (gi.size, 3):
-        raise ValueError(
-            f"imu_gps_steps: {gi.size} GPS indices but gps_position has shape {z.shape}"
-        )
-    if gi.size == 0 or np.any(np.diff(gi) < 0) or gi[0] < 0 or gi[-1] > n:
-        raise ValueError(
-            f"imu_gps_steps(gps_index): expected non-decreasing sample counts in [0, {n}]"
-        )
-    if not isinstance(init, NavState):
-        raise TypeError(f"imu_gps_steps(init): expected NavState, got {type(init).__name__}")
-    keyframes = np.unique(np.concatenate([[0], gi]))
-    t = keyframes.size
-    dtype = g.dtype
-    pre = preintegrate_windows(
-        gyro,
-        acc,
-        dt,
-        keyframes,
-        gyro_noise=gyro_noise,
-        acc_noise=acc_noise,
-        integration_noise=integration_noise,
+    """The IMU + GPS stream as smoother steps: arguments and keyword ``options``
+    (``gravity``, ``gyro_noise``, ``acc_noise``, ``integration_noise``, ``gyro_walk``,
+    ``acc_walk``, ``gps_sigma``, ``prior_sigmas``) as :func:`jaxpose.imu.fuse_imu_gps`,
+    whose factors and defaults it reproduces. Keyframes: sample 0 and every fix."""
+    opts = _fusion_options("imu_gps_steps", options)
+    keyframes, gi, z, grav, pre = _gps_keyframes(
+        "imu_gps_steps", gyro, acc, dt, gps_index, gps_position, init, opts
     )
-    grav = jnp.asarray(gravity, dtype)
+    t = keyframes.size
+    dtype = grav.dtype
     # step k >= 1 carries window k-1 -> k; step 0 a copy of window 0 (motion unused)
     idx = np.concatenate([[0], np.arange(t - 1)])
     imu = ImuFactorData(
@@ -158,7 +126,7 @@ def imu_gps_steps(
     )
     cov = np.asarray(pre.cov, np.float64)[idx]
     imu_sqrt = _sqrt_information(np.linalg.inv(0.5 * (cov + np.swapaxes(cov, 1, 2))), t)
-    var = np.concatenate([np.full(3, gyro_walk**2), np.full(3, acc_walk**2)])
+    var = np.concatenate([np.full(3, opts.gyro_walk**2), np.full(3, opts.acc_walk**2)])
     dts = np.asarray(pre.dt, np.float64)[idx]
     walk_sqrt = np.zeros((t, 6, 6))
     walk_sqrt[:, np.arange(6), np.arange(6)] = 1.0 / np.sqrt(var[None] * dts[:, None])
@@ -166,8 +134,8 @@ def imu_gps_steps(
     gps_sqrt = np.zeros((t, 3, 3))
     kf = np.searchsorted(keyframes, gi)
     gps[kf] = z
-    gps_sqrt[kf] = np.eye(3) / gps_sigma
-    s_rot, s_pos, s_vel, s_bias = prior_sigmas
+    gps_sqrt[kf] = np.eye(3) / opts.gps_sigma
+    s_rot, s_pos, s_vel, s_bias = opts.prior_sigmas
     prior_sqrt = np.diag(
         1.0
         / np.concatenate(
@@ -194,13 +162,15 @@ def imu_gps_steps(
 
 def imu_gps_smoother(steps: Steps, window: int, **kwargs: Any) -> FixedLagSmoother:
     """An empty :class:`FixedLagSmoother` for :func:`imu_gps_steps` (``kwargs`` go to it)."""
+    return _empty_smoother(steps, window, imu_motion, imu_unary, **kwargs)
+
+
+def _empty_smoother(
+    steps: Steps, window: int, motion: Callable, unary: Callable, **kwargs: Any
+) -> FixedLagSmoother:
+    """A :class:`FixedLagSmoother` with the stream's first state and step-0 data."""
     return FixedLagSmoother(
-        steps.first,
-        _take(steps.data, 0),
-        window=window,
-        motion=imu_motion,
-        unary=imu_unary,
-        **kwargs,
+        steps.first, _take(steps.data, 0), window=window, motion=motion, unary=unary, **kwargs
     )
 
 
@@ -288,12 +258,11 @@ def pose_graph_steps(graph: Any, *, num_poses: int | None = None, dtype: Any = N
 def pose_graph_smoother(steps: Steps, window: int, **kwargs: Any) -> FixedLagSmoother:
     """An empty :class:`FixedLagSmoother` for :func:`pose_graph_steps`."""
     lag, _, ld = steps.loops
-    return FixedLagSmoother(
-        steps.first,
-        _take(steps.data, 0),
-        window=window,
-        motion=se2_between,
-        unary=se2_prior,
+    return _empty_smoother(
+        steps,
+        window,
+        se2_between,
+        se2_prior,
         loop=se2_loop,
         loop_data=_take(_take(ld, 0), 0),
         max_loops=lag.shape[1],

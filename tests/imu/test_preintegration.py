@@ -241,7 +241,7 @@ def test_accelerator_path_associative_scan_equals_cpu_blocked_scan(monkeypatch):
 
     def both(g, a, d):
         vals = _core.prefix_values(g, a, d)
-        full = _core.prefix(_core.samples(g, a, d, sv, sa, jnp.asarray(0.0), True))
+        full = _core.prefix(_core.samples(g, a, d, _core.Noise(sv, sa, jnp.asarray(0.0)), True))
         return vals, full
 
     cpu = jax.jit(lambda *x: both(*x))(g[0], a[0], d[0])  # fresh functions: no cache hits

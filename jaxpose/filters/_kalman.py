@@ -1,0 +1,118 @@
+"""What the Gaussian filters share: the fields every filter holds (``model``, ``Q``, ``R``,
+``skip_nonfinite``), the error-state correction of the EKF and UKF updates, and their
+``step``/``run`` drivers (a ``lax.scan`` over predict-then-update)."""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..dynamics._tangent import TangentSpace, tangent_space
+from ..dynamics.system import System
+from ._common import (
+    FilterResult,
+    check_cov,
+    check_sequence,
+    finite_tree,
+    innovation_ok,
+    model_and_noise,
+    select_tree,
+    symmetrize,
+)
+
+Array = jax.Array
+
+
+class NoisyModelFilter(eqx.Module):
+    """Fields of every filter: the :class:`~jaxpose.dynamics.System` ``model``, process
+    noise ``Q`` (k, k) in the state's tangent coordinates, measurement noise ``R`` (p, p)
+    and whether non-finite measurements are skipped (``skip_nonfinite``)."""
+
+    model: System
+    Q: Array
+    R: Array
+    skip_nonfinite: bool = eqx.field(static=True, default=False)
+
+    def __init__(self, model: System, Q: Any, R: Any, skip_nonfinite: bool = False):
+        self.model, self.Q, self.R = model_and_noise(model, Q, R)
+        self.skip_nonfinite = bool(skip_nonfinite)
+
+
+class KalmanFilter(NoisyModelFilter):
+    """Base of :class:`~jaxpose.filters.EKF` and :class:`~jaxpose.filters.UKF`: subclasses
+    implement :meth:`predict` and ``_update`` (returning ``(x, P, used)``)."""
+
+    @abc.abstractmethod
+    def predict(self, x: Any, P: Array, u: Array, t: Any = 0) -> tuple[Any, Array]:
+        """Predicted ``(x⁻, P⁻)`` through ``f(·, u, t)``; P (k, k) in tangent coordinates."""
+
+    @abc.abstractmethod
+    def _update(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
+        """:meth:`update` and whether the measurement was used."""
+
+    def update(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
+        """Correct ``(x, P)`` with a measurement ``y`` (p,) of ``h(x, u, t)``; returns the
+        posterior estimate and covariance (k, k)."""
+        return self._update(x, P, y, u, t)[:2]
+
+    def step(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
+        """Predict with ``u`` then update with ``y``; also ``filter(x, P, y, u, t)``."""
+        return self._step(x, P, y, u, t)[:2]
+
+    def _step(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
+        xp, Pp = self.predict(x, P, u, t)
+        return self._update(xp, Pp, y, u, t)
+
+    __call__ = step
+
+    def run(self, x0: Any, P0: Any, ys: Any, us: Array, t0: Any = 0) -> FilterResult:
+        """Filter a sequence with ``lax.scan``: ``ys`` (N, p), ``us`` (N, m); returns the
+        N posterior estimates (after each update). Sizes are checked at trace time:
+        ``P0`` against ``x0``, ``ys`` against ``h(x0)`` and ``R``, ``us`` against ``ys``."""
+        P0 = check_cov(P0, tangent_space(x0).dim, "P0")
+        us = check_sequence(self.model, self.R, x0, ys, us, t0)
+        n_y = jax.tree.leaves(ys)[0].shape[0]
+        ts = jnp.asarray(t0) + jnp.arange(n_y)
+
+        def body(carry: tuple[Any, Array], inp: tuple[Any, Array, Array]):
+            x, P = carry
+            y, u, t = inp
+            x, P, used = self._step(x, P, y, u, t)
+            return (x, P), (x, P, used & finite_tree(x, P))
+
+        _, (xs, Ps, ok) = jax.lax.scan(body, (x0, P0), (ys, us, ts))
+        return FilterResult(xs, Ps, ok)
+
+    def _correct(
+        self,
+        ts: TangentSpace,
+        x: Any,
+        P: Array,
+        P_new: Array,
+        K: Array,
+        L: Array,
+        r: Array,
+        y_ok: Array,
+    ) -> tuple[Any, Array, Array]:
+        """Error-state correction ``x ⊕ K r`` with the posterior covariance ``P_new``;
+        with ``skip_nonfinite``, a measurement that is not finite (``y_ok`` False) or whose
+        normalised innovation overflows (``S = L Lᵀ``) leaves ``(x, P)`` unchanged.
+        Returns ``(x, P, used)``."""
+        use = y_ok & innovation_ok(L, r) if self.skip_nonfinite else y_ok
+        x_new = ts.plus(x, K @ jnp.where(use, r, 0.0))
+        if self.skip_nonfinite:
+            x_new, P_new = select_tree(use, (x_new, P_new), (x, P))
+        return x_new, symmetrize(P_new), use
+
+
+def safe_measurement(y: Any, y_hat: Any, skip: bool) -> tuple[Any, Array]:
+    """With ``skip``: ``(y, finite)`` where y is finite, else ``(y_hat, False)`` — the
+    replaced value keeps NaN out of the (discarded) update and of its derivatives."""
+    if not skip:
+        return y, jnp.asarray(True)
+    ok = finite_tree(y)
+    return select_tree(ok, y, y_hat), ok
