@@ -262,3 +262,43 @@ def test_covariance_compiles_once(monkeypatch, rng=np.random.default_rng(7)):
     J = np.r_[np.eye(3), np.c_[0.5 * p[1:, None], 0.5 * p[0] * np.eye(2)]]
     np.testing.assert_allclose(np.asarray(covariance(res, jnp.asarray(p), jnp.asarray(p))),
                                np.linalg.inv(J.T @ J), rtol=1e-10)
+
+
+def test_filters_compile_once(monkeypatch, rng=np.random.default_rng(8)):
+    """EKF/UKF/PF ``step`` and ``run`` compile on first call; a Python loop over time
+    steps (``t`` a Python int) reuses the program."""
+    from jaxpose.filters import EKF, UKF, ParticleFilter
+
+    A, B = np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]])
+    model = LTI(A, B, C=np.eye(2), D=np.zeros((2, 1)))
+    x0, P0 = jnp.zeros(2), jnp.eye(2)
+    ys, us = rng.normal(size=(6, 2)), rng.normal(size=(6, 1))
+    for cls in (EKF, UKF):
+        filt = cls(model, Q=np.eye(2) * 1e-2, R=np.eye(2) * 0.1)
+        calls = counter(monkeypatch, cls, "_step")
+        assert_traced_once(
+            calls,
+            lambda f=filt: f.run(x0, P0, ys, us),
+            lambda f=filt: f.run(x0 + 1.0, P0 * 2.0, ys + 1.0, us, t0=3),
+            lambda f=filt: f.run(x0, P0, ys[:4], us[:4]),
+        )
+        filt.step(x0, P0, ys[0], us[0], t=0)
+        calls.clear()
+        x, P = x0, P0
+        for t in range(1, 4):
+            x, P = filt.step(x, P, ys[t], us[t], t=t)
+        assert not calls, f"{cls.__name__}.step retraced in a loop over t"
+        ref = filt.run(x0, P0, ys[:4], us[:4])  # the same recursion by scan
+        x, P = x0, P0
+        for t in range(4):
+            x, P = filt.step(x, P, ys[t], us[t], t=t)
+        np.testing.assert_allclose(np.asarray(x), np.asarray(ref.x[-1]), rtol=1e-12)
+    pf = ParticleFilter(model, Q=np.eye(2) * 1e-2, R=np.eye(2) * 0.1, num_particles=64)
+    calls = counter(monkeypatch, ParticleFilter, "_step")
+    key = jax.random.PRNGKey(0)
+    assert_traced_once(
+        calls,
+        lambda: pf.run(key, x0, P0, ys, us),
+        lambda: pf.run(jax.random.PRNGKey(1), x0 + 1.0, P0, ys + 1.0, us),
+        lambda: pf.run(key, x0, P0, ys[:4], us[:4]),
+    )

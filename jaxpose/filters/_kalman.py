@@ -60,8 +60,10 @@ class KalmanFilter(NoisyModelFilter):
         return self._update(x, P, y, u, t)[:2]
 
     def step(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
-        """Predict with ``u`` then update with ``y``; also ``filter(x, P, y, u, t)``."""
-        return self._step(x, P, y, u, t)[:2]
+        """Predict with ``u`` then update with ``y``; also ``filter(x, P, y, u, t)``.
+        Compiled on first call (``eqx.filter_jit``; ``t`` is passed as an array, so a loop
+        over time steps reuses one program)."""
+        return _compiled_step(self, x, P, y, u, jnp.asarray(t))
 
     def _step(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         xp, Pp = self.predict(x, P, u, t)
@@ -72,8 +74,13 @@ class KalmanFilter(NoisyModelFilter):
     def run(self, x0: Any, P0: Any, ys: Any, us: Array, t0: Any = 0) -> FilterResult:
         """Filter a sequence with ``lax.scan``: ``ys`` (N, p), ``us`` (N, m); returns the
         N posterior estimates (after each update). Sizes are checked at trace time:
-        ``P0`` against ``x0``, ``ys`` against ``h(x0)`` and ``R``, ``us`` against ``ys``."""
-        P0 = check_cov(P0, tangent_space(x0).dim, "P0")
+        ``P0`` against ``x0``, ``ys`` against ``h(x0)`` and ``R``, ``us`` against ``ys``.
+        Compiled on first call (``eqx.filter_jit``): new arrays of the same shapes reuse
+        the program."""
+        P0 = check_cov(P0, tangent_space(x0).dim, "P0")  # eager: its values are checked
+        return _compiled_run(self, x0, P0, ys, us, jnp.asarray(t0))
+
+    def _run(self, x0: Any, P0: Array, ys: Any, us: Array, t0: Array) -> FilterResult:
         us = check_sequence(self.model, self.R, x0, ys, us, t0)
         n_y = jax.tree.leaves(ys)[0].shape[0]
         ts = jnp.asarray(t0) + jnp.arange(n_y)
@@ -107,6 +114,18 @@ class KalmanFilter(NoisyModelFilter):
         if self.skip_nonfinite:
             x_new, P_new = select_tree(use, (x_new, P_new), (x, P))
         return x_new, symmetrize(P_new), use
+
+
+@eqx.filter_jit
+def _compiled_step(filt: KalmanFilter, x: Any, P: Array, y: Any, u: Array,
+                   t: Array) -> tuple[Any, Array]:
+    return filt._step(x, P, y, u, t)[:2]
+
+
+@eqx.filter_jit
+def _compiled_run(filt: KalmanFilter, x0: Any, P0: Any, ys: Any, us: Array,
+                  t0: Array) -> FilterResult:
+    return filt._run(x0, P0, ys, us, t0)
 
 
 def safe_measurement(y: Any, y_hat: Any, skip: bool) -> tuple[Any, Array]:

@@ -121,8 +121,9 @@ class ParticleFilter(NoisyModelFilter):
         self, key: Array, state: ParticleState, y: Any, u: Array, t: Any = 0
     ) -> tuple[ParticleState, tuple[Any, Array, Array]]:
         """Propagate, reweight, estimate, resample if needed. Returns the new state and
-        ``(mean, cov, ess)`` (estimates before resampling)."""
-        return self._step(key, state, y, u, t, *self._factors())[:2]
+        ``(mean, cov, ess)`` (estimates before resampling). Compiled on first call
+        (``eqx.filter_jit``; ``t`` is passed as an array)."""
+        return _compiled_step(self, key, state, y, u, jnp.asarray(t))
 
     def _factors(self) -> tuple[Array, Array]:
         """Cholesky factor of Q (positive semi-definite: zero columns where Q is singular,
@@ -185,7 +186,13 @@ class ParticleFilter(NoisyModelFilter):
     ) -> tuple[FilterResult, Array]:
         """Filter a sequence with ``lax.scan``; returns the per-step estimates
         (:class:`FilterResult`) and the ESS (N,) before resampling. Sizes are checked at
-        trace time as in :meth:`EKF.run <jaxpose.filters.EKF.run>`."""
+        trace time as in :meth:`EKF.run <jaxpose.filters.EKF.run>`. Compiled on first
+        call (``eqx.filter_jit``)."""
+        P0 = check_cov(P0, tangent_space(x0).dim, "P0")  # eager: its values are checked
+        return _compiled_run(self, key, x0, P0, ys, us, jnp.asarray(t0))
+
+    def _run(self, key: Array, x0: Any, P0: Any, ys: Any, us: Array,
+             t0: Array) -> tuple[FilterResult, Array]:
         us = check_sequence(self.model, self.R, x0, ys, us, t0)
         n_y = jax.tree.leaves(ys)[0].shape[0]
         k0, key = jax.random.split(key)
@@ -201,3 +208,15 @@ class ParticleFilter(NoisyModelFilter):
 
         _, (means, covs, ess, ok) = jax.lax.scan(body, state, (keys, ys, us, ts))
         return FilterResult(means, covs, ok), ess
+
+
+@eqx.filter_jit
+def _compiled_step(filt: ParticleFilter, key: Array, state: ParticleState, y: Any, u: Array,
+                   t: Array) -> tuple[ParticleState, tuple[Any, Array, Array]]:
+    return filt._step(key, state, y, u, t, *filt._factors())[:2]
+
+
+@eqx.filter_jit
+def _compiled_run(filt: ParticleFilter, key: Array, x0: Any, P0: Any, ys: Any, us: Array,
+                  t0: Array) -> tuple[FilterResult, Array]:
+    return filt._run(key, x0, P0, ys, us, t0)
