@@ -46,10 +46,8 @@ class FusionResult(NamedTuple):
     graph: FactorGraph
 
 
-# one compiled solver per graph structure and option set (all options are static)
-_solve = jax.jit(solve, static_argnames=(
-    "linear_solver", "max_steps", "rtol", "atol", "gtol", "damping", "lambda_init",
-    "lambda_factor", "lambda_min", "lambda_max", "cg_rtol", "cg_max_iters", "verbose"))
+# one compiled solver per graph structure and option set (solve is eqx.filter_jit)
+_solve = solve
 
 
 def preintegrate_windows(

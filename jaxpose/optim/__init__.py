@@ -33,7 +33,17 @@ from .solution import Solution
 from .solve import least_squares
 from .solver import GN, LM, AbstractSolver, GaussNewton, LevenbergMarquardt, SolverState
 from .stopping import StopOnPlateau, Stopping
-from .strategies import Adaptive, Constant, Dogleg, NormalEquations, Strategy, TrustRegion
+from .strategies import (
+    Adaptive,
+    Constant,
+    Dogleg,
+    LambdaFactor,
+    Nielsen,
+    NielsenState,
+    NormalEquations,
+    Strategy,
+    TrustRegion,
+)
 
 __all__ = [
     "least_squares",
@@ -53,6 +63,9 @@ __all__ = [
     "Adaptive",
     "TrustRegion",
     "Dogleg",
+    "LambdaFactor",
+    "Nielsen",
+    "NielsenState",
     "Kernel",
     "Trivial",
     "Huber",

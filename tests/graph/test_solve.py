@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from jaxpose import Results, read_g2o, synthetic_pose_graph
-from jaxpose.graph import pgo
+from jaxpose.graph import default_stopping, pgo
 from jaxpose.optim import Huber
 
 from .conftest import GTSAM_COST, data_file, jit_solve, numpy_pose_graph_cost
@@ -48,7 +48,7 @@ def test_pose2example_reaches_gtsam_cost():
 
 def test_status_max_steps():
     pg = read_g2o(data_file("pose2example.txt"))
-    sol = jit_solve(linear_solver="dense", max_steps=1)(pgo.pose_graph_problem(pg))
+    sol = jit_solve(linear_solver="dense", stopping=default_stopping(1))(pgo.pose_graph_problem(pg))
     assert int(sol.status) == Results.MAX_STEPS and sol.status_name == "max_steps"
     assert int(sol.iterations) == 1 and sol.history.shape == (1,)
     assert GTSAM_COST["pose2example.txt"] < float(sol.cost) < float(sol.initial_cost)
