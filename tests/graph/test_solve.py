@@ -233,3 +233,30 @@ def test_graph_and_dense_paths_share_one_iteration(capsys, monkeypatch):
         assert [key(ln) for ln in g_lines] == [key(ln) for ln in d_lines]
         np.testing.assert_allclose(np.asarray(g.variables["pose"].data),
                                    np.asarray(d.params.data), atol=1e-8)
+
+
+def test_configuration_objects_check_their_fields():
+    """graph.solve's options are objects with named fields; bad values name the field."""
+    from jaxpose.graph import PCG, Damping, GraphLinearSolver, default_rtol, solve
+
+    problem = pgo.pose_graph_problem(synthetic_pose_graph("SE2", 4, seed=0)[0])
+    assert GraphLinearSolver().resolve(problem) == "dense"  # size 12 <= dense_max 600
+    assert GraphLinearSolver(dense_max=10).resolve(problem) == "sparse"
+    stop = default_stopping(7, jnp.float32)
+    assert (stop.max_steps, stop.cost_rtol, stop.gtol, stop.xtol) == (7, 1e-6, 0.0, 0.0)
+    assert default_rtol(jnp.float64) == 1e-10
+    with pytest.raises(ValueError, match=r"solve\(linear_solver='qr'\)"):
+        solve(problem, linear_solver="qr")
+    with pytest.raises(ValueError, match=r"GraphLinearSolver\(dense_max=-1\)"):
+        GraphLinearSolver(dense_max=-1)
+    with pytest.raises(ValueError, match=r"solve\(damping='lm'\)"):
+        Damping("lm")
+    with pytest.raises(ValueError, match=r"Damping\(min, max\)"):
+        Damping("diagonal", min=1.0, max=0.5)
+    with pytest.raises(ValueError, match=r"PCG\(max_iters=0\)"):
+        PCG(max_iters=0)
+    with pytest.raises(TypeError, match=r"solve\(linear_solver\): expected a string or "
+                                        r"GraphLinearSolver, got int"):
+        solve(problem, linear_solver=3)
+    with pytest.raises(TypeError, match=r"solve\(cg\): expected a PCG, got float"):
+        solve(problem, cg=1e-8)
