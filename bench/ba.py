@@ -68,10 +68,12 @@ def _jaxpose_runner(problem: Any, solver: str, max_steps: int) -> tuple[float, A
     import jax
 
     from jaxpose.graph import ba, solve
+    from jaxpose.optim import Nielsen, Stopping
 
     graph = ba.bundle_adjustment_problem(problem, eliminate=solver == "schur")
-    fn = jax.jit(lambda g: solve(g, linear_solver=solver, damping="diagonal", lambda_init=1e-4,
-                                 lambda_factor=None, max_steps=max_steps, rtol=1e-10))
+    stopping = Stopping(max_steps=max_steps, cost_rtol=1e-10, gtol=0.0, xtol=0.0)
+    fn = jax.jit(lambda g: solve(g, linear_solver=solver, damping="diagonal",
+                                 strategy=Nielsen(1e-4), stopping=stopping))
     t0 = time.perf_counter()
     compiled = fn.lower(graph).compile()
     compile_s = time.perf_counter() - t0

@@ -79,7 +79,7 @@ def _gtsam_values(gtsam, kind: str, poses: np.ndarray):
 
 def run_file(name: str, method: str, repeats: int, gtsam) -> dict:
     from jaxpose import read_g2o
-    from jaxpose.graph import marginals, pgo, se3_to_gtsam, solve
+    from jaxpose.graph import default_stopping, marginals, pgo, se3_to_gtsam, solve
 
     path = _path(name)
     if not path.is_file():
@@ -88,7 +88,8 @@ def run_file(name: str, method: str, repeats: int, gtsam) -> dict:
     problem = pgo.pose_graph_problem(pg)
     t0 = time.perf_counter()
     sol = jax.block_until_ready(
-        jax.jit(lambda p: solve(p, linear_solver="sparse", max_steps=200))(problem))
+        jax.jit(lambda p: solve(p, linear_solver="sparse",
+                                stopping=default_stopping(200)))(problem))
     solve_s = time.perf_counter() - t0
     values = sol.variables
     fn = lambda prob, vals: marginals(prob, vals, "pose", method=method).covariances["pose"]  # noqa: E731

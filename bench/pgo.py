@@ -111,6 +111,7 @@ def run_jaxpose(path: Path, solver: str, float32: bool, repeats: int, max_steps:
 
     from jaxpose import read_g2o
     from jaxpose.graph import initial_poses, linear, pgo, solve
+    from jaxpose.optim import Stopping
 
     # profile: time each host sparse factorisation (CHOLMOD) the solve calls back into;
     # installed before tracing (the callback is captured then); costs microseconds
@@ -136,8 +137,9 @@ def run_jaxpose(path: Path, solver: str, float32: bool, repeats: int, max_steps:
     problem = pgo.pose_graph_problem(graph, dtype=dtype, poses=start)
     jax.block_until_ready(problem)
     build_s = time.perf_counter() - t0
-    fn = jax.jit(lambda p: solve(p, linear_solver=solver, max_steps=max_steps, rtol=1e-10,
-                                 atol=1e-12))
+    stopping = Stopping(max_steps=max_steps, cost_rtol=1e-10, cost_atol=1e-12, gtol=0.0,
+                        xtol=0.0)
+    fn = jax.jit(lambda p: solve(p, linear_solver=solver, stopping=stopping))
     t0 = time.perf_counter()
     compiled = fn.lower(problem).compile()
     compile_s = time.perf_counter() - t0

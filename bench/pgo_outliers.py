@@ -125,13 +125,13 @@ def _threshold(kind: str) -> float:
 def run_jaxpose(graph: Any, how: str, max_steps: int) -> dict[str, Any]:
     import jax
 
-    from jaxpose.graph import pgo
-    from jaxpose.optim import Cauchy, Huber
+    from jaxpose.graph import default_stopping, pgo
+    from jaxpose.optim import Cauchy, Huber, Stopping
 
     t0 = time.perf_counter()
     if how == "gnc":
         poses, sol = pgo.optimize_pose_graph(
-            graph, robust="gnc", max_steps=max_steps, linear_solver="sparse"
+            graph, robust="gnc", stopping=default_stopping(max_steps), linear_solver="sparse"
         )
         jax.block_until_ready(sol.cost)
         out = dict(
@@ -143,7 +143,8 @@ def run_jaxpose(graph: Any, how: str, max_steps: int) -> dict[str, Any]:
         delta = float(np.sqrt(_threshold(graph.kind)))
         kernel = Huber(delta) if how == "huber" else Cauchy(delta)
         poses, sol = pgo.optimize_pose_graph(
-            graph, kernel=kernel, max_steps=max_steps, linear_solver="sparse", rtol=1e-10
+            graph, kernel=kernel, linear_solver="sparse",
+            stopping=Stopping(max_steps=max_steps, cost_rtol=1e-10, gtol=0.0, xtol=0.0),
         )
         jax.block_until_ready(sol.cost)
         out = dict(iterations=f"{int(sol.iterations)} LM", status=sol.status_name)
@@ -223,6 +224,7 @@ def run_file(name: str, rates: Sequence[float], args: argparse.Namespace) -> dic
     from jaxpose import read_g2o
     from jaxpose.datasets import corrupt_loop_closures
     from jaxpose.graph import pgo
+    from jaxpose.optim import Stopping
 
     path = _path(name)
     if not path.is_file():
@@ -230,7 +232,8 @@ def run_file(name: str, rates: Sequence[float], args: argparse.Namespace) -> dic
     graph = read_g2o(path)
     t0 = time.perf_counter()
     clean, sol = pgo.optimize_pose_graph(
-        graph, max_steps=args.max_steps, linear_solver="sparse", rtol=1e-10
+        graph, linear_solver="sparse",
+        stopping=Stopping(max_steps=args.max_steps, cost_rtol=1e-10, gtol=0.0, xtol=0.0),
     )
     jax.block_until_ready(sol.cost)
     clean = np.asarray(clean)

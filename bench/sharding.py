@@ -166,7 +166,7 @@ def graph_solver(base: Any, linear_solver: str = "cholesky") -> Any:
     solver, ``"cg"`` the block-Jacobi PCG)."""
     import equinox as eqx
 
-    from jaxpose.graph import solve
+    from jaxpose.graph import default_stopping, solve
     from jaxpose.lie import SE2
 
     how = {"cg": "pcg", "cholesky": "dense"}[_check_solver(linear_solver)]
@@ -174,7 +174,7 @@ def graph_solver(base: Any, linear_solver: str = "cholesky") -> Any:
     def one(init: Any, meas: Any) -> Any:
         g = eqx.tree_at(lambda g: g.variables["pose"], base, SE2(init).normalize())
         g = eqx.tree_at(lambda g: g.factors[0].data, g, SE2(meas).normalize())
-        sol = solve(g, linear_solver=how, max_steps=50)
+        sol = solve(g, linear_solver=how, stopping=default_stopping(50))
         return sol.variables["pose"].data, sol.cost, sol.iterations, sol.status
 
     return one

@@ -271,10 +271,11 @@ def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, poses=None):
     """Solve a PoseGraph, print the table and summary; returns (poses, solution)."""
     import jax
 
-    from .graph import pgo, solve
+    from .graph import default_stopping, pgo, solve
 
     problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, poses=poses)
-    run = jax.jit(lambda p: solve(p, linear_solver=solver, max_steps=max_steps,
+    stopping = default_stopping(max_steps, dtype)
+    run = jax.jit(lambda p: solve(p, linear_solver=solver, stopping=stopping,
                                   verbose=verbose))
     t0 = time.perf_counter()
     compiled = run.lower(problem).compile()
@@ -295,14 +296,14 @@ def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
     import jax
     import numpy as np
 
-    from .graph import pgo
+    from .graph import default_stopping, pgo
 
     if kernel is not None:
         raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
     t0 = time.perf_counter()
     poses, sol = pgo.optimize_pose_graph(
         graph, robust="gnc", init=init, dtype=dtype, gnc_options={"surrogate": surrogate},
-        linear_solver=solver, max_steps=max_steps,
+        linear_solver=solver, stopping=default_stopping(max_steps, dtype),
     )
     jax.block_until_ready(sol.cost)
     total_s = time.perf_counter() - t0
@@ -410,9 +411,10 @@ def ba_command(args: argparse.Namespace) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from .graph import ba, solve
+    from .graph import ba, default_stopping, solve
     from .io import BALProblem, FormatError, read_bal, write_bal
     from .io.bal import _bal_project_numpy
+    from .optim import Nielsen
 
     _check_output(args.out, "--out")
     kernel = _kernel(args.kernel, args.kernel_delta)
@@ -447,9 +449,10 @@ def ba_command(args: argparse.Namespace) -> int:
     graph = ba.bundle_adjustment_problem(
         problem, kernel=kernel,
         eliminate=args.solver == "schur", fix_intrinsics=args.fix_intrinsics, dtype=dtype)
+    stopping = default_stopping(args.max_steps, dtype)
     run = jax.jit(lambda g: solve(g, linear_solver=args.solver, damping="diagonal",
-                                  lambda_init=1e-4, lambda_factor=None,
-                                  max_steps=args.max_steps, verbose=not args.quiet))
+                                  strategy=Nielsen(1e-4), stopping=stopping,
+                                  verbose=not args.quiet))
     t0 = time.perf_counter()
     compiled = run.lower(graph).compile()
     compile_s = time.perf_counter() - t0

@@ -22,7 +22,7 @@ def test_demo_small_runs_and_reports_accurate_identities(capsys):
     distance = float(re.search(r"distance to the true pose ([0-9.e+-]+)", out).group(1))
     assert distance < 0.15  # noise σ = 0.2 over 50 samples: ≈ 0.07 expected
     # the pose graph: 40 poses, solved (lower cost, converged) with the per-iteration table
-    assert "synthetic sphere, 40 poses" in out and "iter    0" in out
+    assert "synthetic sphere, 40 poses" in out and "graph.solve iter    1" in out
     m = re.search(r"initial cost (\S+)\s+final cost (\S+)\s+iterations \d+\s+status (\w+)", out)
     assert m and m.group(3) == "converged" and float(m.group(2)) < 0.5 * float(m.group(1))
 

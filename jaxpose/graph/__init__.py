@@ -28,24 +28,35 @@ from .marginals import Marginals, marginals, se3_to_gtsam
 from .pgo import optimize_pose_graph, pose_graph_problem
 from .problem import FactorGraph, GraphLinearization, cost, linearize
 from .robust import GNCSolution, gm_weights, gnc, tls_weights, weighted_graph
-from .solve import GraphSolution, solve, summary
-from .strategies import LambdaFactor, Nielsen
+from .solve import (
+    PCG,
+    Damping,
+    GraphLinearSolver,
+    GraphSolution,
+    default_rtol,
+    default_stopping,
+    solve,
+    summary,
+)
 
 __all__ = [
+    "Damping",
     "Factor",
     "GNCSolution",
     "FactorGraph",
+    "GraphLinearSolver",
     "GraphSolution",
-    "LambdaFactor",
     "GraphLinearization",
     "Marginals",
-    "Nielsen",
+    "PCG",
     "ba",
     "between_jacobian",
     "between_residual",
     "bundle_adjustment_problem",
     "chordal_initialization",
     "cost",
+    "default_rtol",
+    "default_stopping",
     "init",
     "initial_poses",
     "gm_weights",

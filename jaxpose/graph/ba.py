@@ -24,6 +24,7 @@ import numpy as np
 
 from ..io.bal import BALProblem
 from ..lie import SE3, SO3
+from ..optim.strategies import Nielsen
 from .factor import Factor
 from .problem import FactorGraph
 from .solve import GraphSolution, solve
@@ -165,13 +166,13 @@ def optimize_bal(
     """Bundle-adjust a BAL problem; returns (the optimised problem, the solution).
 
     Defaults suited to BA (override through ``solve_kwargs``): Marquardt damping
-    (``damping="diagonal"``), λ₀ = 1e-4 and Nielsen's rule (``lambda_factor=None``),
-    as Ceres' LM."""
+    (``damping="diagonal"``) and Nielsen's rule from λ₀ = 1e-4
+    (``strategy=Nielsen(1e-4)``), as Ceres' LM."""
     graph = bundle_adjustment_problem(
         problem, kernel=kernel, eliminate=linear_solver == "schur",
         fix_intrinsics=fix_intrinsics, fixed_cameras=fixed_cameras, dtype=dtype,
     )
-    opts = dict(damping="diagonal", lambda_init=1e-4, lambda_factor=None)
+    opts: dict[str, Any] = dict(damping="diagonal", strategy=Nielsen(1e-4))
     opts.update(solve_kwargs)
     sol = solve(graph, linear_solver=linear_solver, **opts)
     cams, pts = variables_to_bal(sol.variables)

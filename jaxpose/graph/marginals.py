@@ -41,7 +41,7 @@ import numpy as np
 
 from . import linear, selinv
 from .problem import FactorGraph, block_diagonal, csr_values, hessian_vector, linearize, split
-from .solve import DENSE_MAX, GraphSolution
+from .solve import GraphLinearSolver, GraphSolution
 
 Array = jax.Array
 METHODS = ("auto", "dense", "sparse", "pcg", "schur")
@@ -227,7 +227,7 @@ def marginals(
         if schur is not None and used <= set(kept_names):
             method = "schur"
         else:
-            method = "dense" if graph.size <= DENSE_MAX else "sparse"
+            method = "dense" if graph.size <= GraphLinearSolver().dense_max else "sparse"
     if method == "schur":
         if schur is None:
             raise ValueError(

@@ -543,7 +543,7 @@ def gnc(
             guess (intel with 50 % outlier loop closures: 10 % of the inliers then end up
             rejected; from the initial values all are classified right).
         inner: ``"sparse"`` (:func:`jaxpose.graph.solve`; ``solver_options`` are its
-            keywords, e.g. ``linear_solver``, ``max_steps``) or ``"dense"``
+            keywords, e.g. ``linear_solver``, ``stopping``) or ``"dense"``
             (:func:`jaxpose.optim.least_squares` over the stacked free variables;
             ``solver_options`` are its keywords). Dense suits small graphs.
 

@@ -1,24 +1,27 @@
 """Levenberg–Marquardt on factor graphs (sparse path), one ``lax.while_loop``.
 
-The pieces are those of :mod:`jaxpose.optim`: a damping :class:`~jaxpose.optim.Strategy`
-(default :class:`~jaxpose.graph.strategies.LambdaFactor`, GTSAM's rule, or Nielsen's rule
-with ``lambda_factor=None``; :class:`~jaxpose.optim.Constant`, ``Adaptive``,
-``TrustRegion`` and ``Dogleg`` work too), robust kernels and correctors per factor
-(:class:`~jaxpose.graph.Factor`), :class:`~jaxpose.optim.Stopping` tolerances and
-:class:`~jaxpose.Results` codes. Only the linear algebra is sparse: each trial solves
-``(H + diag(lift) + λ·diag(D)) δ = −g`` with H = J̃ᵀJ̃ block-sparse, D = 1 (``damping=
-"identity"``, GTSAM's default) or D = clamp(diag H, 1e-6, 1e32) (``"diagonal"``, Marquardt,
-as Ceres and GTSAM's ``diagonalDamping``), then evaluates the cost at X ⊕ δ. One
+The iteration is :mod:`jaxpose.optim`'s own (``jaxpose.optim._iterate.trial``, shared with
+``least_squares``); this module supplies the graph's block-sparse linearisation, the
+Gauss–Newton matrix as an operator and the sparse linear solves. The configuration is
+objects only: a damping :class:`~jaxpose.optim.Strategy` (default
+:class:`~jaxpose.optim.LambdaFactor`, GTSAM's rule; :class:`~jaxpose.optim.Nielsen`,
+``Constant``, ``Adaptive``, ``TrustRegion`` and ``Dogleg`` work too), a
+:class:`~jaxpose.optim.Stopping`, a :class:`GraphLinearSolver`, a :class:`Damping` and a
+:class:`PCG`; robust kernels and correctors are per factor (:class:`~jaxpose.graph.Factor`),
+statuses :class:`~jaxpose.Results` codes. Each trial solves ``(H + λ·diag(D)) δ = −g``
+with H = J̃ᵀJ̃ block-sparse, D = 1 (``damping="identity"``, GTSAM's default) or
+D = clamp(diag H, min, max) (``"diagonal"``, Marquardt, as Ceres and GTSAM's
+``diagonalDamping``), then evaluates the cost at X ⊕ δ. One
 iteration is one trial: a finite trial that lowers the cost is accepted (gain ratio
 ρ = (F(x) − F(x ⊕ δ)) / (L(0) − L(δ)) > 0), otherwise only the damping changes. The loop
 only ever moves to an accepted (lower-cost) point, so the returned estimate is the best
 seen.
 
 Stopping (:func:`jaxpose.optim.stopping.check`): an accepted step lowering the cost by at
-most ``atol + rtol·cost``; ‖g‖∞ ≤ ``gtol``; ‖δ‖ ≤ ``xtol``; a rejected trial whose
-predicted decrease is at the cost's floating-point resolution; ``max_steps`` trials; a
-rejection that cannot change the damping (λ at its bound: ``Results.DIVERGED``, "stalled",
-best estimate kept).
+most ``cost_atol + cost_rtol·cost``; ‖g‖∞ ≤ ``gtol``; ‖δ‖ ≤ ``xtol``; a rejected trial
+whose predicted decrease is at the cost's floating-point resolution; ``max_steps`` trials;
+a rejection that cannot change the damping (λ at its bound: ``Results.DIVERGED``,
+"stalled", best estimate kept).
 """
 
 from __future__ import annotations
@@ -29,8 +32,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..optim.stopping import Stopping, Trial, check, nonfinite_run, plateau_count
-from ..optim.strategies import NormalEquations, Strategy
+from ..optim import _iterate
+from ..optim.solver import LevenbergMarquardt
+from ..optim.stopping import Stopping
+from ..optim.strategies import LambdaFactor, NormalEquations, Strategy
 from ..results import Results
 from . import linear
 from .problem import (
@@ -46,12 +51,10 @@ from .problem import (
     split,
 )
 from .schur import schur_step
-from .strategies import LambdaFactor, Nielsen
 
 Array = jax.Array
 
 LINEAR_SOLVERS = ("auto", "sparse", "pcg", "dense", "schur")
-DENSE_MAX = 600  # "auto": dense Cholesky up to this many tangent dimensions
 
 
 class GraphSolution(eqx.Module):
@@ -86,6 +89,76 @@ def default_rtol(dtype: Any) -> float:
     return 1e-10 if jnp.finfo(dtype).bits >= 64 else 1e-6
 
 
+class GraphLinearSolver(eqx.Module):
+    """How :func:`solve` solves each damped system (``linear_solver=``; a string is
+    shorthand for ``GraphLinearSolver(method)``).
+
+    ``method``: ``"sparse"`` (sparse Cholesky, CHOLMOD on the host through a callback; its
+    symbolic analysis is reused across iterations), ``"pcg"`` (block-Jacobi preconditioned
+    CG, any backend, see :class:`PCG`), ``"dense"`` (Cholesky, small problems), ``"schur"``
+    (eliminate the graph's ``eliminate`` variable type, then a sparse Cholesky of the
+    reduced system; a dense one on accelerators up to ``dense_max`` dimensions) or
+    ``"auto"`` (schur when the graph eliminates a type, else dense up to ``dense_max``
+    tangent dimensions, else sparse)."""
+
+    method: str = eqx.field(default="auto", static=True)
+    dense_max: int = eqx.field(default=600, static=True)
+
+    def __check_init__(self) -> None:
+        if self.method not in LINEAR_SOLVERS:
+            raise ValueError(
+                f"solve(linear_solver={self.method!r}): expected one of {LINEAR_SOLVERS}"
+            )
+        if not (isinstance(self.dense_max, int) and self.dense_max >= 0):
+            raise ValueError(f"GraphLinearSolver(dense_max={self.dense_max!r}): expected an "
+                             "int >= 0")
+
+    def resolve(self, graph: FactorGraph) -> str:
+        """The concrete method for ``graph`` (``"auto"`` decided by its size)."""
+        st = graph.structure
+        if self.method == "schur" and st.schur is None:
+            raise ValueError(
+                "solve(linear_solver='schur'): the graph eliminates no variable type; build "
+                "it with FactorGraph(..., eliminate=TYPE_NAME)"
+            )
+        if self.method != "auto":
+            return self.method
+        return ("schur" if st.schur is not None
+                else "dense" if graph.size <= self.dense_max else "sparse")
+
+
+class Damping(eqx.Module):
+    """The damping matrix D of ``(H + λ·D) δ = −g`` (``damping=``; a string is shorthand
+    for ``Damping(kind)``): ``"identity"`` (D = I, GTSAM's default) or ``"diagonal"``
+    (D = clamp(diag H, min, max), Marquardt, as Ceres and GTSAM's ``diagonalDamping``)."""
+
+    kind: str = eqx.field(default="identity", static=True)
+    min: float = eqx.field(default=1e-6, static=True)
+    max: float = eqx.field(default=1e32, static=True)
+
+    def __check_init__(self) -> None:
+        if self.kind not in ("identity", "diagonal"):
+            raise ValueError(f"solve(damping={self.kind!r}): expected 'identity' or 'diagonal'")
+        if not 0 < self.min <= self.max:
+            raise ValueError(f"Damping(min, max): need 0 < min <= max, got {self.min}, "
+                             f"{self.max}")
+
+
+class PCG(eqx.Module):
+    """Inner tolerance and budget of ``linear_solver="pcg"`` (``cg=``): ``rtol`` a float,
+    or ``"inexact"`` for the inexact-Newton forcing sequence η = min(0.1, √(‖g‖/‖g₀‖))
+    (Eisenstat–Walker style); ``max_iters`` CG iterations per solve."""
+
+    rtol: float | str = eqx.field(default=1e-8, static=True)
+    max_iters: int = eqx.field(default=2000, static=True)
+
+    def __check_init__(self) -> None:
+        if isinstance(self.rtol, str) and self.rtol != "inexact":
+            raise ValueError(f"PCG(rtol={self.rtol!r}): expected a float or 'inexact'")
+        if not (isinstance(self.max_iters, int) and self.max_iters >= 1):
+            raise ValueError(f"PCG(max_iters={self.max_iters!r}): expected an int >= 1")
+
+
 class _Hessian:
     """H = J̃ᵀJ̃ as an operator (``H @ v``) for the strategies' step rules."""
 
@@ -101,11 +174,11 @@ class _SparseLinear:
     on the sparse path: solves ``(H + diag(diag_add)) δ = −grad`` with H from the
     linearisation (fixed variables get an identity row). Records CG iterations."""
 
-    def __init__(self, kind: str, graph: FactorGraph, lin: Any, free: Array,
+    def __init__(self, kind: str, dense_max: int, graph: FactorGraph, lin: Any, free: Array,
                  cg_rtol: Any, cg_max_iters: int):
-        self.kind, self.graph, self.lin, self.free = kind, graph, lin, free
-        self.cg_rtol, self.cg_max_iters = cg_rtol, cg_max_iters
-        self.iterations = jnp.asarray(0)
+        self.kind, self.dense_max, self.graph, self.lin = kind, dense_max, graph, lin
+        self.free, self.cg_rtol, self.cg_max_iters = free, cg_rtol, cg_max_iters
+        self.iterations = jnp.asarray(0, jnp.int32)
 
     def solve(self, jac: Any, res: Any, hess: Any, grad: Array, diag_add: Array) -> Array:
         graph, lin, st = self.graph, self.lin, self.graph.structure
@@ -118,14 +191,14 @@ class _SparseLinear:
                 lambda v: hessian_vector(graph, lin, v) + add * v, -grad,
                 linear.block_jacobi(damped), rtol=self.cg_rtol, max_iters=self.cg_max_iters,
             )
-            self.iterations = self.iterations + its
+            self.iterations = self.iterations + jnp.asarray(its, jnp.int32)
             return x
         if self.kind == "schur":
             # the reduced system: CHOLMOD on CPU (single-threaded reference BLAS: the
             # dense LAPACK Cholesky goes through a multi-threaded OpenBLAS whose spinning
             # threads cost up to 100x on a loaded machine); dense Cholesky on
             # accelerators when it is small
-            small = st.schur.pattern.size <= DENSE_MAX and jax.default_backend() != "cpu"
+            small = st.schur.pattern.size <= self.dense_max and jax.default_backend() != "cpu"
             direct = linear.solve_dense if small else linear.solve_sparse_direct
             return schur_step(graph, lin, grad, add, direct)
         data = csr_values(graph, lin).at[st.diag_pos].add(add)
@@ -133,13 +206,61 @@ class _SparseLinear:
         return direct(data, st.csr_indices, st.csr_indptr, -grad)
 
 
-def _default_strategy(lambda_init: float, lambda_factor: float | None, lambda_min: float,
-                      lambda_max: float) -> Strategy:
-    if lambda_factor is None:
-        return Nielsen(lambda_init, lambda_min, lambda_max)
-    if not lambda_factor > 1.0:
-        raise ValueError(f"solve(lambda_factor={lambda_factor!r}): expected a float > 1 or None")
-    return LambdaFactor(lambda_init, lambda_factor, lambda_min, lambda_max)
+class _GraphPath:
+    """The factor-graph path of the shared iteration (:mod:`jaxpose.optim._iterate`): the
+    carried linearisation is ``(GraphLinearization, g)``, H a block-sparse operator."""
+
+    def __init__(self, graph: FactorGraph, method: str, dense_max: int, damping: Damping,
+                 cg: PCG, free: Array, g0_norm: Array):
+        self.graph, self.method, self.dense_max, self.damping = graph, method, dense_max, damping
+        self.cg, self.free, self.g0_norm = cg, free, g0_norm
+
+    def linearize(self, variables: Variables) -> tuple[Any, Array, Array]:
+        lin = linearize(self.graph, variables)
+        return (lin, gradient(self.graph, lin)), lin.cost, jnp.isfinite(lin.cost)
+
+    def normal(self, system: Any) -> NormalEquations:
+        lin, g = system
+        if self.damping.kind == "identity":
+            scale = jnp.ones_like(g)
+        else:
+            scale = jnp.clip(hessian_diagonal(self.graph, lin), self.damping.min,
+                             self.damping.max)
+        return NormalEquations(None, None, _Hessian(self.graph, lin), g, scale,
+                               jnp.zeros_like(g))
+
+    def propose(self, rule: Any, sstate: Any, system: Any,
+                normal: NormalEquations) -> tuple[Array, Array]:
+        lin, g = system
+        if self.cg.rtol == "inexact":
+            eta = jnp.minimum(0.1, jnp.sqrt(jnp.linalg.norm(g)
+                                            / jnp.maximum(self.g0_norm, 1e-300)))
+        else:
+            eta = self.cg.rtol
+        solver = _SparseLinear(self.method, self.dense_max, self.graph, lin, self.free, eta,
+                               self.cg.max_iters)
+        step = rule._propose(sstate, normal, solver) * self.free
+        return step, solver.iterations
+
+    def retract(self, variables: Variables, delta: Array) -> Variables:
+        return retract_all(self.graph, variables, delta)
+
+
+def default_stopping(max_steps: int = 100, dtype: Any = None) -> Stopping:
+    """:func:`solve`'s default :class:`~jaxpose.optim.Stopping` (GTSAM-like): ``max_steps``
+    trials, relative decrease :func:`default_rtol` of ``dtype`` (None: JAX's default float),
+    no gradient or step tolerance."""
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    return Stopping(max_steps=max_steps, cost_rtol=default_rtol(dtype), gtol=0.0, xtol=0.0)
+
+
+def _option(value: Any, cls: type, name: str) -> Any:
+    if isinstance(value, str):
+        return cls(value)
+    if not isinstance(value, cls):
+        raise TypeError(f"solve({name}): expected a string or {cls.__name__}, got "
+                        f"{type(value).__name__}")
+    return value
 
 
 @eqx.filter_jit
@@ -147,21 +268,11 @@ def solve(
     graph: FactorGraph,
     variables: Variables | None = None,
     *,
-    linear_solver: str = "auto",
-    max_steps: int = 100,
-    rtol: float | None = None,
-    atol: float = 0.0,
-    gtol: float = 0.0,
-    xtol: float = 0.0,
-    damping: str = "identity",
-    lambda_init: float = 1e-5,
-    lambda_factor: float | None = 10.0,
-    lambda_min: float = 1e-15,
-    lambda_max: float = 1e16,
     strategy: Strategy | None = None,
     stopping: Stopping | None = None,
-    cg_rtol: float | str = 1e-8,
-    cg_max_iters: int = 2000,
+    linear_solver: str | GraphLinearSolver = "auto",
+    damping: str | Damping = "identity",
+    cg: PCG | None = None,
     verbose: bool = False,
 ) -> GraphSolution:
     """Minimise ``0.5·Σ ρ(rᵀΩr)`` over the graph's variables with Levenberg–Marquardt.
@@ -169,43 +280,30 @@ def solve(
     Args:
         graph: the :class:`FactorGraph` (its ``variables`` are the default start).
         variables: optional starting values with the same structure.
-        linear_solver: ``"sparse"`` (sparse Cholesky, CHOLMOD on the host through a
-            callback; its symbolic analysis is reused across iterations), ``"pcg"``
-            (block-Jacobi preconditioned CG, any backend), ``"dense"`` (Cholesky, small
-            problems), ``"schur"`` (eliminate the graph's ``eliminate`` variable type, then
-            a sparse Cholesky of the reduced system; dense on accelerators when it has at
-            most 600 dimensions) or ``"auto"`` (schur when the
-            graph eliminates a type, else dense up to 600 tangent dimensions, else sparse).
-        max_steps: maximum LM iterations (linear solves, accepted or rejected).
-        rtol, atol: stop when an accepted step lowers the cost by at most
-            ``atol + rtol·cost``; ``rtol=None``: :func:`default_rtol` of the dtype.
-        gtol: stop when ‖g‖∞ ≤ gtol.  xtol: stop when a finite step has ‖δ‖ ≤ xtol.
-        damping: ``"identity"`` (λ·I) or ``"diagonal"`` (λ·diag(H), Marquardt).
-        lambda_init, lambda_factor, lambda_min, lambda_max: the default damping schedule:
-            :class:`~jaxpose.graph.strategies.LambdaFactor` (GTSAM), or
-            :class:`~jaxpose.graph.strategies.Nielsen` with ``lambda_factor=None``.
-        strategy: any :class:`jaxpose.optim.Strategy` instead (``Constant``, ``Adaptive``,
-            ``TrustRegion``, ``Dogleg``, ``LambdaFactor``, ``Nielsen``).
-        stopping: a :class:`jaxpose.optim.Stopping` instead of ``max_steps``/``rtol``/
-            ``atol``/``gtol``/``xtol`` (e.g. with a ``StopOnPlateau`` rule).
-        cg_rtol, cg_max_iters: inner tolerance and budget of ``"pcg"``; ``cg_rtol=
-            "inexact"`` uses the inexact-Newton forcing sequence
-            η = min(0.1, √(‖g‖/‖g₀‖)) (Eisenstat–Walker style).
+        strategy: a :class:`jaxpose.optim.Strategy` (default
+            :class:`~jaxpose.optim.LambdaFactor`: GTSAM's λ ×/÷ 10 from 1e-5;
+            :class:`~jaxpose.optim.Nielsen` as Ceres, ``Constant``, ``Adaptive``,
+            ``TrustRegion``, ``Dogleg``).
+        stopping: a :class:`jaxpose.optim.Stopping` (default :func:`default_stopping`:
+            100 trials, relative decrease :func:`default_rtol`, no ``gtol``/``xtol``).
+        linear_solver: a :class:`GraphLinearSolver` or its method name (``"auto"``,
+            ``"sparse"``, ``"pcg"``, ``"dense"``, ``"schur"``).
+        damping: a :class:`Damping` or its kind (``"identity"``: λ·I; ``"diagonal"``:
+            λ·diag(H), Marquardt).
+        cg: :class:`PCG` options of ``"pcg"`` (default ``PCG()``).
         verbose: print one line per iteration from inside jit.
 
     Compiled with ``eqx.filter_jit``: the graph's arrays (variables, measurements,
     information, weights) are traced and its structure and the options are static, so a
     repeated call on a graph of the same structure with new values reuses the program.
     """
-    if linear_solver not in LINEAR_SOLVERS:
-        raise ValueError(
-            f"solve(linear_solver={linear_solver!r}): expected one of {LINEAR_SOLVERS}"
-        )
-    if damping not in ("identity", "diagonal"):
-        raise ValueError(f"solve(damping={damping!r}): expected 'identity' or 'diagonal'")
-    if strategy is None:
-        strategy = _default_strategy(lambda_init, lambda_factor, lambda_min, lambda_max)
-    elif not isinstance(strategy, Strategy):
+    linear_solver = _option(linear_solver, GraphLinearSolver, "linear_solver")
+    damping = _option(damping, Damping, "damping")
+    cg = PCG() if cg is None else cg
+    if not isinstance(cg, PCG):
+        raise TypeError(f"solve(cg): expected a PCG, got {type(cg).__name__}")
+    strategy = LambdaFactor() if strategy is None else strategy
+    if not isinstance(strategy, Strategy):
         raise TypeError(
             f"solve(strategy): expected a jaxpose.optim Strategy, got {type(strategy).__name__}"
         )
@@ -213,25 +311,12 @@ def solve(
         raise TypeError(
             f"solve(stopping): expected a jaxpose.optim Stopping, got {type(stopping).__name__}"
         )
-    if isinstance(cg_rtol, str) and cg_rtol != "inexact":
-        raise ValueError(f"solve(cg_rtol={cg_rtol!r}): expected a float or 'inexact'")
+    method = linear_solver.resolve(graph)
     st = graph.structure
-    if linear_solver == "schur" and st.schur is None:
-        raise ValueError(
-            "solve(linear_solver='schur'): the graph eliminates no variable type; build it "
-            "with FactorGraph(..., eliminate=TYPE_NAME)"
-        )
-    if linear_solver == "auto":
-        linear_solver = ("schur" if st.schur is not None
-                         else "dense" if graph.size <= DENSE_MAX else "sparse")
     x0 = graph.variables if variables is None else variables
     lin0 = linearize(graph, x0)
     dtype = lin0.cost.dtype
-    if stopping is None:
-        stopping = Stopping(
-            max_steps=max_steps, cost_atol=atol,
-            cost_rtol=default_rtol(dtype) if rtol is None else rtol, gtol=gtol, xtol=xtol,
-        )
+    stopping = default_stopping(dtype=dtype) if stopping is None else stopping
     free_flat = jnp.concatenate(
         [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]
     ).astype(dtype)
@@ -242,88 +327,28 @@ def solve(
         "information matrices and initial values)",
     )
     g0 = gradient(graph, lin0)
-    g0_norm = jnp.linalg.norm(g0)
-
-    def body(state):
-        x, lin, g, sstate, k = state["x"], state["lin"], state["g"], state["s"], state["k"]
-        if damping == "identity":
-            scale = jnp.ones_like(g)
-        else:
-            scale = jnp.clip(hessian_diagonal(graph, lin), 1e-6, 1e32)
-        system = NormalEquations(None, None, _Hessian(graph, lin), g, scale, jnp.zeros_like(g))
-        if cg_rtol == "inexact":
-            eta = jnp.minimum(0.1, jnp.sqrt(jnp.linalg.norm(g) / jnp.maximum(g0_norm, 1e-300)))
-        else:
-            eta = cg_rtol
-        solver = _SparseLinear(linear_solver, graph, lin, free_flat, eta, cg_max_iters)
-        step = strategy.step(sstate, system, solver) * free_flat
-        step_ok = jnp.all(jnp.isfinite(step))
-        step = jnp.where(step_ok, step, 0.0)
-        x_new = retract_all(graph, x, step)
-        lin_new = linearize(graph, x_new)
-        predicted = -(jnp.vdot(g, step) + 0.5 * jnp.vdot(step, hessian_vector(graph, lin, step)))
-        actual = lin.cost - lin_new.cost
-        finite = step_ok & jnp.isfinite(lin_new.cost)
-        tiny = jnp.finfo(dtype).tiny
-        rho = jnp.where(predicted > tiny, actual / jnp.where(predicted > tiny, predicted, 1.0),
-                        jnp.where(actual > 0, 1.0, -jnp.inf))
-        rho = jnp.where(finite, rho, -jnp.inf)
-        accept = finite & (actual > 0) & (rho > 0)
-        new_s = strategy.update(sstate, rho, jnp.linalg.norm(step))
-        pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(accept, u, v), a, b)  # noqa: E731
-        x_next = pick(x_new, x)
-        lin_next = pick(lin_new, lin)
-        g_next = jnp.where(accept, gradient(graph, lin_new), g)
-        rejects = jnp.where(accept, 0, state["rejects"] + 1).astype(jnp.int32)
-        # a rejection that cannot change the damping would repeat the same trial
-        stuck = ~accept & (strategy.damping(new_s) == strategy.damping(sstate))
-        rejects = jnp.where(stuck, jnp.maximum(rejects, stopping.max_rejects), rejects)
-        bad_run = nonfinite_run(state["bad_run"], accept, finite)
-        plateau = plateau_count(stopping, lin.cost, lin_next.cost,
-                                state["plateau"]).astype(jnp.int32)
-        _, status = check(stopping, Trial(
-            step=k + 1, last=lin.cost, cost=lin_next.cost, accepted=accept, finite=finite,
-            step_norm=jnp.linalg.norm(step), predicted=predicted, initial=lin0.cost,
-            grad_inf=jnp.max(jnp.abs(g_next), initial=0.0), rejects=rejects,
-            plateau_count=plateau, nonfinite_run=~accept & bad_run,
-        ))
-        if verbose:
-            jax.debug.print(
-                "iter {k:4d}  cost {c:.6e}  gain {r:+.2e}  lambda {l:.1e}  |step| {s:.2e}  "
-                "accepted {a}  cg {i}",
-                k=k, c=lin_next.cost, r=rho, l=strategy.damping(sstate),
-                s=jnp.linalg.norm(step), a=accept, i=solver.iterations,
-            )
-        hist = state["history"]
-        if hist.shape[0]:
-            hist = hist.at[jnp.minimum(k, hist.shape[0] - 1)].set(lin_next.cost)
-        return dict(x=x_next, lin=lin_next, g=g_next, s=new_s, k=k + 1, status=status,
-                    history=hist, cg=state["cg"] + jnp.asarray(solver.iterations, jnp.int32),
-                    rejects=rejects, bad_run=bad_run,
-                    plateau=plateau)
-
+    rule = LevenbergMarquardt(strategy=strategy)
+    path = _GraphPath(graph, method, linear_solver.dense_max, damping, cg, free_flat,
+                      jnp.linalg.norm(g0))
     # a Jacobian that is not finite at the start: no step can be computed (as in
     # jaxpose.optim.least_squares, a status rather than an exception)
-    status0 = jnp.where(
-        ~jnp.all(jnp.isfinite(g0)), Results.NON_FINITE,
-        jnp.where(jnp.max(jnp.abs(g0), initial=0.0) <= stopping.gtol, Results.CONVERGED,
-                  jnp.where(stopping.budget <= 0, Results.MAX_STEPS, Results.RUNNING)),
-    ).astype(jnp.int32)
-    init = dict(
-        x=x0, lin=lin0, g=g0, s=strategy.init(dtype), k=jnp.asarray(0, jnp.int32),
-        status=status0, history=jnp.full((stopping.budget,), jnp.nan, dtype),
-        cg=jnp.asarray(0, jnp.int32), rejects=jnp.asarray(0, jnp.int32),
-        bad_run=jnp.asarray(True), plateau=jnp.asarray(0, jnp.int32),
+    status0 = _iterate.start_status(jnp.all(jnp.isfinite(g0)),
+                                    jnp.max(jnp.abs(g0), initial=0.0), stopping)
+    state = _iterate.init(rule, x0, (lin0, g0), lin0.cost, stopping, history=True,
+                          status=status0)
+    out = jax.lax.while_loop(
+        lambda s: ~s.done,
+        lambda s: _iterate.trial(rule, path, s, stopping, verbose=verbose, label="graph.solve"),
+        state,
     )
-    out = jax.lax.while_loop(lambda s: s["status"] < 0, body, init)
     return GraphSolution(
-        variables=out["x"],
-        cost=out["lin"].cost,
-        initial_cost=lin0.cost,
-        iterations=out["k"],
-        status=out["status"],
-        history=out["history"],
-        linear_iterations=out["cg"],
+        variables=out.params,
+        cost=out.cost,
+        initial_cost=out.initial_cost,
+        iterations=out.num_steps,
+        status=out.status,
+        history=out.history[1:],
+        linear_iterations=out.linear_iterations,
     )
 
 

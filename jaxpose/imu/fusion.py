@@ -46,12 +46,6 @@ class FusionResult(NamedTuple):
     graph: FactorGraph
 
 
-# one compiled solver per graph structure and option set (all options are static)
-_solve = jax.jit(solve, static_argnames=(
-    "linear_solver", "max_steps", "rtol", "atol", "gtol", "damping", "lambda_init",
-    "lambda_factor", "lambda_min", "lambda_max", "cg_rtol", "cg_max_iters", "verbose"))
-
-
 def preintegrate_windows(
     gyro: Any, acc: Any, dt: Any, bounds: Any, **kwargs: Any
 ) -> Preintegrated:
@@ -194,6 +188,6 @@ def fuse_imu_gps(
                information=np.eye(6) / s_bias**2),
     ]
     graph = FactorGraph(factors, variables)
-    sol = _solve(graph, **solve_kwargs)
+    sol = solve(graph, **solve_kwargs)  # compiled per graph structure
     out = sol.variables
     return FusionResult(out["pose"], out["vel"], out["bias"], keyframes, dr, sol, graph)

@@ -34,7 +34,17 @@ from .solution import Solution
 from .solve import least_squares
 from .solver import GN, LM, AbstractSolver, GaussNewton, LevenbergMarquardt, SolverState
 from .stopping import StopOnPlateau, Stopping
-from .strategies import Adaptive, Constant, Dogleg, NormalEquations, Strategy, TrustRegion
+from .strategies import (
+    Adaptive,
+    Constant,
+    Dogleg,
+    LambdaFactor,
+    Nielsen,
+    NielsenState,
+    NormalEquations,
+    Strategy,
+    TrustRegion,
+)
 
 __all__ = [
     "least_squares",
@@ -54,6 +64,9 @@ __all__ = [
     "Adaptive",
     "TrustRegion",
     "Dogleg",
+    "LambdaFactor",
+    "Nielsen",
+    "NielsenState",
     *kernels.__all__,
     "Corrector",
     "FastTriggs",

@@ -26,71 +26,33 @@ import jax
 import jax.numpy as jnp
 
 from ..lie import manifold
-from ..results import Results
+from . import _iterate
+from ._iterate import SolverState
 from .colouring import BlockHessian, SparseJacobian, diagonal, normal_equations
 from .linear import Cholesky, LinearSolver
 from .problem import LinearizedResidual, Problem, as_problem
-from .stopping import Stopping, Trial, check, nonfinite_run, plateau_count
+from .stopping import Stopping
 from .strategies import NormalEquations, Strategy, TrustRegion
 
 Array = jax.Array
 PyTree = Any
 
 
-class SolverState(eqx.Module):
-    """Per-problem iteration state (all leaves are arrays; vmap-friendly)."""
-
-    params: PyTree  # current estimate (last accepted)
-    best_params: PyTree  # lowest-cost estimate seen
-    cost: Array
-    best_cost: Array
-    initial_cost: Array
-    system: NormalEquations  # linearisation at ``params``
-    strategy_state: Any
-    num_steps: Array  # int32, trials so far
-    num_accepted: Array  # int32
-    rejects: Array  # int32, consecutive rejected trials
-    bad_run: Array  # bool, every trial since the last accepted one was not finite
-    plateau: Array  # int32, StopOnPlateau counter
-    ratio: Array  # gain ratio of the last trial
-    step_norm: Array  # ‖δ‖ of the last trial
-    accepted: Array  # bool, last trial accepted
-    linearized: Array  # bool, the first step (linearisation only) has run
-    done: Array  # bool
-    status: Array  # int32 Results code
-    history: Array  # (budget + 1,) costs, or (0,) when not recorded
-
-
-def _print_iteration(fresh: Array, step: Array, cost: Array, ratio: Array, damping: Array,
-                     step_norm: Array, accepted: Array, grad_inf: Array) -> None:
-    """One verbose line from inside jit: the start (linearisation: cost and ‖g‖∞) or a
-    trial step (cost, gain ratio, damping, ‖δ‖, accepted)."""
-
-    def start() -> None:
-        jax.debug.print("least_squares start      cost {c:.6e}  |grad|inf {g:.3e}",
-                        c=cost, g=grad_inf)
-
-    def trial() -> None:
-        jax.debug.print(
-            "least_squares iter {i:4d}  cost {c:.6e}  ratio {r: .3e}  damping {d:.3e}  "
-            "|step| {s:.3e}  accepted {a}",
-            i=step, c=cost, r=ratio, d=damping, s=step_norm, a=accepted,
-        )
-
-    jax.lax.cond(fresh, start, trial)
-
-
-def _select(pred: Array, a: PyTree, b: PyTree) -> PyTree:
-    return jax.tree.map(lambda x, y: jnp.where(pred, x, y), a, b)
-
-
 def _all_finite(*xs: Array) -> Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in xs]))
 
 
+def _setup(residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem, stopping: Stopping | None,
+           **options: Any) -> tuple[Problem, Stopping]:
+    """The problem and stopping rule of :meth:`AbstractSolver.init`/``step``."""
+    return as_problem(residual_fn, **options), Stopping() if stopping is None else stopping
+
+
 class AbstractSolver(eqx.Module):
     """Shared machinery; subclasses define how a step is proposed and accepted (and
-    declare a ``linear_solver`` field)."""
+    declare a ``linear_solver`` field). They are the damping/acceptance rule of the one
+    iteration core (:mod:`jaxpose.optim._iterate`), which ``jaxpose.graph.solve`` uses
+    too."""
 
     # -- subclass hooks ----------------------------------------------------------------
     def _strategy_init(self, dtype: Any) -> Any:
@@ -100,15 +62,15 @@ class AbstractSolver(eqx.Module):
         return jnp.zeros((), jnp.result_type(sstate))
 
     @abc.abstractmethod
-    def _propose(self, state: SolverState) -> Array:
-        """Implemented by subclasses."""
+    def _propose(self, sstate: Any, system: NormalEquations, linear_solver: Any) -> Array:
+        """Trial step δ (n,) from the system with ``linear_solver`` (its ``solve``)."""
 
     def _strategy_update(self, sstate: Any, ratio: Array, step_norm: Array) -> Any:
         return sstate
 
     @abc.abstractmethod
     def _accept(self, finite: Array, actual: Array, ratio: Array) -> Array:
-        """Implemented by subclasses."""
+        """Whether a trial (finite?, actual decrease, gain ratio) is accepted."""
 
     def _on_failure_rejects(self, rejects: Array, finite: Array, stopping: Stopping) -> Array:
         return rejects
@@ -144,11 +106,9 @@ class AbstractSolver(eqx.Module):
         at the initial ``params``. The linearisation is deferred to the first
         :meth:`step` (which only linearises and does not count as an iteration), so a
         compiled loop contains a single copy of the Jacobian computation."""
-        problem = as_problem(
-            residual_fn, weights=weights, kernel=kernel, corrector=corrector, jacobian=jacobian
-        )
+        problem, stopping = _setup(residual_fn, stopping, weights=weights, kernel=kernel,
+                                   corrector=corrector, jacobian=jacobian)
         problem.check(params, args)
-        stopping = Stopping() if stopping is None else stopping
         out = problem.residual_fn(params, args)
         lin = problem._blocks(out, None)
         bad = ~(jnp.isfinite(lin.cost) & jnp.all(jnp.isfinite(lin.res)))
@@ -179,31 +139,7 @@ class AbstractSolver(eqx.Module):
             jnp.ones((n,), dtype),
             jnp.zeros((n,), dtype),
         )
-        hist = jnp.full((stopping.budget + 1,) if history else (0,), jnp.nan, dtype)
-        if history:
-            hist = hist.at[0].set(cost)
-        zero_i = jnp.zeros((), jnp.int32)
-        return SolverState(
-            params=params,
-            best_params=params,
-            cost=cost,
-            best_cost=cost,
-            initial_cost=cost,
-            system=system,
-            strategy_state=self._strategy_init(dtype),
-            num_steps=zero_i,
-            num_accepted=zero_i,
-            rejects=zero_i,
-            bad_run=jnp.asarray(True),
-            plateau=zero_i,
-            ratio=jnp.zeros((), dtype),
-            step_norm=jnp.zeros((), dtype),
-            accepted=jnp.asarray(False),
-            linearized=jnp.asarray(False),
-            done=jnp.asarray(False),
-            status=jnp.asarray(Results.RUNNING, jnp.int32),
-            history=hist,
-        )
+        return _iterate.init(self, params, system, cost, stopping, history=history)
 
     def step(
         self,
@@ -221,122 +157,49 @@ class AbstractSolver(eqx.Module):
         """One trial step (the first call only linearises at the initial params).
 
         A finished state (``state.done``) is returned unchanged."""
-        problem = as_problem(
-            residual_fn, weights=weights, kernel=kernel, corrector=corrector, jacobian=jacobian
-        )
-        stopping = Stopping() if stopping is None else stopping
+        problem, stopping = _setup(residual_fn, stopping, weights=weights, kernel=kernel,
+                                   corrector=corrector, jacobian=jacobian)
         new = self._step(problem, state, args, stopping, verbose)
-        return _select(state.done, state, new)
+        return _iterate.select(state.done, state, new)
 
     def _step(self, problem: Problem, state: SolverState, args: PyTree, stopping: Stopping,
               verbose: bool) -> SolverState:
         """:meth:`step` without the freeze of finished states (inside ``least_squares``'
         while loop a finished problem is never stepped: the loop, or its vmap batching
         rule, already keeps it)."""
-        fresh = ~state.linearized
-        sys_ = state.system
-        delta = self._propose(state)
-        step_ok = fresh | jnp.all(jnp.isfinite(delta))
-        delta = jnp.where(step_ok & ~fresh, delta, 0.0)
-        _, unravel = manifold.flat_tangent(state.params)
-        trial = manifold.retract(state.params, unravel(delta))
-        lin = problem.linearize_structured(trial, args)
-        finite = step_ok & _all_finite(lin.cost, lin.res, *jax.tree.leaves(lin.jac))
-        actual = state.cost - lin.cost
-        pred = -(sys_.grad @ delta + 0.5 * delta @ (sys_.hess @ delta))
-        tiny = jnp.finfo(pred.dtype).tiny
-        ratio = jnp.where(
-            pred > tiny,
-            actual / jnp.where(pred > tiny, pred, 1.0),
-            jnp.where(actual > 0, 1.0, -jnp.inf),
-        )
-        ratio = jnp.where(finite, ratio, -jnp.inf)
-        step_norm = jnp.linalg.norm(delta)
-        accepted = jnp.where(fresh, finite, self._accept(finite, actual, ratio))
+        path = _DensePath(self, problem, args)
+        return _iterate.trial(self, path, state, stopping, verbose=verbose)
 
-        new_lin = LinearizedResidual(
+
+class _DensePath(eqx.Module):
+    """The dense path of the shared iteration (:mod:`jaxpose.optim._iterate`): the
+    problem's (possibly coloured) Jacobian, normal equations carried as
+    :class:`NormalEquations`, the solver's own linear solver."""
+
+    solver: AbstractSolver
+    problem: Problem
+    args: PyTree
+
+    def linearize(self, params: PyTree) -> tuple[NormalEquations, Array, Array]:
+        lin = self.problem.linearize_structured(params, self.args)
+        finite = _all_finite(lin.cost, lin.res, *jax.tree.leaves(lin.jac))
+        safe = LinearizedResidual(
             jnp.where(finite, lin.res, 0.0),
             jax.tree.map(lambda j: jnp.where(finite, j, 0.0), lin.jac),
-            jnp.where(finite, lin.cost, state.cost),
+            lin.cost,
         )
-        system = _select(accepted, self._system(new_lin), sys_)
-        params = _select(accepted, trial, state.params)
-        cost = jnp.where(accepted, lin.cost, state.cost)
-        better = accepted & (lin.cost < state.best_cost)
-        best_params = _select(better, trial, state.best_params)
-        best_cost = jnp.where(better, lin.cost, state.best_cost)
-        sstate = _select(
-            fresh,
-            state.strategy_state,
-            self._strategy_update(state.strategy_state, ratio, step_norm),
-        )
-        rejects = jnp.where(accepted, 0, state.rejects + 1).astype(jnp.int32)
-        bad_run = nonfinite_run(state.bad_run, accepted, finite)
-        rejects = self._on_failure_rejects(rejects, finite, stopping)
-        # a rejection that cannot change the damping (Constant, or clamped at its bound)
-        # would repeat the same trial: give up now
-        stuck = ~accepted & (self._damping(sstate) == self._damping(state.strategy_state))
-        rejects = jnp.where(stuck, jnp.maximum(rejects, stopping.max_rejects), rejects)
-        num_steps = state.num_steps + jnp.where(fresh, 0, 1).astype(jnp.int32)
-        plateau = plateau_count(stopping, state.cost, cost, state.plateau).astype(jnp.int32)
-        plateau = jnp.where(fresh, 0, plateau)
-        grad_inf = jnp.max(jnp.abs(system.grad), initial=0.0)
-        done, status = check(
-            stopping,
-            Trial(
-                step=num_steps,
-                last=state.cost,
-                cost=cost,
-                accepted=accepted,
-                finite=finite,
-                step_norm=step_norm,
-                predicted=pred,
-                initial=state.initial_cost,
-                grad_inf=grad_inf,
-                rejects=rejects,
-                plateau_count=plateau,
-                nonfinite_run=~accepted & bad_run,
-            ),
-        )
-        # the linearisation step: only non-finite Jacobian, gtol or a zero budget stop it
-        status0 = jnp.where(
-            ~finite,
-            Results.NON_FINITE,
-            jnp.where(
-                grad_inf <= stopping.gtol,
-                Results.CONVERGED,
-                jnp.where(stopping.budget <= 0, Results.MAX_STEPS, Results.RUNNING),
-            ),
-        ).astype(jnp.int32)
-        status = jnp.where(fresh, status0, status)
-        done = status != Results.RUNNING
-        hist = state.history
-        if hist.shape[0] > 0:
-            hist = hist.at[jnp.minimum(num_steps, hist.shape[0] - 1)].set(cost)
-        if verbose:
-            _print_iteration(fresh, num_steps, cost, ratio, self._damping(state.strategy_state),
-                             step_norm, accepted, grad_inf)
-        return SolverState(
-            params=params,
-            best_params=best_params,
-            cost=cost,
-            best_cost=best_cost,
-            initial_cost=state.initial_cost,
-            system=system,
-            strategy_state=sstate,
-            num_steps=num_steps,
-            num_accepted=state.num_accepted + (accepted & ~fresh).astype(jnp.int32),
-            rejects=jnp.where(fresh, 0, rejects),
-            bad_run=jnp.where(fresh, True, bad_run),
-            plateau=plateau,
-            ratio=ratio,
-            step_norm=step_norm,
-            accepted=accepted,
-            linearized=jnp.asarray(True),
-            done=done,
-            status=status,
-            history=hist,
-        )
+        return self.solver._system(safe), lin.cost, finite
+
+    def normal(self, system: NormalEquations) -> NormalEquations:
+        return system
+
+    def propose(self, rule: AbstractSolver, sstate: Any, system: NormalEquations,
+                normal: NormalEquations) -> tuple[Array, Array]:
+        return rule._propose(sstate, normal, self.solver.linear_solver), jnp.zeros((), jnp.int32)
+
+    def retract(self, params: PyTree, delta: Array) -> PyTree:
+        _, unravel = manifold.flat_tangent(params)
+        return manifold.retract(params, unravel(delta))
 
 
 class GaussNewton(AbstractSolver):
@@ -349,9 +212,9 @@ class GaussNewton(AbstractSolver):
 
     linear_solver: LinearSolver = Cholesky()
 
-    def _propose(self, state: SolverState) -> Array:
-        s = state.system
-        return self.linear_solver.solve(s.jac, s.res, s.hess, s.grad, jnp.zeros_like(s.grad))
+    def _propose(self, sstate: Any, system: NormalEquations, linear_solver: Any) -> Array:
+        s = system
+        return linear_solver.solve(s.jac, s.res, s.hess, s.grad, jnp.zeros_like(s.grad))
 
     def _accept(self, finite: Array, actual: Array, ratio: Array) -> Array:
         return finite
@@ -395,8 +258,8 @@ class LevenbergMarquardt(AbstractSolver):
     def _damping(self, sstate: Any) -> Array:
         return self.strategy.damping(sstate)
 
-    def _propose(self, state: SolverState) -> Array:
-        return self.strategy.step(state.strategy_state, state.system, self.linear_solver)
+    def _propose(self, sstate: Any, system: NormalEquations, linear_solver: Any) -> Array:
+        return self.strategy.step(sstate, system, linear_solver)
 
     def _strategy_update(self, sstate: Any, ratio: Array, step_norm: Array) -> Any:
         return self.strategy.update(sstate, ratio, step_norm)

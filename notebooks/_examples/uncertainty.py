@@ -40,7 +40,7 @@ import numpy as np
 from matplotlib.collections import EllipseCollection
 
 import jaxpose as jp
-from jaxpose.graph import marginals, pgo, solve
+from jaxpose.graph import default_stopping, marginals, pgo, solve
 from jaxpose.lie import SE2
 from jaxpose.optim import covariance, least_squares
 from jaxpose.plot import ellipse_axes, position_covariances
@@ -198,7 +198,7 @@ if not path.is_file():
 if path.is_file() and not SMOKE:
     g = jp.read_g2o(path)
     prob = pgo.pose_graph_problem(g)
-    s = jax.jit(lambda p: solve(p, linear_solver="sparse", max_steps=200))(prob)
+    s = jax.jit(lambda p: solve(p, linear_solver="sparse", stopping=default_stopping(200)))(prob)
     c = np.asarray(jax.jit(lambda p, v: marginals(p, v, "pose").covariances["pose"])(prob, s))
     xy = np.asarray(s.variables["pose"].data)
     fig, ax = plt.subplots(figsize=(7, 7))

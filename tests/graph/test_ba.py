@@ -18,16 +18,24 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from jaxpose.datasets import synthetic_bal
-from jaxpose.graph import Factor, FactorGraph, linear, prior_residual, vector_prior_residual
+from jaxpose.graph import (
+    Factor,
+    FactorGraph,
+    default_stopping,
+    linear,
+    prior_residual,
+    vector_prior_residual,
+)
 from jaxpose.graph import ba as bal_graph
 from jaxpose.graph.problem import gradient, hessian_diagonal, linearize
 from jaxpose.graph.schur import schur_step
 from jaxpose.io import BALProblem, read_bal
 from jaxpose.lie import SE3
+from jaxpose.optim import Nielsen
 
 from .conftest import DATA, FAST_COMPILE, assemble_jacobian, dense_residual_fn, jit_solve
 
-BA_OPTIONS = dict(damping="diagonal", lambda_init=1e-4, lambda_factor=None, max_steps=60)
+BA_OPTIONS = dict(damping="diagonal", strategy=Nielsen(1e-4), stopping=default_stopping(60))
 
 
 def _project(cameras: np.ndarray, points: np.ndarray, cam: np.ndarray, pt: np.ndarray):
@@ -200,10 +208,11 @@ def test_bal_files_converge(name):
     """All nine camera parameters free: the small files have fewer residuals than
     parameters, so the noise floor is zero; with intrinsics fixed, SciPy's minimum."""
     prob = _bal_file(name)
-    out, sol = bal_graph.optimize_bal(prob, max_steps=300)
+    out, sol = bal_graph.optimize_bal(prob, stopping=default_stopping(300))
     assert sol.status_name == "converged"
     assert bal_graph.reprojection_rmse(out) < 1e-9 < bal_graph.reprojection_rmse(prob)
-    _, fixed = bal_graph.optimize_bal(prob, fix_intrinsics=True, max_steps=100)
+    _, fixed = bal_graph.optimize_bal(prob, fix_intrinsics=True,
+                                    stopping=default_stopping(100))
     np.testing.assert_allclose(float(fixed.cost), _scipy_minimum(prob), rtol=1e-8, atol=1e-20)
 
 
@@ -213,7 +222,8 @@ def test_float32_schur_solve():
     g64 = bal_graph.bundle_adjustment_problem(prob)
     g32 = bal_graph.bundle_adjustment_problem(prob, dtype=jnp.float32)
     s64 = jit_solve(linear_solver="schur", **BA_OPTIONS)(g64)
-    s32 = jax.jit(lambda g: bal_graph.solve(g, linear_solver="schur", **BA_OPTIONS),
+    opts32 = {**BA_OPTIONS, "stopping": default_stopping(60, jnp.float32)}
+    s32 = jax.jit(lambda g: bal_graph.solve(g, linear_solver="schur", **opts32),
                   compiler_options=FAST_COMPILE)(g32)
     assert s32.cost.dtype == jnp.float32 and s32.status_name in ("converged", "diverged")
     np.testing.assert_allclose(float(s32.cost), float(s64.cost), rtol=1e-4)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxpose.graph import Factor, FactorGraph, between_residual, solve
+from jaxpose.graph import Factor, FactorGraph, between_residual, default_stopping, solve
 from jaxpose.lie import SE3
 
 from .conftest import random_poses
@@ -105,7 +105,7 @@ def test_all_nan_trials_end_non_finite_not_max_steps():
     x0 = jnp.array([[1.0], [2.0]])
     fac = Factor(_nan_away, [("x", np.array([0, 1]))], data=x0)
     graph = FactorGraph([fac], {"x": x0})
-    sol = solve(graph, max_steps=5, linear_solver="dense")
+    sol = solve(graph, stopping=default_stopping(5), linear_solver="dense")
     assert sol.status_name == "non_finite" and int(sol.iterations) == 5
     np.testing.assert_array_equal(sol.variables["x"], x0)
     # a Jacobian that is not finite at the start: non_finite at once, as least_squares

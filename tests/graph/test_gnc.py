@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from jaxpose.datasets import corrupt_loop_closures, synthetic_pose_graph
-from jaxpose.graph import gm_weights, gnc, pgo, tls_weights, weighted_graph
+from jaxpose.graph import default_stopping, gm_weights, gnc, pgo, tls_weights, weighted_graph
 from jaxpose.graph.problem import cost, factor_residuals
 from jaxpose.graph.robust import chi2_quantile, initial_mu
 from jaxpose.optim import Huber
@@ -144,7 +144,8 @@ def _same_poses(a, b, atol):
 @pytest.fixture(scope="module")
 def outlier_case():
     clean, bad, outliers = _graph()
-    poses, sol = pgo.optimize_pose_graph(bad, robust="gnc", max_steps=100)
+    poses, sol = pgo.optimize_pose_graph(bad, robust="gnc",
+                                       stopping=default_stopping(100))
     return clean, bad, outliers, poses, sol
 
 
@@ -186,7 +187,8 @@ def test_nothing_to_reject_gives_the_plain_solution(outlier_case):
     start = {"pose": type(problem.variables["pose"])(jnp.asarray(poses))}
     odo = pgo.odometry_edges(bad)
     # at the GNC solution every remaining loop closure is below the threshold: one solve
-    again = gnc(problem, start, known_inliers=odo, known_outliers=outliers, max_steps=100)
+    again = gnc(problem, start, known_inliers=odo, known_outliers=outliers,
+                stopping=default_stopping(100))
     assert again.status_name == "converged" and int(again.iterations) == 1
     assert float(again.mu) == -1.0
     np.testing.assert_array_equal(np.asarray(again.weights[0]), np.asarray(sol.weights[0]))

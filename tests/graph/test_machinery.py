@@ -15,12 +15,12 @@ import pytest
 
 from jaxpose import Results, read_g2o
 from jaxpose.graph import (
+    PCG,
     Factor,
     FactorGraph,
-    LambdaFactor,
-    Nielsen,
     between_jacobian,
     between_residual,
+    default_stopping,
     linearize,
     pgo,
 )
@@ -33,6 +33,8 @@ from jaxpose.optim import (
     Constant,
     Dogleg,
     Huber,
+    LambdaFactor,
+    Nielsen,
     StopOnPlateau,
     Stopping,
     Triggs,
@@ -62,7 +64,7 @@ def test_dogleg_inexact_pcg_with_plateau_stopping_reaches_gtsam_minimum():
     stop = Stopping(max_steps=80, cost_rtol=0.0, gtol=0.0, xtol=0.0,
                     plateau=StopOnPlateau(steps=80, patience=2, decreasing=1e-6))
     sol = _solve(problem, strategy=Dogleg(radius=0.1), stopping=stop, verbose=True,
-                 linear_solver="pcg", cg_rtol="inexact")
+                 linear_solver="pcg", cg=PCG(rtol="inexact"))
     assert int(sol.linear_iterations) > 0
     assert int(sol.status) == Results.CONVERGED and sol.status_name == "converged"
     np.testing.assert_allclose(float(sol.cost), GTSAM_COST["pose2example.txt"], rtol=1e-9)
@@ -83,7 +85,7 @@ def test_dogleg_inexact_pcg_with_plateau_stopping_reaches_gtsam_minimum():
 @pytest.mark.parametrize("damping", ["identity", "diagonal"])
 def test_every_strategy_reaches_gtsam_minimum(strategy, damping):
     problem = pgo.pose_graph_problem(read_g2o(data_file("pose2example.txt")))
-    sol = _solve(problem, strategy=strategy, damping=damping, max_steps=200)
+    sol = _solve(problem, strategy=strategy, damping=damping, stopping=default_stopping(200))
     assert sol.status_name == "converged"
     np.testing.assert_allclose(float(sol.cost), GTSAM_COST["pose2example.txt"], rtol=1e-8)
 
@@ -164,8 +166,8 @@ def test_kernels_and_correctors_on_the_sparse_path():
         graph_solve(problem, stopping={"max_steps": 3})
     with pytest.raises(ValueError, match=r"LambdaFactor\(factor\)"):
         LambdaFactor(1e-3, factor=1.0)
-    with pytest.raises(ValueError, match=r"cg_rtol='exact'"):
-        graph_solve(problem, linear_solver="pcg", cg_rtol="exact")
+    with pytest.raises(ValueError, match=r"PCG\(rtol='exact'\)"):
+        graph_solve(problem, linear_solver="pcg", cg=PCG(rtol="exact"))
 
 
 @pytest.mark.parametrize("names", [("SE3", "SE2"), pytest.param(("Sim3",), marks=pytest.mark.slow)])

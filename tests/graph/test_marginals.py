@@ -23,6 +23,7 @@ from jaxpose.graph import (
     FactorGraph,
     Marginals,
     cost,
+    default_stopping,
     marginals,
     pgo,
     prior_residual,
@@ -301,7 +302,8 @@ GTSAM_RTOL = {"parking-garage.g2o": 1e-7, "sphere2500.g2o": 1e-9, "intel.g2o": 5
 def test_gtsam_marginals_at_solution(name):
     """The issue's acceptance files, at jaxpose's solution, all pose marginals (sparse)."""
     pg = read_g2o(data_file(name))
-    sol = jit_solve(linear_solver="sparse", max_steps=200)(pgo.pose_graph_problem(pg))
+    run = jit_solve(linear_solver="sparse", stopping=default_stopping(200))
+    sol = run(pgo.pose_graph_problem(pg))
     assert sol.status_name == "converged"
     _compare_with_gtsam(name, poses=sol.variables["pose"].data, method="sparse",
                         rtol=GTSAM_RTOL[name])

@@ -14,14 +14,15 @@ import numpy as np
 import pytest
 
 from jaxpose import read_g2o, synthetic_pose_graph
-from jaxpose.graph import pgo
+from jaxpose.graph import default_stopping, pgo
 from jaxpose.io import PoseGraph, connected_components
 
 from .conftest import GTSAM_COST, data_file, jit_solve, numpy_pose_graph_cost
 
 
 def _sparse_solve(problem):
-    return jax.jit(lambda g: pgo.solve(g, linear_solver="sparse", max_steps=200))(problem)
+    return jax.jit(lambda g: pgo.solve(g, linear_solver="sparse",
+                                     stopping=default_stopping(200)))(problem)
 
 
 @pytest.mark.slow

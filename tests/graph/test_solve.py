@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from jaxpose import Results, read_g2o, synthetic_pose_graph
-from jaxpose.graph import pgo
+from jaxpose.graph import default_stopping, pgo
 from jaxpose.optim import Huber
 
 from .conftest import GTSAM_COST, data_file, jit_solve, numpy_pose_graph_cost
@@ -48,7 +48,7 @@ def test_pose2example_reaches_gtsam_cost():
 
 def test_status_max_steps():
     pg = read_g2o(data_file("pose2example.txt"))
-    sol = jit_solve(linear_solver="dense", max_steps=1)(pgo.pose_graph_problem(pg))
+    sol = jit_solve(linear_solver="dense", stopping=default_stopping(1))(pgo.pose_graph_problem(pg))
     assert int(sol.status) == Results.MAX_STEPS and sol.status_name == "max_steps"
     assert int(sol.iterations) == 1 and sol.history.shape == (1,)
     assert GTSAM_COST["pose2example.txt"] < float(sol.cost) < float(sol.initial_cost)
@@ -158,3 +158,105 @@ def test_repeated_eager_solve_reuses_the_compiled_program():
     assert len(traces) == n  # same structure, new values: no retrace
     assert int(first.status) == Results.CONVERGED and int(second.status) == Results.CONVERGED
     assert float(first.cost) < 1e-20 and float(second.cost) < 1e-20  # a chain fits exactly
+
+
+def test_graph_and_dense_paths_share_one_iteration(capsys, monkeypatch):
+    """graph.solve and least_squares run the same trial (optim._iterate.trial): on one
+    SE2 problem with GTSAM's λ-factor rule and Marquardt damping both take the same
+    accepted/rejected trials with the same damping, costs and result."""
+    from jaxpose.graph import Factor, FactorGraph, prior_residual, solve
+    from jaxpose.lie import SE2
+    from jaxpose.optim import LM, LambdaFactor, Nielsen, _iterate, least_squares
+
+    paths = []
+    trial = _iterate.trial
+
+    def spy(rule, path, *args, **kw):
+        paths.append(type(path).__name__)
+        return trial(rule, path, *args, **kw)
+
+    monkeypatch.setattr(_iterate, "trial", spy)
+
+    def between(xi, xj, z):  # this test's own residual: a graph structure no other test has
+        return z.inv().compose(xi.inv().compose(xj)).log().data
+
+    rng = np.random.default_rng(13)
+    n = 7
+    truth = np.column_stack([rng.normal(size=(n, 2)) * 3, np.zeros(n), np.ones(n)])
+    ang = rng.uniform(-np.pi, np.pi, n)
+    truth[:, 2:] = np.column_stack([np.cos(ang), np.sin(ang)])
+    edges = np.array([[i, (i + 1) % n] for i in range(n)] + [[0, 3], [2, 5]])
+    x_true = SE2(jnp.asarray(truth))
+    noise = SE2.exp(jnp.asarray(rng.normal(scale=0.3, size=(len(edges), 3))))
+    meas = x_true[edges[:, 0]].inv().compose(x_true[edges[:, 1]]).compose(noise)
+    start_ang = ang + rng.normal(scale=3.0, size=n)  # far off: LM rejects some trials
+    start = np.column_stack([truth[:, :2] + rng.normal(scale=1.0, size=(n, 2)),
+                             np.cos(start_ang), np.sin(start_ang)])
+    x0 = SE2(jnp.asarray(start))
+    prior = SE2(jnp.asarray(truth[:1]))
+    graph = FactorGraph(
+        [Factor(between, [("pose", edges[:, 0]), ("pose", edges[:, 1])], data=meas),
+         Factor(prior_residual, [("pose", np.array([0]))], data=prior)],
+        {"pose": x0},
+    )
+
+    def residual(x, args):
+        return jnp.concatenate([
+            jax.vmap(between)(x[edges[:, 0]], x[edges[:, 1]], meas).reshape(-1),
+            jax.vmap(prior_residual)(x[:1], prior).reshape(-1),
+        ])
+
+    for strategy in (LambdaFactor(), Nielsen(1e-3)):
+        paths.clear()
+        stopping = default_stopping(40)
+        g = solve(graph, strategy=strategy, stopping=stopping, linear_solver="dense",
+                  damping="diagonal", verbose=True)
+        jax.effects_barrier()
+        g_lines = [ln.split("iter", 1)[1] for ln in capsys.readouterr().out.splitlines()
+                   if ln.startswith("graph.solve iter")]
+        d = least_squares(residual, x0, None, LM(strategy, diag_min=1e-6, diag_max=1e32),
+                          max_steps=stopping.max_steps, cost_rtol=stopping.cost_rtol,
+                          gtol=0.0, xtol=0.0, history=True, verbose=True)
+        jax.effects_barrier()
+        d_lines = [ln.split("iter", 1)[1] for ln in capsys.readouterr().out.splitlines()
+                   if ln.startswith("least_squares iter")]
+        assert paths == ["_GraphPath", "_DensePath"]  # traced once each, through one core
+        k = int(g.iterations)
+        assert k == int(d.num_steps) == len(g_lines) == len(d_lines)
+        assert int(g.status) == int(d.status) == Results.CONVERGED
+        np.testing.assert_allclose(np.asarray(g.history[:k]), np.asarray(d.history[1:k + 1]),
+                                   rtol=1e-9)
+        accepted = [ln.rsplit("accepted", 1)[1].split()[0] for ln in g_lines]
+        assert "False" in accepted and "True" in accepted  # rejections were exercised
+        # the same damping before every trial and the same accept/reject decisions
+        key = lambda ln: (ln.split("damping")[1].split()[0], ln.split("accepted")[1].split()[0])  # noqa: E731
+        assert [key(ln) for ln in g_lines] == [key(ln) for ln in d_lines]
+        np.testing.assert_allclose(np.asarray(g.variables["pose"].data),
+                                   np.asarray(d.params.data), atol=1e-8)
+
+
+def test_configuration_objects_check_their_fields():
+    """graph.solve's options are objects with named fields; bad values name the field."""
+    from jaxpose.graph import PCG, Damping, GraphLinearSolver, default_rtol, solve
+
+    problem = pgo.pose_graph_problem(synthetic_pose_graph("SE2", 4, seed=0)[0])
+    assert GraphLinearSolver().resolve(problem) == "dense"  # size 12 <= dense_max 600
+    assert GraphLinearSolver(dense_max=10).resolve(problem) == "sparse"
+    stop = default_stopping(7, jnp.float32)
+    assert (stop.max_steps, stop.cost_rtol, stop.gtol, stop.xtol) == (7, 1e-6, 0.0, 0.0)
+    assert default_rtol(jnp.float64) == 1e-10
+    with pytest.raises(ValueError, match=r"solve\(linear_solver='qr'\)"):
+        solve(problem, linear_solver="qr")
+    with pytest.raises(ValueError, match=r"GraphLinearSolver\(dense_max=-1\)"):
+        GraphLinearSolver(dense_max=-1)
+    with pytest.raises(ValueError, match=r"solve\(damping='lm'\)"):
+        Damping("lm")
+    with pytest.raises(ValueError, match=r"Damping\(min, max\)"):
+        Damping("diagonal", min=1.0, max=0.5)
+    with pytest.raises(ValueError, match=r"PCG\(max_iters=0\)"):
+        PCG(max_iters=0)
+    with pytest.raises(TypeError, match=r"solve\(linear_solver\): expected a string or "
+                                        r"GraphLinearSolver, got int"):
+        solve(problem, linear_solver=3)
+    with pytest.raises(TypeError, match=r"solve\(cg\): expected a PCG, got float"):
+        solve(problem, cg=1e-8)
