@@ -49,6 +49,17 @@ class NormalEquations(NamedTuple):
     lift: Array
 
 
+def _check_ratio_rule(name: str, high: float, low: float, up: float, down: float,
+                      min: float, max: float) -> None:
+    """The gain-ratio thresholds and factors shared by :class:`Adaptive` and
+    :class:`TrustRegion`; errors name ``name(field)``."""
+    require(f"{name}(high)", high > 0, f"has to be positive, got {high!r}")
+    require(f"{name}(low)", low > 0, f"has to be positive, got {low!r}")
+    require(f"{name}(up)", up > 1, f"has to be larger than 1, got {up!r}")
+    require(f"{name}(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
+    require(f"{name}(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
+
+
 class Strategy(eqx.Module):
     """Base class: Levenberg-Marquardt damping with a state-dependent λ."""
 
@@ -119,11 +130,7 @@ class Adaptive(Strategy):
         max: float = 1e16,
     ):
         require("Adaptive(damping)", damping > 0, f"has to be positive, got {damping!r}")
-        require("Adaptive(high)", high > 0, f"has to be positive, got {high!r}")
-        require("Adaptive(low)", low > 0, f"has to be positive, got {low!r}")
-        require("Adaptive(up)", up > 1, f"has to be larger than 1, got {up!r}")
-        require("Adaptive(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
-        require("Adaptive(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
+        _check_ratio_rule("Adaptive", high, low, up, down, min, max)
         self.damping_value, self.high, self.low = damping, high, low
         self.up, self.down, self.min, self.max = up, down, min, max
 
@@ -176,12 +183,8 @@ class TrustRegion(Strategy):
         max: float = 1e16,
     ):
         require("TrustRegion(radius)", radius > 0, f"has to be positive, got {radius!r}")
-        require("TrustRegion(high)", high > 0, f"has to be positive, got {high!r}")
-        require("TrustRegion(low)", low > 0, f"has to be positive, got {low!r}")
-        require("TrustRegion(up)", up > 1, f"has to be larger than 1, got {up!r}")
-        require("TrustRegion(down)", 0 < down < 1, f"has to be in (0, 1), got {down!r}")
         require("TrustRegion(factor)", 0 < factor < 1, f"has to be in (0, 1), got {factor!r}")
-        require("TrustRegion(min, max)", 0 < min <= max, f"need 0 < min <= max, got {min}, {max}")
+        _check_ratio_rule("TrustRegion", high, low, up, down, min, max)
         self.radius, self.high, self.low, self.up = radius, high, low, up
         self.down, self.factor, self.min, self.max = down, factor, min, max
 
