@@ -173,6 +173,9 @@ def test_exp_log_round_trips(cls, dtype, data):
     assert_close(np.asarray(ly.data)[ok], ref[ok], dtype, f64=1e-9, err_msg="Log vs scipy logm")
 
 
+_expm = fast_jit(jsl.expm)  # eager expm compiles each of its many primitives separately
+
+
 @group_dtype
 @given(data=st.data())
 def test_exp_matrix_is_expm_of_hat(cls, dtype, data):
@@ -184,7 +187,7 @@ def test_exp_matrix_is_expm_of_hat(cls, dtype, data):
     assert_close(h, ref_hat(cls, a), dtype, f64=0.0, f32=0.0, err_msg="hat layout")
     m = J.matrix(J.exp(alg))
     assert_dtype(m, dtype)
-    assert_close(m, jsl.expm(h), dtype, f64=1e-12, f32=1e-5, err_msg="Exp(a).matrix()")
+    assert_close(m, _expm(h), dtype, f64=1e-12, f32=1e-5, err_msg="Exp(a).matrix()")
     assert_close(m, ref_exp_matrix(cls, a), dtype, f64=1e-12, f32=1e-5)
 
 
@@ -286,6 +289,18 @@ def test_jacobian_inverses(cls, dtype, data):
     assert_close(jl, J.jr(c.alg(-a)), dtype, err_msg="Jl(a) = Jr(−a)")
 
 
+# The batch shapes have 1, 1 and 6 elements: references that work per element take their
+# inputs flattened and padded to this many rows, so they compile once per group and dtype
+# instead of once per batch shape.
+_ROWS = max(int(np.prod(s)) for s in BATCH_SHAPES)
+
+
+def _padded_rows(x: np.ndarray, width: int) -> jnp.ndarray:
+    """``x`` as (−1, width) rows, padded to :data:`_ROWS` rows by repeating the first."""
+    flat = np.asarray(x).reshape(-1, width)
+    return jnp.asarray(np.concatenate([flat, np.repeat(flat[:1], _ROWS - len(flat), 0)]))
+
+
 @fast_jit(static_argnums=0)
 def _jr_jl_by_autodiff(cls, a):
     """Per-element Jacobians of δ ↦ Log(Exp(a)⁻¹Exp(a+δ)) and δ ↦ Log(Exp(a+δ)Exp(a)⁻¹)."""
@@ -305,7 +320,8 @@ def test_jr_jl_equal_autodiff_of_exp(cls, dtype, data):
     c = data.draw(cases(cls, dtype))
     a = c.tangent(max_angle=3.0)
     d = cls.tangent_dim
-    right, left = _jr_jl_by_autodiff(cls, jnp.asarray(a.reshape(-1, d)))
+    k = int(np.prod(c.shape))
+    right, left = (np.asarray(o)[:k] for o in _jr_jl_by_autodiff(cls, _padded_rows(a, d)))
     alg = c.alg(a)
     shape = (*c.shape, d, d)
     assert_close(J.jr(alg), np.reshape(right, shape), dtype, f32=2e-4, err_msg="Jr vs autodiff")
@@ -314,8 +330,12 @@ def test_jr_jl_equal_autodiff_of_exp(cls, dtype, data):
 
 @fast_jit(static_argnums=0)
 def _dlog_left(cls, x, a):
-    """d/dt Log(Exp(t a)·X) at t = 0, which is Jl⁻¹(Log X)·a."""
-    return jax.jvp(lambda d: (cls.exp(d) @ x).log().data, (jnp.zeros_like(a),), (a,))[1]
+    """Per row: d/dt Log(Exp(t a)·X) at t = 0, which is Jl⁻¹(Log X)·a (X given as data)."""
+
+    def one(xi, ai):
+        return jax.jvp(lambda d: (cls.exp(d) @ cls(xi)).log().data, (jnp.zeros_like(ai),), (ai,))[1]
+
+    return jax.vmap(one)(x, a)
 
 
 @group_dtype_heavy
@@ -328,7 +348,9 @@ def test_jinvp(cls, dtype, data):
     _check_algebra(out, cls, c.shape, dtype)
     jli = np.asarray(J.jl_inv(J.log(x)), np.float64)
     assert_close(out.data, np.einsum("...ij,...j->...i", jli, a), dtype, err_msg="Jl⁻¹(Log X)·a")
-    assert_close(out.data, _dlog_left(cls, x, jnp.asarray(a)), dtype, f32=2e-4)
+    k = int(np.prod(c.shape))
+    dlog = _dlog_left(cls, _padded_rows(x.data, cls.storage_dim), _padded_rows(a, cls.tangent_dim))
+    assert_close(out.data, np.reshape(np.asarray(dlog)[:k], a.shape), dtype, f32=2e-4)
 
 
 def _fd_functions(cls, z, shape):
@@ -365,9 +387,12 @@ def _jr_map(cls, a, ds):
 def test_jacobians_fwd_rev_finite_differences(cls, data):
     """jacfwd == jacrev ≈ central finite differences (float64) for exp, log∘compose, act, adj,
     matrix; and Jr ≈ finite differences of Log(Exp(a)⁻¹Exp(a+δ))."""
-    # unbatched and a small batch: the (3, 1, 2) batch only multiplies the size of the
-    # block-diagonal Jacobian (and its compile time) without testing anything new
-    c = data.draw(cases(cls, np.float64, shapes=((), (2,))))
+    # one batch of two elements: its block-diagonal Jacobian holds the unbatched Jacobian of
+    # each element (the diagonal blocks) and the independence of the batch elements (the
+    # zero blocks). A larger batch only multiplies the size of the Jacobian, and a separate
+    # unbatched case only doubles the compilation (tens of seconds per group), without
+    # testing anything new.
+    c = data.draw(cases(cls, np.float64, shapes=((2,),)))
     d = cls.tangent_dim
     z = np.concatenate(
         [c.tangent(max_angle=1.0), c.tangent(max_angle=1.0), c.points()], -1
@@ -549,6 +574,14 @@ def test_quaternion_conventions(dtype, data):
 # ------------------------------------------------------------------------------------
 # broadcasting, indexing, reshape, len
 # ------------------------------------------------------------------------------------
+@fast_jit
+def _broadcast_ops(x, y, p, a, t):
+    """Every op of the broadcasting test in one compilation (they share no shapes with the
+    other tests' wrappers, so separate wrappers would each compile for these shapes alone)."""
+    r = x.retract(a)
+    return x @ y, x @ p, x.adj(a), r, r.rminus(x), x.interpolate(r, t)
+
+
 @group_dtype
 @given(data=st.data())
 def test_broadcasting_between_batch_shapes(cls, dtype, data):
@@ -556,14 +589,15 @@ def test_broadcasting_between_batch_shapes(cls, dtype, data):
     x = c.element((3, 1))
     y = c.element((1, 4))
     mx, my = ref_matrix(cls, x.data), ref_matrix(cls, y.data)
+    n = cls.point_dim
+    p = c.points((1, 4))
+    a = c.tangent((1, 4), max_angle=1.0)
+    t = c.rng.uniform(0.0, 1.0, size=(1, 4))
+    xy, out, ad, r, back, zt = _broadcast_ops(x, y, p, c.alg(a), c.cast(t))
 
-    xy = J.compose(x, y)
     _check_element(xy, cls, (3, 4), dtype)
     assert_same_element(xy, mx @ my, dtype, err_msg="compose (3,1)·(1,4)")
 
-    n = cls.point_dim
-    p = c.points((1, 4))
-    out = J.act(x, p)
     assert out.shape == (3, 4, n)
     pts = np.broadcast_to(p.astype(np.float64), (3, 4, n))
     mx_b = np.broadcast_to(mx, (3, 4, *mx.shape[-2:]))
@@ -573,21 +607,15 @@ def test_broadcasting_between_batch_shapes(cls, dtype, data):
         exp_p = np.einsum("...ij,...j->...i", mx_b, pts)
     assert_close(out, exp_p, dtype, err_msg="act (3,1) on points (1,4)")
 
-    a = c.tangent((1, 4), max_angle=1.0)
-    ad = J.adj(x, c.alg(a))
     _check_algebra(ad, cls, (3, 4), dtype)
     conj = ref_vee(cls, mx @ ref_hat(cls, a) @ np.linalg.inv(mx))
     assert_close(ad.data, conj, dtype, err_msg="adj (3,1) with tangent (1,4)")
 
-    r = J.retract(x, c.alg(a))
     _check_element(r, cls, (3, 4), dtype)
     assert_same_element(r, mx @ ref_exp_matrix(cls, a), dtype, err_msg="retract (3,1)⊕(1,4)")
-    back = J.rminus(r, x)
     assert back.shape == (3, 4, cls.tangent_dim)
     assert_close(back, np.broadcast_to(a, (3, 4, cls.tangent_dim)), dtype)
 
-    t = c.rng.uniform(0.0, 1.0, size=(1, 4))
-    zt = J.interpolate(x, r, c.cast(t))
     _check_element(zt, cls, (3, 4), dtype)
     assert_same_element(zt, mx @ ref_exp_matrix(cls, t[..., None] * a), dtype)
 
@@ -632,20 +660,29 @@ def test_getitem_reshape_len(cls):
         len(cls.algebra(np.zeros(cls.tangent_dim)))
 
 
-@fast_jit(static_argnums=(0, 1, 2))
-def _identity_random_components(cls, shape, dtype, key):
-    e = cls.identity(shape, dtype)
-    x = cls.random(key, shape, sigma=0.5, dtype=dtype)
-    return e, e.matrix(), x, x.matrix(), x.translation(), x.scale(), x.rotation().matrix()
+@fast_jit(static_argnums=(0, 1))
+def _identity_random_components(cls, dtype, key):
+    """For every batch shape (one compilation per group and dtype): identity, its matrix,
+    random(), its matrix, translation, scale and rotation matrix."""
+    out = []
+    for shape in BATCH_SHAPES:
+        e = cls.identity(shape, dtype)
+        x = cls.random(key, shape, sigma=0.5, dtype=dtype)
+        out.append(
+            (e, e.matrix(), x, x.matrix(), x.translation(), x.scale(), x.rotation().matrix())
+        )
+    return out
 
 
 @pytest.mark.parametrize("cls", GROUPS, ids=lambda g: g.__name__)
 @pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: np.dtype(d).name)
-@pytest.mark.parametrize("shape", BATCH_SHAPES, ids=str)
-def test_identity_random_components(cls, dtype, shape):
-    e, e_m, x, x_m, tr, sc, rot_m = _identity_random_components(
-        cls, shape, dtype, jax.random.key(7)
-    )
+def test_identity_random_components(cls, dtype):
+    results = _identity_random_components(cls, dtype, jax.random.key(7))
+    for shape, (e, e_m, x, x_m, tr, sc, rot_m) in zip(BATCH_SHAPES, results, strict=True):
+        _check_identity_random_components(cls, dtype, shape, e, e_m, x, x_m, tr, sc, rot_m)
+
+
+def _check_identity_random_components(cls, dtype, shape, e, e_m, x, x_m, tr, sc, rot_m):
     _check_element(e, cls, shape, dtype)
     assert_close(e_m, _eye(cls, shape), dtype, f64=0.0, f32=0.0)
     _check_element(x, cls, shape, dtype)
