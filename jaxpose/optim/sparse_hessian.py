@@ -20,16 +20,13 @@ by the implicit rule of the linear solve; the callback itself is never different
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-
-if TYPE_CHECKING:
-    from .colouring import Pattern
 
 Array = jax.Array
 
@@ -97,10 +94,11 @@ def _matvec(csr: CSRStructure, data: Array, v: Array) -> Array:
 
 
 class SparseHessian(eqx.Module):
-    """Symmetric H (n, n) in CSR: ``data`` (nnz,) over ``pattern.csr``'s static pattern."""
+    """Symmetric H (n, n) in CSR: ``data`` (nnz,) over ``pattern.csr``'s static pattern
+    (``pattern``: the :class:`~jaxpose.optim.colouring.Pattern` of the coloured Jacobian)."""
 
     data: Array
-    pattern: Pattern = eqx.field(static=True)
+    pattern: Any = eqx.field(static=True)
 
     @property
     def shape(self) -> tuple[int, int]:
