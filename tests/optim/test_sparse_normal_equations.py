@@ -209,3 +209,17 @@ def test_float32_sparse_solve():
     assert int(sol.status) == Results.CONVERGED
     ref = jo.least_squares(chain, jnp.zeros(N), y, jacobian="fwd")
     np.testing.assert_allclose(np.asarray(sol.params), np.asarray(ref.params), atol=1e-4)
+
+
+def test_gauss_newton_implicit_adjoint_solves_backwards_on_the_sparse_form():
+    x0, y = jnp.zeros(N), _data()
+    adjoint = jo.ImplicitAdjoint(linear_solver=jo.Cholesky(), hessian="gauss_newton")
+
+    def loss(y, mode):
+        sol = jo.least_squares(chain, x0, y, jacobian=mode, adjoint=adjoint)
+        return jnp.sum(sol.params**2)
+
+    jaxpr = str(jax.make_jaxpr(jax.grad(lambda y: loss(y, "sparse")))(y))
+    assert "custom_linear_solve" in jaxpr and "pure_callback" in jaxpr
+    np.testing.assert_allclose(jax.jit(jax.grad(lambda y: loss(y, "sparse")))(y),
+                               jax.grad(lambda y: loss(y, "fwd"))(y), rtol=1e-9, atol=1e-12)
