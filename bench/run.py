@@ -66,6 +66,8 @@ WORKLOADS: dict[str, Spec] = {
                     quick=("--quick", "--batches", "1000,10000")),
     "optim": Spec("Least squares (InvNet): jaxpose vs PyPose LM",
                   quick=("--quick", "--batches", "10,100")),
+    "sparse_chain": Spec("Banded least squares: dense vs coloured Jacobian and sparse JᵀJ",
+                         quick=("--quick",)),
     "pgo": Spec("Pose-graph optimisation: jaxpose vs GTSAM",
                 quick=("--files", "tinyGrid3D,smallGrid3D", "--repeats", "1",
                        "--max-steps", "50")),

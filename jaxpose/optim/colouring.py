@@ -12,7 +12,9 @@ The normal matrix H = JᵀJ is assembled from C. When the column intersection gr
 apart into connected components (independent sub-problems, e.g. one pose per residual
 block), H is block diagonal after a permutation and is kept as stacks of small dense
 blocks, one stack per block size (:class:`BlockHessian`); its damped systems are solved
-block by block. Otherwise H is dense, as on the dense path.
+block by block. Otherwise, when H is large and sparse (banded problems, chains), it is
+kept in CSR (:class:`~jaxpose.optim.sparse_hessian.SparseHessian`, solved by sparse
+Cholesky); else H is dense, as on the dense path.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
+
+from .sparse_hessian import CSRStructure, SparseHessian, assemble, csr_structure
 
 Array = jax.Array
 
@@ -55,21 +59,27 @@ def greedy_colouring(block_pattern: sp.csr_matrix) -> np.ndarray:
 class Pattern:
     """Static (host) description of a coloured Jacobian: ``colmap`` (m, c) holds the
     column of colour k in row i's block (n where none); ``seeds`` (c, n) the JVP seeds;
-    ``groups`` the column index stacks (nb, s) of H's diagonal blocks, or ``None`` when H
-    is treated as dense. Compared and hashed by content (it is a static pytree field)."""
+    ``groups`` the column index stacks (nb, s) of H's diagonal blocks, or ``None``;
+    ``csr`` H's sparse structure when H is kept in CSR, else ``None`` (neither: H is
+    dense). Compared and hashed by content (it is a static pytree field)."""
 
     def __init__(self, m: int, n: int, colmap: np.ndarray, colour: np.ndarray,
-                 groups: tuple[np.ndarray, ...] | None):
+                 groups: tuple[np.ndarray, ...] | None, csr: CSRStructure | None = None):
         self.m, self.n = m, n
         self.colmap = colmap
         self.colour = colour
         self.num_colours = int(colmap.shape[1])
         self.groups = groups
+        self.csr = csr
         h = hashlib.sha1(np.asarray([m, n]).tobytes())
         h.update(colmap.tobytes())
         if groups is not None:
             for g in groups:
                 h.update(g.tobytes())
+        if csr is not None:
+            h.update(b"csr")
+            h.update(csr.indptr.tobytes())
+            h.update(csr.indices.tobytes())
         self._key = h.hexdigest()
         self._plans: dict[str, Any] = {}
 
@@ -80,8 +90,13 @@ class Pattern:
         return isinstance(other, Pattern) and other._key == self._key
 
     def __repr__(self) -> str:
-        kind = "dense H" if self.groups is None else (
-            "block-diagonal H " + ", ".join(f"{g.shape[0]}x{g.shape[1]}" for g in self.groups))
+        if self.groups is not None:
+            kind = "block-diagonal H " + ", ".join(
+                f"{g.shape[0]}x{g.shape[1]}" for g in self.groups)
+        elif self.csr is not None:
+            kind = f"sparse H (CSR, nnz={self.csr.nnz})"
+        else:
+            kind = "dense H"
         return f"Pattern(m={self.m}, n={self.n}, colours={self.num_colours}, {kind})"
 
     @property
@@ -137,7 +152,7 @@ def make_pattern(jac_pattern: sp.csr_matrix, block_of_row: np.ndarray) -> Patter
     graph = (bp.T @ bp).tocsr()
     ncomp, label = connected_components(graph, directed=False)
     sizes = np.bincount(label, minlength=ncomp)
-    groups = None
+    groups, csr = None, None
     if ncomp > 1 and sizes.max() <= MAX_BLOCK:
         order = np.argsort(label, kind="stable")  # columns grouped by component
         by_size: dict[int, list[np.ndarray]] = {}
@@ -146,7 +161,9 @@ def make_pattern(jac_pattern: sp.csr_matrix, block_of_row: np.ndarray) -> Patter
             cols = np.sort(order[starts[k]:starts[k + 1]])
             by_size.setdefault(cols.size, []).append(cols)
         groups = tuple(np.stack(v) for _, v in sorted(by_size.items()))
-    return Pattern(m, n, colmap, colour, groups)
+    else:
+        csr = csr_structure(graph, colmap)
+    return Pattern(m, n, colmap, colour, groups, csr)
 
 
 class SparseJacobian(eqx.Module):
@@ -178,9 +195,13 @@ class SparseJacobian(eqx.Module):
         out = jnp.zeros((p.n + 1,), self.values.dtype)
         return out.at[p.colmap].add(self.values * r[:, None])[: p.n]
 
-    def normal(self) -> Array | BlockHessian:
-        """H = JᵀJ: a :class:`BlockHessian` when the pattern allows, else dense (n, n)."""
+    def normal(self) -> Array | BlockHessian | SparseHessian:
+        """H = JᵀJ: a :class:`BlockHessian` or a
+        :class:`~jaxpose.optim.sparse_hessian.SparseHessian` when the pattern allows, else
+        dense (n, n)."""
         p = self.pattern
+        if p.csr is not None:
+            return SparseHessian(assemble(self.values, p.csr), p)
         if p.groups is None:
             d = self.dense()
             return d.T @ d
@@ -248,13 +269,25 @@ class BlockHessian(eqx.Module):
 
 
 def as_dense(x: Any) -> Array:
-    """The dense matrix of a :class:`SparseJacobian` / :class:`BlockHessian` (or ``x``)."""
-    return x.dense() if isinstance(x, SparseJacobian | BlockHessian) else x
+    """The dense matrix of a :class:`SparseJacobian` / :class:`BlockHessian` /
+    :class:`~jaxpose.optim.sparse_hessian.SparseHessian` (or ``x``)."""
+    return x.dense() if isinstance(x, SparseJacobian | BlockHessian | SparseHessian) else x
 
 
 def diagonal(h: Any) -> Array:
-    """diag(H) of a dense or :class:`BlockHessian` H."""
-    return h.diagonal() if isinstance(h, BlockHessian) else jnp.diagonal(h)
+    """diag(H) of a dense, :class:`BlockHessian` or ``SparseHessian`` H."""
+    return h.diagonal() if isinstance(h, BlockHessian | SparseHessian) else jnp.diagonal(h)
+
+
+def identity_like(h: Any) -> Any:
+    """The identity in the layout of H (dense, :class:`BlockHessian` or ``SparseHessian``):
+    a loop carry of the right structure."""
+    if isinstance(h, SparseHessian):
+        return h.identity()
+    if isinstance(h, BlockHessian):
+        return BlockHessian(tuple(jnp.broadcast_to(jnp.eye(b.shape[-1], dtype=b.dtype),
+                                                   b.shape) for b in h.blocks), h.pattern)
+    return jnp.eye(h.shape[0], dtype=h.dtype)
 
 
 def normal_equations(jac: Any, res: Array) -> tuple[Any, Array]:
@@ -278,6 +311,7 @@ __all__ = [
     "compressed_jacobian",
     "diagonal",
     "greedy_colouring",
+    "identity_like",
     "make_pattern",
     "normal_equations",
 ]

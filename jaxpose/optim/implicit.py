@@ -11,13 +11,15 @@ so for a cotangent v on X* (pulled back to the tangent space through δ ↦ X* �
 backward pass solves H u = v once and returns θ̄ = −∇_θ (∇_δ φ · u). By default H is the
 exact Hessian of the (robust, weighted) cost, so the gradient is exact for any residual;
 ``hessian="gauss_newton"`` uses J̃ᵀJ̃ from the whitened, kernel-corrected Jacobian instead
-(first derivatives only: cheaper to compile, exact for zero-residual problems). The
-final cost's cotangent is propagated by the envelope theorem (∂cost/∂θ at fixed X*).
-Gradients with respect to the initial params are zero; ``history`` has no gradient.
-Reverse mode only (use ``adjoint="unrolled"`` for jvp). First order only: differentiating
-the backward pass again (``jax.hessian``, ``jacfwd(jacrev(...))``, ``grad(grad(...))``)
-raises ``NotImplementedError`` rather than returning a wrong second derivative (the
-backward pass treats the solution's dependence on θ as fixed); use
+(first derivatives only: cheaper to compile, exact for zero-residual problems); it keeps the
+coloured path's structure (block-diagonal or CSR H, see :mod:`jaxpose.optim.colouring`), so
+with ``linear_solver=Cholesky()`` a large sparse problem is solved backwards by sparse
+Cholesky too. The final cost's cotangent is propagated by the envelope theorem (∂cost/∂θ at
+fixed X*). Gradients with respect to the initial params are zero; ``history`` has no
+gradient. Reverse mode only (use ``adjoint="unrolled"`` for jvp). First order only:
+differentiating the backward pass again (``jax.hessian``, ``jacfwd(jacrev(...))``,
+``grad(grad(...))``) raises ``NotImplementedError`` rather than returning a wrong second
+derivative (the backward pass treats the solution's dependence on θ as fixed); use
 ``adjoint="unrolled"`` for higher orders.
 """
 
@@ -31,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from ..lie import manifold
+from .colouring import normal_equations
 from .linear import SVD, LinearSolver
 from .problem import Problem
 from .solution import Solution
@@ -145,8 +148,8 @@ def _implicit_bwd(
         hess = 0.5 * (hess + hess.T)
     else:
         args, problem = theta
-        jac = problem.linearize(x_star, args).jac
-        hess = jac.T @ jac
+        lin = problem.linearize_structured(x_star, args)
+        hess, _ = normal_equations(lin.jac, lin.res)  # dense, BlockHessian or SparseHessian
     u = adjoint.linear_solver.solve(hess, -v, hess, -v, jnp.zeros_like(v))
     u = first_order_only(u, "least_squares(adjoint='implicit')")
     dtype = flat0.dtype

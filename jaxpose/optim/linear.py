@@ -14,10 +14,18 @@ indefinite system: the step comes back non-finite or meaningless (SVD instead re
 minimum-norm pseudo-inverse step) and the optimiser treats a non-finite one as a failed
 trial. Any positive damping (LM) makes every solver well posed.
 
-On the coloured Jacobian path (``jacobian="sparse"``/``"auto"``) H may be a
-:class:`~jaxpose.optim.colouring.BlockHessian` (independent column groups): Cholesky, LU
-and SVD then factorise its small diagonal blocks one by one (batched); CG and QR use the
-dense matrices.
+On the coloured Jacobian path (``jacobian="sparse"``/``"auto"``) H may be structured; the
+solver class chosen by the user stays the same and runs on that form:
+
+* :class:`~jaxpose.optim.colouring.BlockHessian` (independent column groups): Cholesky, LU
+  and SVD factorise its small diagonal blocks one by one (batched); CG and QR use the
+  dense matrices.
+* :class:`~jaxpose.optim.sparse_hessian.SparseHessian` (large sparse H in CSR, e.g.
+  banded): :class:`Cholesky` is a sparse Cholesky (CHOLMOD on the host, symbolic analysis
+  cached; :func:`jaxpose.graph.linear.solve_sparse_direct`), :class:`CG` runs matrix-free
+  on the CSR product. :class:`LU` and :class:`SVD` densify H and :class:`QR` the Jacobian
+  (dense fallback: pivoting and rank revelation are what they are chosen for, and they
+  have no sparse counterpart here), so they cost what they cost on the dense path.
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ import jax.numpy as jnp
 import lineax as lx
 
 from .colouring import BlockHessian, as_dense
+from .sparse_hessian import SparseHessian
 
 Array = jax.Array
 
@@ -58,11 +67,14 @@ class LinearSolver(eqx.Module):
 
 
 class Cholesky(LinearSolver):
-    """Cholesky of the damped normal matrix (default; H + diag(a) must be SPD)."""
+    """Cholesky of the damped normal matrix (default; H + diag(a) must be SPD): dense,
+    batched over the blocks of a ``BlockHessian``, sparse (CHOLMOD) on a ``SparseHessian``."""
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         if isinstance(hess, BlockHessian):
             return hess.solve(-grad, diag_add, "cholesky")
+        if isinstance(hess, SparseHessian):
+            return hess.solve(-grad, diag_add)
         op = self._normal(hess, diag_add, lx.positive_semidefinite_tag)
         return lx.linear_solve(op, -grad, lx.Cholesky(), throw=False).value
 
@@ -73,7 +85,7 @@ class LU(LinearSolver):
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         if isinstance(hess, BlockHessian):
             return hess.solve(-grad, diag_add, "lu")
-        op = self._normal(hess, diag_add)
+        op = self._normal(as_dense(hess), diag_add)
         return lx.linear_solve(op, -grad, lx.LU(), throw=False).value
 
 
@@ -96,12 +108,13 @@ class SVD(LinearSolver):
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         if isinstance(hess, BlockHessian):
             return hess.solve(-grad, diag_add, "svd", self.rcond)
-        op = self._normal(hess, diag_add)
+        op = self._normal(as_dense(hess), diag_add)
         return lx.linear_solve(op, -grad, lx.SVD(rcond=self.rcond), throw=False).value
 
 
 class CG(LinearSolver):
-    """Conjugate gradients on the damped normal matrix (matrix-free in lineax).
+    """Conjugate gradients on the damped normal matrix (matrix-free in lineax; on a
+    ``SparseHessian`` through its CSR product).
 
     ``rtol``/``atol`` are CG's residual tolerances (static: a solver passed through
     ``jax.jit`` keeps them as Python floats); ``max_steps`` defaults to 10·n."""
@@ -113,7 +126,12 @@ class CG(LinearSolver):
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         n = grad.shape[0]
         steps = 10 * max(n, 1) if self.max_steps is None else self.max_steps
-        op = self._normal(as_dense(hess), diag_add, lx.positive_semidefinite_tag)
+        psd = lx.positive_semidefinite_tag
+        if isinstance(hess, SparseHessian):  # matrix-free on the CSR product
+            op = lx.FunctionLinearOperator(lambda v: hess @ v + diag_add * v,
+                                           jax.ShapeDtypeStruct(grad.shape, grad.dtype), psd)
+        else:
+            op = self._normal(as_dense(hess), diag_add, psd)
         tol_floor = 10 * jnp.finfo(grad.dtype).eps
         solver = lx.CG(rtol=max(self.rtol, float(tol_floor)), atol=self.atol, max_steps=steps)
         return lx.linear_solve(op, -grad, solver, throw=False).value

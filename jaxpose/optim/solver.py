@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from ..lie import manifold
 from . import _iterate
 from ._iterate import SolverState
-from .colouring import BlockHessian, SparseJacobian, diagonal, normal_equations
+from .colouring import SparseJacobian, diagonal, identity_like, normal_equations
 from .linear import Cholesky, LinearSolver
 from .problem import LinearizedResidual, Problem, as_problem
 from .stopping import Stopping
@@ -122,13 +122,7 @@ class AbstractSolver(eqx.Module):
         mode, pattern = problem.jacobian_mode(params, args)
         if mode == "sparse":  # the coloured path's structures (the loop carry's layout)
             jac0: Any = SparseJacobian(jnp.zeros((m, pattern.num_colours), dtype), pattern)
-            hess0: Any = jac0.normal()
-            if isinstance(hess0, BlockHessian):
-                hess0 = BlockHessian(
-                    tuple(jnp.broadcast_to(jnp.eye(b.shape[-1], dtype=dtype), b.shape)
-                          for b in hess0.blocks), pattern)
-            else:
-                hess0 = jnp.eye(n, dtype=dtype)
+            hess0: Any = identity_like(jac0.normal())  # dense, BlockHessian or SparseHessian
         else:
             jac0, hess0 = jnp.zeros((m, n), dtype), jnp.eye(n, dtype=dtype)
         system = NormalEquations(
