@@ -77,7 +77,7 @@ from bench._common import (  # noqa: E402
     time_callable,
 )
 from jaxpose.geometry import epnp, icp, knn  # noqa: E402
-from jaxpose.geometry.knn import resolve_method  # noqa: E402
+from jaxpose.geometry._knn import resolve_method  # noqa: E402
 
 K = np.array([[520.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]], np.float32)
 EPNP_POINTS = 32

@@ -89,7 +89,7 @@ def second_arg(fname: str) -> str | None:
 # Contestants: JAX-based (jaxpose, jaxlie)
 # ----------------------------------------------------------------------------------
 def _jaxpose_funcs() -> dict[str, Callable[..., Any]]:
-    from jaxpose.lie.so3 import SO3
+    from jaxpose.lie import SO3
 
     return {
         "f1": lambda x: SO3.exp(x).log().data,

@@ -8,7 +8,7 @@ pairs, uniformly random rotations, translations uniform in the trajectory's boun
 box, the replaced edge's information). Every contestant starts from the same initial
 poses with pose 0 held (GTSAM: a prior with σ = 1e-6, a known inlier):
 
-* jaxpose GNC: :func:`jaxpose.graph.pgo.optimize_pose_graph` with ``robust="gnc"``
+* jaxpose GNC: :func:`jaxpose.graph.optimize_pose_graph` with ``robust="gnc"``
   (TLS, odometry edges known inliers, inlier threshold the χ² 0.99 quantile, inner
   sparse LM);
 * GTSAM ``GncLMOptimizer`` (TLS, its defaults: the same 0.99 threshold, μ step 1.4;
@@ -117,7 +117,7 @@ def inlier_scores(weights: np.ndarray, loops: np.ndarray, outliers: np.ndarray) 
 # Contestants
 # ----------------------------------------------------------------------------------
 def _threshold(kind: str) -> float:
-    from jaxpose.graph.robust import chi2_quantile
+    from jaxpose.graph._robust import chi2_quantile
 
     return chi2_quantile(0.99, 6 if kind == "SE3" else 3)
 

@@ -271,7 +271,8 @@ def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, poses=None):
     """Solve a PoseGraph, print the table and summary; returns (poses, solution)."""
     import jax
 
-    from .graph import default_stopping, pgo, solve
+    from .graph import _pgo as pgo
+    from .graph import default_stopping, solve
 
     problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, poses=poses)
     stopping = default_stopping(max_steps, dtype)
@@ -296,7 +297,8 @@ def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
     import jax
     import numpy as np
 
-    from .graph import default_stopping, pgo
+    from .graph import _pgo as pgo
+    from .graph import default_stopping
 
     if kernel is not None:
         raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
@@ -364,7 +366,7 @@ def pgo_command(args: argparse.Namespace) -> int:
                                   max_steps=args.max_steps, dtype=dtype,
                                   surrogate=args.gnc_surrogate, init=args.init)
     else:
-        from .graph.init import initial_poses, pose_graph_cost
+        from .graph._init import initial_poses, pose_graph_cost
 
         t0 = time.perf_counter()
         start, method = initial_poses(graph, args.init)
@@ -383,13 +385,14 @@ def pgo_command(args: argparse.Namespace) -> int:
     if args.plot:
         import jax
 
-        from .graph import marginals, pgo
+        from .graph import _pgo as pgo
+        from .graph import marginals
         from .plot import plot_pose_graphs
 
         # pose marginals at the solution for the 2σ position ellipses
         problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype)
         if hasattr(sol, "weights"):  # GNC: the graph as weighted at the solution
-            from .graph.robust import weighted_graph
+            from .graph._robust import weighted_graph
 
             problem = weighted_graph(problem, sol.weights)
         cov = jax.jit(lambda p, v: marginals(p, v, "pose").covariances["pose"])(
@@ -411,9 +414,10 @@ def ba_command(args: argparse.Namespace) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from .graph import ba, default_stopping, solve
+    from .graph import _ba as ba
+    from .graph import default_stopping, solve
     from .io import BALProblem, FormatError, read_bal, write_bal
-    from .io.bal import _bal_project_numpy
+    from .io._bal import _bal_project_numpy
     from .optim import Nielsen
 
     _check_output(args.out, "--out")

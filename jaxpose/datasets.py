@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .io.bal import BALProblem, _bal_project_numpy
-from .io.g2o import PoseGraph
+from .io._bal import BALProblem, _bal_project_numpy
+from .io._g2o import PoseGraph
 from .lie._numpy import (
     compose,
     compose1,

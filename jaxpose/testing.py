@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .lie.base import LieAlgebra, LieGroup
+from .lie._base import LieAlgebra, LieGroup
 
 _DEFAULT_TOL = {  # (rtol, atol) by dtype, as torch.testing.assert_close
     np.dtype(np.float16): (1e-3, 1e-5),

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, seed, settings
 from hypothesis import strategies as st
 
 import jaxpose.cli as cli
-import jaxpose.graph.ba as ba_module
+import jaxpose.graph._ba as ba_module
 from jaxpose.io import read_bal, read_g2o
 
 I3 = "1 0 0 1 0 1"
@@ -257,7 +257,7 @@ def test_fuzz_cli(tmp_path, case):
         assert reached and len(reached) == 1
         if command == "ba":
             p = reached[0]
-            from jaxpose.io.bal import _bal_project_numpy
+            from jaxpose.io._bal import _bal_project_numpy
 
             r = _bal_project_numpy(p.cameras, p.points, p.camera_index, p.point_index)
             assert np.isfinite(0.5 * np.sum((r - p.observations) ** 2))

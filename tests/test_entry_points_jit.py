@@ -27,8 +27,8 @@ jax.config.update("jax_enable_x64", True)
 # the modules themselves (``jaxpose.control.lqr`` etc. are shadowed by the functions)
 lqr_mod, ilqr_mod, mpc_mod, icp_mod, pnp_mod, imu_core = (
     importlib.import_module(f"jaxpose.{name}")
-    for name in ("control.lqr", "control.ilqr", "control.mpc", "geometry.icp", "geometry.pnp",
-                 "imu._core")
+    for name in ("control._lqr", "control._ilqr", "control._mpc", "geometry._icp",
+                 "geometry._pnp", "imu._core")
 )
 
 
@@ -218,7 +218,7 @@ def test_marginals_compile_once(monkeypatch):
 
     from jaxpose.graph import marginals
 
-    marg_mod = importlib.import_module("jaxpose.graph.marginals")
+    marg_mod = importlib.import_module("jaxpose.graph._marginals")
     g4, g4b, g5 = _pose_graph(0, 4), _pose_graph(1, 4), _pose_graph(0, 5)
     calls = counter(monkeypatch, marg_mod, "linearize")
     assert_traced_once(
@@ -244,7 +244,7 @@ def test_marginals_compile_once(monkeypatch):
 def test_covariance_compiles_once(monkeypatch, rng=np.random.default_rng(7)):
     from jaxpose.optim import covariance
 
-    cov_mod = importlib.import_module("jaxpose.optim.covariance")
+    cov_mod = importlib.import_module("jaxpose.optim._covariance")
     calls = counter(monkeypatch, cov_mod, "as_problem")
 
     def res(p, a):

@@ -4,10 +4,10 @@
 Solutions carry an int32 ``status`` holding a :class:`jaxpose.Results` code.
 """
 
-from .boxqp import BoxQPResult, box_qp
-from .cost import Cost, FunctionCost, QuadraticCost
-from .ilqr import ILQRSolution, ilqr
-from .lqr import (
+from ._boxqp import BoxQPResult, box_qp
+from ._cost import Cost, FunctionCost, QuadraticCost
+from ._ilqr import ILQRSolution, ilqr
+from ._lqr import (
     LQR,
     LQRSolution,
     lq_problem,
@@ -15,7 +15,7 @@ from .lqr import (
     lqr_solve,
     riccati,
 )
-from .mpc import MPC, MPCSolution, closed_loop
+from ._mpc import MPC, MPCSolution, closed_loop
 
 __all__ = [
     "LQR",

@@ -5,15 +5,15 @@
 ``ContinuousSystem`` / ``Discretized`` with Euler and RK4 steps, and benchmark models.
 """
 
-from .integrators import (
+from ._integrators import (
     ContinuousSystem,
     Discretized,
     euler_step,
     integrate,
     rk4_step,
 )
-from .models import Bicycle, CartPole, Pendulum
-from .system import LTI, LTV, NLS, LinearizedSystem, System, rollout
+from ._models import Bicycle, CartPole, Pendulum
+from ._system import LTI, LTV, NLS, LinearizedSystem, System, rollout
 
 __all__ = [
     "LTI",

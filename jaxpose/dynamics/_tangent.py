@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from ..lie import manifold
-from ..lie.base import LieAlgebra, LieGroup
+from ..lie._base import LieAlgebra, LieGroup
 
 Array = jax.Array
 

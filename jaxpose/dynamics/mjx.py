@@ -34,7 +34,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .system import System
+from ._system import System
 
 Array = jax.Array
 

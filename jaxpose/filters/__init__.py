@@ -6,9 +6,9 @@ updates through the retraction ``X ⊕ δ = X·Exp(δ)``).
 """
 
 from ._common import FilterResult
-from .ekf import EKF
-from .pf import ParticleFilter, ParticleState, effective_sample_size, systematic_resample
-from .ukf import UKF, merwe_weights
+from ._ekf import EKF
+from ._pf import ParticleFilter, ParticleState, effective_sample_size, systematic_resample
+from ._ukf import UKF, merwe_weights
 
 __all__ = [
     "EKF",

@@ -11,8 +11,8 @@ import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
 from ..dynamics._checks import as_array, check_psd
+from ..dynamics._system import System
 from ..dynamics._tangent import tangent_space
-from ..dynamics.system import System
 
 Array = jax.Array
 

@@ -11,8 +11,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..dynamics._system import System
 from ..dynamics._tangent import TangentSpace, tangent_space
-from ..dynamics.system import System
 from ._common import (
     FilterResult,
     check_cov,

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lie.base import LieGroup, as_float_array
+from ..lie._base import LieGroup, as_float_array
 
 Array = jax.Array
 

@@ -1,34 +1,35 @@
 """Sparse factor-graph least squares: stacked variables, grouped factors, block-sparse LM.
 
-Marginal covariances of a solution: :func:`marginals` (:mod:`jaxpose.graph.marginals`).
-The two ready-made problems are reached the same way: pose graphs by
-:func:`optimize_pose_graph` / :func:`pose_graph_problem` (module :mod:`jaxpose.graph.pgo`;
-global initialisation: :mod:`jaxpose.graph.init`) and bundle adjustment (BAL camera model,
-Schur elimination of the points) by :func:`optimize_bal` / :func:`bundle_adjustment_problem`
-(module :mod:`jaxpose.graph.ba`). Outlier-robust solves by graduated non-convexity:
-:mod:`jaxpose.graph.robust`.
+Marginal covariances of a solution: :func:`marginals`. The two ready-made problems are
+reached the same way: pose graphs by :func:`optimize_pose_graph` / :func:`pose_graph_problem`
+(global initialisation: :func:`chordal_initialization`, :func:`initial_poses`) and bundle
+adjustment (BAL camera model, Schur elimination of the points) by :func:`optimize_bal` /
+:func:`bundle_adjustment_problem`. Outlier-robust solves by graduated non-convexity:
+:func:`gnc`. Every name is exported here; the implementation modules are private.
 """
 
-from . import ba, init, pgo, robust
-from .ba import (
+from ._ba import (
+    bal_to_variables,
     bundle_adjustment_problem,
     optimize_bal,
     reprojection_jacobian,
     reprojection_residual,
+    reprojection_rmse,
+    variables_to_bal,
 )
-from .factor import (
+from ._factor import (
     Factor,
     between_jacobian,
     between_residual,
     prior_residual,
     vector_prior_residual,
 )
-from .init import chordal_initialization, initial_poses, pose_graph_cost
-from .marginals import Marginals, marginals, se3_to_gtsam
-from .pgo import optimize_pose_graph, pose_graph_problem
-from .problem import FactorGraph, GraphLinearization, cost, linearize
-from .robust import GNCSolution, gm_weights, gnc, tls_weights, weighted_graph
-from .solve import (
+from ._init import chordal_initialization, initial_poses, pose_graph_cost
+from ._marginals import Marginals, marginals, se3_to_gtsam
+from ._pgo import optimize_pose_graph, pose_graph_problem
+from ._problem import FactorGraph, GraphLinearization, cost, linearize
+from ._robust import GNCSolution, gm_weights, gnc, tls_weights, weighted_graph
+from ._solve import (
     PCG,
     Damping,
     GraphLinearSolver,
@@ -40,6 +41,9 @@ from .solve import (
 )
 
 __all__ = [
+    "bal_to_variables",
+    "reprojection_rmse",
+    "variables_to_bal",
     "Damping",
     "Factor",
     "GNCSolution",
@@ -49,7 +53,6 @@ __all__ = [
     "GraphLinearization",
     "Marginals",
     "PCG",
-    "ba",
     "between_jacobian",
     "between_residual",
     "bundle_adjustment_problem",
@@ -57,7 +60,6 @@ __all__ = [
     "cost",
     "default_rtol",
     "default_stopping",
-    "init",
     "initial_poses",
     "gm_weights",
     "gnc",
@@ -65,14 +67,12 @@ __all__ = [
     "marginals",
     "optimize_bal",
     "optimize_pose_graph",
-    "pgo",
     "pose_graph_cost",
     "pose_graph_problem",
     "prior_residual",
     "reprojection_jacobian",
     "reprojection_residual",
     "se3_to_gtsam",
-    "robust",
     "solve",
     "summary",
     "tls_weights",

@@ -6,8 +6,8 @@ path, and a reader for GTSAM's IMU+GPS example stream. Conventions: ``docs/imu.m
 ``"manifold"`` (Forster, associative scan) and ``"tangent"`` (GTSAM's first-order scheme).
 Dead reckoning (the navigation state after every sample): :func:`dead_reckon`."""
 
-from .data import ImuGpsData, read_imu_gps
-from .factors import (
+from ._data import ImuGpsData, read_imu_gps
+from ._factors import (
     ImuFactorData,
     bias_walk_factor,
     bias_walk_residual,
@@ -16,8 +16,8 @@ from .factors import (
     imu_factor,
     imu_residual,
 )
-from .fusion import FusionResult, fuse_imu_gps, preintegrate_windows
-from .preintegration import (
+from ._fusion import FusionResult, fuse_imu_gps, preintegrate_windows
+from ._preintegration import (
     SCHEMES,
     ImuPreintegrator,
     Preintegrated,
@@ -25,7 +25,7 @@ from .preintegration import (
     predict,
     preintegrate,
 )
-from .state import NavState
+from ._state import NavState
 
 __all__ = [
     "SCHEMES",

@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..lie import quaternion as quat
+from ..lie import _quaternion as quat
 from ..lie import series
 
 Array = jax.Array

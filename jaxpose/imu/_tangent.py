@@ -15,7 +15,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..lie import quaternion as quat
+from ..lie import _quaternion as quat
 from ._core import Delta, Noise
 
 Array = jax.Array

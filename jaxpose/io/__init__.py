@@ -7,9 +7,9 @@ definite (:func:`apply_information_policy`, ``read_g2o(information=...)``). The 
 model itself is :func:`jaxpose.geometry.bal_project`.
 """
 
-from .bal import BALProblem, read_bal, write_bal
-from .errors import FormatError
-from .g2o import (
+from ._bal import BALProblem, read_bal, write_bal
+from ._errors import FormatError
+from ._g2o import (
     INFORMATION_POLICIES,
     PoseGraph,
     apply_information_policy,

@@ -7,9 +7,9 @@ that order. See ``docs/conventions.md`` for layouts and Jacobian conventions.
 """
 
 from . import convert, manifold, series
-from .base import InvalidValueError, LieAlgebra, LieGroup
-from .batchops import cumops, identity_like, random_like
-from .functional import (
+from ._base import InvalidValueError, LieAlgebra, LieGroup
+from ._batchops import cumops, identity_like, random_like
+from ._functional import (
     act,
     adj,
     adjT,
@@ -36,12 +36,12 @@ from .functional import (
     scale,
     translation,
 )
-from .rxso3 import RxSO3, rxso3
-from .se2 import SE2, se2
-from .se3 import SE3, se3
-from .sim3 import Sim3, sim3
-from .so2 import SO2, so2
-from .so3 import SO3, so3
+from ._rxso3 import RxSO3, rxso3
+from ._se2 import SE2, se2
+from ._se3 import SE3, se3
+from ._sim3 import Sim3, sim3
+from ._so2 import SO2, so2
+from ._so3 import SO3, so3
 
 GROUPS = (SO3, SE3, Sim3, RxSO3, SO2, SE2)
 ALGEBRAS = (so3, se3, sim3, rxso3, so2, se2)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from . import quaternion as quat
+from . import _quaternion as quat
 
 Array = jnp.ndarray
 

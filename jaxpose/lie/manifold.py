@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from .base import LieGroup
+from ._base import LieGroup
 
 PyTree = Any
 

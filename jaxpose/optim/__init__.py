@@ -4,17 +4,17 @@
 ``0.5 · Σ ρ(rᵀ W r)`` and returns a :class:`Solution`. Solvers also expose
 ``init``/``step`` for hand-driven iterations; :func:`covariance` gives the covariance of a
 solution in its tangent chart (Ceres' ``Covariance``). See the module docstrings of
-:mod:`~jaxpose.optim.problem` (conventions), :mod:`~jaxpose.optim.strategies`,
-:mod:`~jaxpose.optim.kernels`, :mod:`~jaxpose.optim.correctors`,
-:mod:`~jaxpose.optim.linear`, :mod:`~jaxpose.optim.stopping` and
-:mod:`~jaxpose.optim.implicit`.
+:mod:`~jaxpose.optim._problem` (conventions), :mod:`~jaxpose.optim._strategies`,
+:mod:`~jaxpose.optim._kernels`, :mod:`~jaxpose.optim._correctors`,
+:mod:`~jaxpose.optim._linear`, :mod:`~jaxpose.optim._stopping` and
+:mod:`~jaxpose.optim._implicit`.
 """
 
-from . import kernels
-from .correctors import Corrector, FastTriggs, Triggs
-from .covariance import covariance
-from .implicit import ImplicitAdjoint, UnrolledAdjoint
-from .kernels import (
+from . import _kernels
+from ._correctors import Corrector, FastTriggs, Triggs
+from ._covariance import covariance
+from ._implicit import ImplicitAdjoint, UnrolledAdjoint
+from ._kernels import (
     Arctan,
     Cauchy,
     GemanMcClure,
@@ -28,13 +28,13 @@ from .kernels import (
     Tukey,
     Welsch,
 )
-from .linear import CG, LU, QR, SVD, Cholesky, LinearSolver
-from .problem import LinearizedResidual, Problem
-from .solution import Solution
-from .solve import least_squares
-from .solver import GN, LM, AbstractSolver, GaussNewton, LevenbergMarquardt, SolverState
-from .stopping import StopOnPlateau, Stopping
-from .strategies import (
+from ._linear import CG, LU, QR, SVD, Cholesky, LinearSolver
+from ._problem import LinearizedResidual, Problem
+from ._solution import Solution
+from ._solve import least_squares
+from ._solver import GN, LM, AbstractSolver, GaussNewton, LevenbergMarquardt, SolverState
+from ._stopping import StopOnPlateau, Stopping
+from ._strategies import (
     Adaptive,
     Constant,
     Dogleg,
@@ -67,7 +67,7 @@ __all__ = [
     "LambdaFactor",
     "Nielsen",
     "NielsenState",
-    *kernels.__all__,
+    *_kernels.__all__,
     "Corrector",
     "FastTriggs",
     "Triggs",

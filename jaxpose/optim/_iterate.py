@@ -2,7 +2,7 @@
 
 :func:`trial` is one iteration: propose δ from the linearisation at the current estimate,
 retract X ⊕ δ, linearise there, compute the gain ratio, accept or reject, track the best
-estimate, update the damping rule and evaluate :func:`~jaxpose.optim.stopping.check`.
+estimate, update the damping rule and evaluate :func:`~jaxpose.optim._stopping.check`.
 It is shared by the dense solvers of :mod:`jaxpose.optim` (``least_squares``,
 ``LevenbergMarquardt``, ``GaussNewton``) and by :func:`jaxpose.graph.solve` (block-sparse
 linearisation). The two differ only in a small :class:`Path` (linearise, the Gauss–Newton
@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 
 from ..results import Results
-from .stopping import Stopping, Trial, check, nonfinite_run, plateau_count
-from .strategies import NormalEquations
+from ._stopping import Stopping, Trial, check, nonfinite_run, plateau_count
+from ._strategies import NormalEquations
 
 Array = jax.Array
 PyTree = Any

@@ -27,10 +27,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..graph.factor import _sqrt_information, between_residual
-from ..imu.factors import ImuFactorData, imu_residual, pose_prior_residual
-from ..imu.fusion import _fusion_options, _gps_keyframes
-from ..imu.state import NavState
+from ..graph._factor import _sqrt_information, between_residual
+from ..imu._factors import ImuFactorData, imu_residual, pose_prior_residual
+from ..imu._fusion import _fusion_options, _gps_keyframes
+from ..imu._state import NavState
 from ..lie import SE2, SE3, SO3
 from ._fixed_lag import FixedLagSmoother, _take
 

@@ -150,7 +150,7 @@ print(
 # %%
 g2o = DATA / "g2o" / "intel.g2o" if DATA is not None else None
 if g2o is not None and g2o.exists():
-    from jaxpose.graph import pgo
+    from jaxpose.graph import optimize_pose_graph
     from jaxpose.io import read_g2o
 
     graph = read_g2o(g2o)
@@ -166,7 +166,7 @@ if g2o is not None and g2o.exists():
         measurements=graph.measurements[keep],
         information=graph.information[keep],
     )
-    ref, _ = pgo.optimize_pose_graph(sub)
+    ref, _ = optimize_pose_graph(sub)
     xy = np.asarray(pg.trajectory["pose"].data[:, :2])
     plt.figure(figsize=(6, 6))
     plt.plot(graph.poses[:poses, 0], graph.poses[:poses, 1], ":", label="initial (odometry)")

@@ -38,8 +38,15 @@ import numpy as np
 
 import jaxpose as jp
 from jaxpose.geometry import ape
-from jaxpose.graph import Factor, FactorGraph, between_jacobian, between_residual, solve, summary
-from jaxpose.graph.pgo import optimize_pose_graph
+from jaxpose.graph import (
+    Factor,
+    FactorGraph,
+    between_jacobian,
+    between_residual,
+    optimize_pose_graph,
+    solve,
+    summary,
+)
 
 jax.config.update("jax_enable_x64", True)
 SMOKE = os.environ.get("JAXPOSE_NOTEBOOK_SMOKE") == "1"  # tiny sizes (CI runs every notebook)

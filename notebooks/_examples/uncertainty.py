@@ -40,7 +40,7 @@ import numpy as np
 from matplotlib.collections import EllipseCollection
 
 import jaxpose as jp
-from jaxpose.graph import default_stopping, marginals, pgo, solve
+from jaxpose.graph import default_stopping, marginals, pose_graph_problem, solve
 from jaxpose.lie import SE2
 from jaxpose.optim import covariance, least_squares
 from jaxpose.plot import ellipse_axes, position_covariances
@@ -71,7 +71,7 @@ def draw(ax, xy, cov2, every=1, color="tab:red"):
 # %%
 n_poses = 60 if SMOKE else 600
 graph, truth = jp.synthetic_pose_graph("SE2", n_poses=n_poses, noise=(0.02, 0.02), seed=1)
-problem = pgo.pose_graph_problem(graph)
+problem = pose_graph_problem(graph)
 sol = jax.jit(solve)(problem)
 print(sol.status_name, f"cost {float(sol.cost):.4g}")
 
@@ -120,7 +120,7 @@ for (a, b), joint in zip([(0, n_poses - 1), (n_poses // 2, n_poses - 1)], m.join
 # %%
 n3 = 64 if SMOKE else 900
 graph3, _ = jp.synthetic_pose_graph("SE3", n_poses=n3, noise=(0.02, 0.02), seed=2)
-problem3 = pgo.pose_graph_problem(graph3)
+problem3 = pose_graph_problem(graph3)
 sol3 = jax.jit(solve)(problem3)
 cov3 = np.asarray(jax.jit(lambda p, s: marginals(p, s, "pose").covariances["pose"])(
     problem3, sol3))
@@ -197,7 +197,7 @@ if not path.is_file():
     path = Path("..") / "shared" / "data" / "g2o" / "intel.g2o"
 if path.is_file() and not SMOKE:
     g = jp.read_g2o(path)
-    prob = pgo.pose_graph_problem(g)
+    prob = pose_graph_problem(g)
     s = jax.jit(lambda p: solve(p, linear_solver="sparse", stopping=default_stopping(200)))(prob)
     c = np.asarray(jax.jit(lambda p, v: marginals(p, v, "pose").covariances["pose"])(prob, s))
     xy = np.asarray(s.variables["pose"].data)

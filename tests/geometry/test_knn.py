@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jaxpose.geometry import build_kdtree, knn, query_kdtree
-from jaxpose.geometry.knn import tile_size
+from jaxpose.geometry._knn import tile_size
 
 
 def _reference(q: np.ndarray, p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,7 @@ import pytest
 from jax.test_util import check_grads
 
 from jaxpose.geometry import svdstf, svdtf, umeyama
-from jaxpose.geometry.registration import optimal_rotation
+from jaxpose.geometry._registration import optimal_rotation
 from jaxpose.lie import SE3
 
 from .conftest import random_rotation

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxpose.geometry._registration import _det3
 from jaxpose.geometry._util import spd_solve
-from jaxpose.geometry.registration import _det3
 
 
 @pytest.mark.parametrize("n", [1, 3, 4, 6])

@@ -7,7 +7,7 @@
   information matrices it was built from (for references that do not use the code under
   test).
 * References: ``dense_residual_fn`` (whitened residuals of the whole graph as a function
-  of the full tangent vector, laid out as documented in ``jaxpose.graph.problem``: types
+  of the full tangent vector, laid out as documented in ``jaxpose.graph._problem``: types
   in sorted-name order, each variable a contiguous slice) and ``assemble_jacobian``
   (Jacobian blocks of a ``GraphLinearization`` scattered into one dense matrix).
 * ``jit_solve(**options)``: one jitted ``solve`` per option set, shared by the whole

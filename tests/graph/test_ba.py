@@ -26,9 +26,9 @@ from jaxpose.graph import (
     prior_residual,
     vector_prior_residual,
 )
-from jaxpose.graph import ba as bal_graph
-from jaxpose.graph.problem import gradient, hessian_diagonal, linearize
-from jaxpose.graph.schur import schur_step
+from jaxpose.graph import _ba as bal_graph
+from jaxpose.graph._problem import gradient, hessian_diagonal, linearize
+from jaxpose.graph._schur import schur_step
 from jaxpose.io import BALProblem, read_bal
 from jaxpose.lie import SE3
 from jaxpose.optim import Nielsen

@@ -1,4 +1,4 @@
-"""Chordal initialisation (jaxpose.graph.init) against independent checks, the
+"""Chordal initialisation (jaxpose.graph.chordal_initialization) against independent checks, the
 information-matrix policies of the reader / API, and the `jaxpose pgo` options."""
 
 from __future__ import annotations
@@ -14,8 +14,7 @@ from scipy.spatial.transform import Rotation
 from jaxpose import read_g2o, write_g2o
 from jaxpose.cli import main
 from jaxpose.datasets import synthetic_pose_graph
-from jaxpose.graph import chordal_initialization, initial_poses, pose_graph_cost
-from jaxpose.graph.pgo import pose_graph_problem
+from jaxpose.graph import chordal_initialization, initial_poses, pose_graph_cost, pose_graph_problem
 from jaxpose.io import FormatError, PoseGraph, apply_information_policy
 
 from .conftest import _pose_matrix, numpy_pose_graph_cost, random_spd

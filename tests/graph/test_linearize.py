@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from jaxpose.graph import FactorGraph, linear, linearize
-from jaxpose.graph.problem import block_diagonal, csr_values, gradient, hessian_vector
+from jaxpose.graph._problem import block_diagonal, csr_values, gradient, hessian_vector
 from jaxpose.optim import Huber
 
 from .conftest import (

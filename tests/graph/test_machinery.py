@@ -25,7 +25,7 @@ from jaxpose.graph import (
     pgo,
 )
 from jaxpose.graph import solve as graph_solve
-from jaxpose.graph.problem import gradient, hessian_blocks, hessian_diagonal
+from jaxpose.graph._problem import gradient, hessian_blocks, hessian_diagonal
 from jaxpose.lie import SE2, SE3, Sim3
 from jaxpose.optim import (
     Adaptive,

@@ -25,12 +25,12 @@ from jaxpose.graph import (
     cost,
     default_stopping,
     marginals,
-    pgo,
     prior_residual,
+    se3_to_gtsam,
 )
-from jaxpose.graph import ba as bal_graph
-from jaxpose.graph.marginals import se3_to_gtsam
-from jaxpose.graph.selinv import inverse_entries, supernodal_available
+from jaxpose.graph import _ba as bal_graph
+from jaxpose.graph import _pgo as pgo
+from jaxpose.graph._selinv import inverse_entries, supernodal_available
 
 from .conftest import FAST_COMPILE, data_file, dense_residual_fn, jit_solve, mixed_problem
 

@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from jaxpose import Results, read_g2o, synthetic_pose_graph
-from jaxpose.graph import default_stopping, pgo
+from jaxpose.graph import _pgo as pgo
+from jaxpose.graph import default_stopping
 from jaxpose.optim import Huber
 
 from .conftest import GTSAM_COST, data_file, jit_solve, numpy_pose_graph_cost

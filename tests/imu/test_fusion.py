@@ -19,7 +19,7 @@ from jaxpose.imu import (
     preintegrate_windows,
     read_imu_gps,
 )
-from jaxpose.imu.factors import (
+from jaxpose.imu._factors import (
     ImuFactorData,
     gps_jacobian,
     gps_residual,
@@ -98,7 +98,7 @@ def stream():
 @needs_data
 def test_reader_and_gps_fixes_equal_dead_reckoning_from_rest(stream):
     """20000 IMU rows, 100 fixes (one after the first sample, then every 200); the initial
-    row reads as [p, v, q] (see jaxpose.imu.data); dead reckoning from rest with
+    row reads as [p, v, q] (see jaxpose.imu._data); dead reckoning from rest with
     dt = 0.005 s and zero gravity reproduces every fix to its printed precision."""
     d = stream
     assert d.acc.shape == (20000, 3) and d.gps_position.shape == (100, 3)

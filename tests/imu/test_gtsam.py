@@ -16,8 +16,7 @@ Acceptance: ΔR, Δv, Δp within 1e-9 and the covariance within 1e-6 relative.
 import numpy as np
 import pytest
 
-from jaxpose.imu import NavState, preintegrate
-from jaxpose.imu.factors import ImuFactorData, gps_residual, imu_residual
+from jaxpose.imu import ImuFactorData, NavState, gps_residual, imu_residual, preintegrate
 from jaxpose.lie import SE3, SO3
 
 from . import reference as ref

@@ -9,7 +9,7 @@ from io_refs import bal_project, data_file, write_text
 from jaxpose.datasets import synthetic_bal
 from jaxpose.geometry import bal_project as jax_bal_project
 from jaxpose.io import BALProblem, FormatError, read_bal, write_bal
-from jaxpose.io.bal import _bal_project_numpy
+from jaxpose.io._bal import _bal_project_numpy
 
 FILES = {  # file -> (cameras, points, observations)
     "dubrovnik-1-1-pre.txt": (1, 1, 1),

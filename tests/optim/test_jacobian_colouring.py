@@ -16,8 +16,8 @@ from jax.flatten_util import ravel_pytree
 
 import jaxpose.optim as jo
 from jaxpose.lie import SE3, manifold
-from jaxpose.optim.colouring import BlockHessian, SparseJacobian, greedy_colouring
-from jaxpose.optim.sparsity import jacobian_pattern
+from jaxpose.optim._colouring import BlockHessian, SparseJacobian, greedy_colouring
+from jaxpose.optim._sparsity import jacobian_pattern
 
 _MAX_POSES = 12
 _exp = jax.jit(SE3.exp)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxpose.optim as jo
-from jaxpose.optim.sparse_hessian import SPARSE_MIN_SIZE, SparseHessian
+from jaxpose.optim._sparse_hessian import SPARSE_MIN_SIZE, SparseHessian
 from jaxpose.results import Results
 
 N = 200

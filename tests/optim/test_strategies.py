@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 import jaxpose.optim as jo
-from jaxpose.optim.linear import Cholesky
-from jaxpose.optim.strategies import NormalEquations
+from jaxpose.optim import Cholesky, NormalEquations
 
 F64 = jnp.float64
 

@@ -140,7 +140,7 @@ def test_pose_graph_replay_window_covering_the_graph_equals_batch():
     path = os.path.join(DATA, "intel.g2o")
     if not os.path.exists(path):
         pytest.skip("intel.g2o not available")
-    from jaxpose.graph import pgo
+    from jaxpose.graph import _pgo as pgo
     from jaxpose.io import read_g2o
 
     n = 12

@@ -1,0 +1,327 @@
+"""Time-varying LQR by the Riccati recursion (``lax.scan``, Cholesky solves).
+
+Problem (one element; batches by ``jax.vmap``, which keeps everything that does not
+depend on the batched argument — e.g. the Riccati matrices when only ``x0`` is
+batched — unbatched)::
+
+    min  Σ_{t<T} ½ τ_tᵀ C_t τ_t + c_tᵀ τ_t  +  ½ x_Tᵀ C_T x_T + c_Tᵀ x_T,   τ_t = [x_t; u_t]
+    s.t. x_{t+1} = F_t τ_t + f_t,   x_0 = x0.
+
+Shapes: F (T, n, n+m), f (T, n), C (T, n+m, n+m), c (T, n+m), C_T (n, n), c_T (n,).
+The optimal policy is ``u_t = K_t x_t + k_t``. An optional ``free`` mask (T, m) fixes
+the masked-out controls to zero (used for active box constraints in the implicit
+gradient of MPC).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.scipy.linalg import cho_solve
+
+from ..dynamics._checks import as_array, check_horizon
+from ..dynamics._system import LTI, LTV, System
+from ..results import Results
+from ._boxqp import box_qp, free_block
+from ._cost import QuadraticCost
+
+Array = jax.Array
+
+class BackwardOut(NamedTuple):
+    """One Riccati step: policy (K, k), value (V, v), expected-decrease terms and flags."""
+
+    K: Array
+    k: Array
+    V: Array
+    v: Array
+    dj1: Array
+    dj2: Array
+    ok: Array
+    free: Array
+    L: Array
+
+
+def backward_step(
+    V: Array,
+    v: Array,
+    F: Array,
+    f: Array,
+    C: Array,
+    c: Array,
+    *,
+    reg: Any = 0.0,
+    free: Array | None = None,
+    box: tuple[Array, Array, Array] | None = None,
+    box_iters: int = 20,
+    unroll: bool = False,
+    safe: bool = False,
+) -> BackwardOut:
+    """One step of the recursion: from the value ``(V, v)`` at ``t+1`` to the policy and
+    value at ``t``. ``reg`` adds μI to Q_uu for the policy (Levenberg–Marquardt style).
+    ``box = (lo, hi, k_warm)`` solves the control-limited step by projected Newton.
+    ``safe`` replaces a non-PD Q_uu by the identity before factorising, so that reverse
+    mode through rejected (masked-out) iterations stays finite."""
+    n = F.shape[0]
+    FtV = F.T @ V
+    Q = C + FtV @ F
+    Q = 0.5 * (Q + Q.T)
+    q = c + FtV @ f + F.T @ v
+    Qxx, Qux, Quu = Q[:n, :n], Q[n:, :n], Q[n:, n:]
+    qx, qu = q[:n], q[n:]
+    m = Quu.shape[0]
+    Hu = Quu + reg * jnp.eye(m, dtype=Quu.dtype)
+    if safe:
+        probe = jnp.linalg.cholesky(jax.lax.stop_gradient(Hu))
+        Hu = jnp.where(jnp.all(jnp.isfinite(probe)), Hu, jnp.eye(m, dtype=Hu.dtype))
+    if box is not None:
+        lo, hi, k_warm = box
+        res = box_qp(Hu, qu, lo, hi, k_warm, iters=box_iters, unroll=unroll)
+        k, fr, L, ok = res.x, res.free, res.L, res.ok
+        K = -cho_solve((L, True), jnp.where(fr[:, None], Qux, 0.0))
+        K = jnp.where(fr[:, None], K, 0.0)
+    else:
+        fr = jnp.ones((m,), bool) if free is None else free
+        Hf = Hu if free is None else free_block(Hu, free)
+        L = jnp.linalg.cholesky(Hf)
+        ok = jnp.all(jnp.isfinite(L))
+        # K and k are solved separately so that, under vmap, a batched linear term (k)
+        # does not make the Riccati matrices (K, V) batched.
+        Qux_f = Qux if free is None else jnp.where(free[:, None], Qux, 0.0)
+        qu_f = qu if free is None else jnp.where(free, qu, 0.0)
+        K = -cho_solve((L, True), Qux_f)
+        k = -cho_solve((L, True), qu_f)
+        if free is not None:
+            K = jnp.where(free[:, None], K, 0.0)
+            k = jnp.where(free, k, 0.0)
+    QuuK = Quu @ K
+    V_new = Qxx + K.T @ Qux + Qux.T @ K + K.T @ QuuK
+    V_new = 0.5 * (V_new + V_new.T)
+    v_new = qx + K.T @ qu + Qux.T @ k + QuuK.T @ k
+    dj1 = k @ qu
+    dj2 = 0.5 * k @ (Quu @ k)
+    return BackwardOut(K, k, V_new, v_new, dj1, dj2, ok, fr, L)
+
+
+def riccati(
+    F: Array,
+    f: Array,
+    C: Array,
+    c: Array,
+    CT: Array,
+    cT: Array,
+    free: Array | None = None,
+    reg: Any = 0.0,
+) -> tuple[Array, Array, Array, Array, Array]:
+    """Backward recursion: ``K`` (T, m, n), ``k`` (T, m), ``V`` (T+1, n, n), ``v``
+    (T+1, n) (``V[T] = C_T``), and ``ok`` (every Q_uu positive definite)."""
+
+    def step(carry: tuple[Array, Array], inp: tuple[Array, ...]):
+        V, v = carry
+        if free is None:
+            Ft, ft, Ct, ct = inp
+            fr = None
+        else:
+            Ft, ft, Ct, ct, fr = inp
+        out = backward_step(V, v, Ft, ft, Ct, ct, reg=reg, free=fr)
+        return (out.V, out.v), (out.K, out.k, out.V, out.v, out.ok, out.L)
+
+    xs = (F, f, C, c) if free is None else (F, f, C, c, free)
+    _, (K, k, V, v, ok, L) = jax.lax.scan(step, (CT, cT), xs, reverse=True)
+    V = jnp.concatenate([V, CT[None]], 0)
+    v = jnp.concatenate([v, cT[None]], 0)
+    return K, k, V, v, jnp.all(ok), L
+
+
+def policy_rollout(F: Array, f: Array, K: Array, k: Array, x0: Array) -> tuple[Array, Array]:
+    """Forward pass ``u_t = K_t x_t + k_t``, ``x_{t+1} = F_t [x_t; u_t] + f_t``:
+    xs (T+1, n), us (T, m)."""
+
+    def step(x: Array, inp: tuple[Array, ...]):
+        Ft, ft, Kt, kt = inp
+        u = Kt @ x + kt
+        x_next = Ft @ jnp.concatenate([x, u]) + ft
+        return x_next, (x_next, u)
+
+    _, (xs, us) = jax.lax.scan(step, x0, (F, f, K, k))
+    return jnp.concatenate([x0[None], xs], 0), us
+
+
+def quadratic_total(C: Array, c: Array, CT: Array, cT: Array, xs: Array, us: Array) -> Array:
+    """Cost of a trajectory under the quadratic cost (C, c, C_T, c_T)."""
+    tau = jnp.concatenate([xs[:-1], us], -1)
+    stage = 0.5 * jnp.einsum("ti,tij,tj->", tau, C, tau) + jnp.einsum("ti,ti->", c, tau)
+    xT = xs[-1]
+    return stage + 0.5 * xT @ (CT @ xT) + cT @ xT
+
+
+class LQRSolution(eqx.Module):
+    """``x`` (…, T+1, n) (x0 first), ``u`` (…, T, m), ``cost`` (…), feedback ``K``
+    (…, T, m, n) and ``k`` (…, T, m), ``status`` (…) int32
+    :class:`~jaxpose.Results` code (CONVERGED 0 or NON_FINITE 3)."""
+
+    x: Array
+    u: Array
+    cost: Array
+    K: Array
+    k: Array
+    status: Array
+
+    @property
+    def status_name(self) -> Any:
+        """``status`` as text (``"converged"``, ...; an array of names when batched), by
+        :meth:`jaxpose.Results.name_of`."""
+        return Results.name_of(self.status)
+
+
+@eqx.filter_jit
+def lqr_solve(
+    F: Array,
+    f: Array,
+    C: Array,
+    c: Array,
+    x0: Array,
+    CT: Array | None = None,
+    cT: Array | None = None,
+    free: Array | None = None,
+) -> LQRSolution:
+    """Solve the LQR problem above for one element (see the module docstring).
+
+    Compiled with ``eqx.filter_jit`` (shape checks run at trace time); new arrays of the
+    same shapes reuse the compiled program."""
+    F, f, C, c, x0 = (
+        as_array(a, nm) for a, nm in ((F, "F"), (f, "f"), (C, "C"), (c, "c"), (x0, "x0"))
+    )
+    _check_lqr_shapes(F, f, C, c, x0)
+    n = F.shape[1]
+    CT = jnp.zeros((n, n), C.dtype) if CT is None else as_array(CT, "CT", 2)
+    cT = jnp.zeros((n,), C.dtype) if cT is None else as_array(cT, "cT", 1)
+    if CT.shape != (n, n) or cT.shape != (n,):
+        raise ValueError(
+            f"CT, cT: expected shapes ({n}, {n}) and ({n},), got "
+            f"{tuple(CT.shape)} and {tuple(cT.shape)}"
+        )
+    K, k, _, _, ok, _ = riccati(F, f, C, c, CT, cT, free)
+    xs, us = policy_rollout(F, f, K, k, x0)
+    cost = quadratic_total(C, c, CT, cT, xs, us)
+    # the cost too: a state of 1e200 has a finite trajectory but a cost that overflows
+    finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us)) & jnp.isfinite(cost)
+    status = jnp.where(finite, Results.CONVERGED, Results.NON_FINITE).astype(jnp.int32)
+    return LQRSolution(xs, us, cost, K, k, status)
+
+
+def _check_lqr_shapes(F: Array, f: Array, C: Array, c: Array, x0: Array) -> None:
+    if F.ndim != 3:
+        raise ValueError(f"F: expected (T, n, n+m), got {tuple(F.shape)}")
+    T, n, nm = F.shape
+    if nm <= n:
+        raise ValueError(f"F: expected (T, n, n+m) with m ≥ 1 inputs, got {tuple(F.shape)}")
+    if f.shape != (T, n):
+        raise ValueError(f"f: expected shape ({T}, {n}), got {tuple(f.shape)}")
+    if C.shape != (T, nm, nm):
+        raise ValueError(f"C: expected shape ({T}, {nm}, {nm}) (T, n+m, n+m), got {tuple(C.shape)}")
+    if c.shape != (T, nm):
+        raise ValueError(f"c: expected shape ({T}, {nm}), got {tuple(c.shape)}")
+    if x0.shape != (n,):
+        raise ValueError(
+            f"x0: expected shape ({n},) (n = F.shape[1] states), got {tuple(x0.shape)}"
+        )
+
+
+def lq_problem(
+    system: System, cost: QuadraticCost, horizon: int
+) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """``(F, f, C, c, C_T, c_T)`` for a linear system and quadratic cost."""
+    horizon = check_horizon(horizon)
+    if not isinstance(system, (LTI, LTV)):
+        raise TypeError(
+            f"system: LQR needs an LTI or LTV system, got {type(system).__name__};"
+            f" use ilqr / MPC for nonlinear dynamics"
+        )
+    if not isinstance(cost, QuadraticCost):
+        raise TypeError(
+            f"cost: LQR needs a QuadraticCost, got {type(cost).__name__}; use "
+            f"ilqr / MPC for general costs"
+        )
+    n, m = system.state_dim, system.input_dim
+    if cost.size != n + m:
+        raise ValueError(
+            f"Q: expected size n + m = {n} + {m} = {n + m} (A is {n}×{n}, B is "
+            f"{n}×{m}), got {cost.size}"
+        )
+    F, f = system.matrices(horizon)
+    C, c, CT, cT = cost.stacked(horizon, n)
+    return F, f, C, c, CT, cT
+
+
+@eqx.filter_jit
+def lqr(system: System, cost: QuadraticCost, x0: Any, horizon: int) -> LQRSolution:
+    """LQR for an :class:`LTI`/:class:`LTV` system and a :class:`QuadraticCost` over
+    ``horizon`` steps. ``x0`` (n,) or batched (..., n) (vmapped; the Riccati recursion
+    is computed once for the whole batch).
+
+    Compiled with ``eqx.filter_jit``: ``horizon`` (a Python int) is static, the arrays of
+    ``system``, ``cost`` and ``x0`` are traced; checks run at trace time."""
+    F, f, C, c, CT, cT = lq_problem(system, cost, horizon)
+    x0 = as_array(x0, "x0")
+    n = F.shape[1]
+    if x0.ndim == 0 or x0.shape[-1] != n:
+        raise ValueError(f"x0: expected shape (..., {n}) (n = A.shape[0]), got {tuple(x0.shape)}")
+    solve = lambda x: lqr_solve(F, f, C, c, x, CT, cT)
+    if x0.ndim == 1:
+        return solve(x0)
+    batch = x0.shape[:-1]
+    out = jax.vmap(solve)(x0.reshape(-1, n))
+    return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), out)
+
+
+class LQR(eqx.Module):
+    """LQR as a module: ``LQR(system, cost, horizon)(x0) → LQRSolution``.
+
+    Box control limits are not part of LQR: passing ``u_lower``/``u_upper`` raises
+    (use :class:`~jaxpose.control.MPC` or :func:`~jaxpose.control.ilqr`, which honour
+    them)."""
+
+    system: System
+    cost: QuadraticCost
+    horizon: int = eqx.field(static=True)
+
+    def __init__(self, system: System, cost: QuadraticCost, horizon: int):
+        lq_problem(system, cost, horizon)  # validates
+        self.system, self.cost, self.horizon = system, cost, check_horizon(horizon)
+
+    def __call__(self, x0: Any, u_lower: Any = None, u_upper: Any = None) -> LQRSolution:
+        """Solve the LQ problem from ``x0`` (n,) or a batch (…, n) (alias of :func:`lqr`).
+
+        LQR has no control limits: passing ``u_lower``/``u_upper`` raises ``ValueError``.
+        """
+        if u_lower is not None or u_upper is not None:
+            raise ValueError(
+                "u_lower/u_upper: LQR has no control limits; use MPC or ilqr, "
+                "which enforce them by projected Newton"
+            )
+        return lqr(self.system, self.cost, x0, self.horizon)
+
+
+def lqr_resolve(
+    F: Array, c: Array, cT: Array, x0: Array, K: Array, L: Array
+) -> tuple[Array, Array]:
+    """Re-solve an LQR problem with zero offsets whose quadratic part (F, C, C_T) is
+    unchanged, for new linear terms ``c`` (T, n+m), ``c_T`` (n,) and ``x0``, reusing the
+    gains ``K`` and the Cholesky factors ``L`` of Q_uu from :func:`riccati` (no
+    ``free`` mask, no regularisation). Only the vector recursion
+    ``q = c_t + F_tᵀ v``, ``k_t = −Q_uu⁻¹ q_u``, ``v ← q_x + K_tᵀ q_u`` and a rollout
+    remain: O(T·n·(n+m)) instead of O(T·(n+m)³). Returns ``(xs, us)``."""
+    n = F.shape[1]
+
+    def step(v: Array, inp: tuple[Array, ...]):
+        Ft, ct, Kt, Lt = inp
+        q = ct + Ft.T @ v
+        qx, qu = q[:n], q[n:]
+        kt = -cho_solve((Lt, True), qu)
+        return qx + Kt.T @ qu, kt
+
+    _, k = jax.lax.scan(step, cT, (F, c, K, L), reverse=True)
+    return policy_rollout(F, jnp.zeros(F.shape[:2], F.dtype), K, k, x0)

@@ -1,0 +1,388 @@
+"""Differentiable model-predictive control (Amos et al. 2018, "Differentiable MPC").
+
+:class:`MPC` solves the finite-horizon problem from a state ``x0`` — by one Riccati
+pass when the system is linear (``LTI``/``LTV``), the cost quadratic and there are no
+control limits, by :func:`~jaxpose.control.ilqr` otherwise — and differentiates the
+solution with respect to every array in the system (dynamics parameters), the cost
+(weights) and ``x0``:
+
+* ``gradient="implicit"`` (default): implicit function theorem at the fixed point. The
+  KKT system of the trajectory optimisation is symmetric with the LQR structure, so the
+  backward pass is one extra LQR solve with the Lagrangian Hessian and the incoming
+  cotangents as the linear cost term (zero initial state; active control limits held
+  fixed), followed by one vector–Jacobian product of the KKT residual w.r.t. the
+  parameters (``custom_vjp``). First derivatives only: a second derivative through it
+  (``jax.hessian``, ``jacfwd(jacrev(...))``) raises ``NotImplementedError`` instead of
+  returning a value that misses the trajectory's dependence on the parameters.
+* ``gradient="unroll"``: reverse mode through the solver iterations (``max_iter`` of
+  them, in ``lax.scan``).
+
+Receding horizon: :meth:`MPC.control` returns the first control and a shifted warm start;
+:func:`closed_loop` simulates a plant under MPC with ``lax.scan``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..dynamics._checks import as_array, check_horizon
+from ..dynamics._system import LTI, LTV, System
+from ..optim._implicit import first_order_only
+from ..results import Results
+from ._cost import Cost, QuadraticCost
+from ._ilqr import ILQRSolution, _bounds, _dynamics_jacobians, ilqr
+from ._lqr import (
+    lq_problem,
+    lqr_resolve,
+    lqr_solve,
+    policy_rollout,
+    riccati,
+)
+
+Array = jax.Array
+
+GRADIENTS = ("implicit", "unroll")
+SOLVERS = ("auto", "lqr", "ilqr")
+
+
+class MPCSolution(eqx.Module):
+    """``x`` (…, T+1, n), ``u`` (…, T, m), ``cost`` (…), ``status`` (…) (a
+    :class:`~jaxpose.Results` code: CONVERGED 0, MAX_STEPS 1, DIVERGED 2 (iLQR stalled),
+    NON_FINITE 3), ``iterations`` (…)."""
+
+    x: Array
+    u: Array
+    cost: Array
+    status: Array
+    iterations: Array
+
+    @property
+    def status_name(self) -> Any:
+        """``status`` as text (``"converged"``, ...; an array of names when batched), by
+        :meth:`jaxpose.Results.name_of`."""
+        return Results.name_of(self.status)
+
+
+class _Config(eqx.Module):
+    horizon: int = eqx.field(static=True)
+    solver: str = eqx.field(static=True)
+    max_iter: int = eqx.field(static=True)
+    tol: float | None = eqx.field(static=True)
+    unroll: bool = eqx.field(static=True)
+    box_iters: int = eqx.field(static=True)
+
+
+def _use_lqr(system: System, cost: Cost, bounds: Any, solver: str) -> bool:
+    lq = isinstance(system, (LTI, LTV)) and isinstance(cost, QuadraticCost) and bounds is None
+    if solver == "lqr" and not lq:
+        raise ValueError(
+            "solver: 'lqr' needs an LTI/LTV system, a QuadraticCost and no "
+            "control limits; use 'ilqr' or 'auto'"
+        )
+    return solver == "lqr" or (solver == "auto" and lq)
+
+
+def _solve(
+    system: System, cost: Cost, x0: Array, u_init: Array, bounds: Any, cfg: _Config
+) -> tuple[tuple[Array, Array, Array, Array], Any]:
+    """Forward solve for one element: ``(x, u, status, iterations)`` and, on the LQR
+    path, the Riccati factors ``(K, L)`` that the implicit backward pass reuses."""
+    if _use_lqr(system, cost, bounds, cfg.solver):
+        F, f, C, c, CT, cT = lq_problem(system, cost, cfg.horizon)
+        K, k, _, _, ok, L = riccati(F, f, C, c, CT, cT)
+        xs, us = policy_rollout(F, f, K, k, x0)
+        finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us))
+        status = jnp.where(finite, Results.CONVERGED, Results.NON_FINITE).astype(jnp.int32)
+        return (xs, us, status, jnp.array(1)), (K, L)
+    lo, hi = (None, None) if bounds is None else bounds
+    s: ILQRSolution = ilqr(
+        system,
+        cost,
+        x0,
+        u_init,
+        u_lower=lo,
+        u_upper=hi,
+        max_iter=cfg.max_iter,
+        tol=cfg.tol,
+        unroll=cfg.unroll,
+        box_iters=cfg.box_iters,
+    )
+    return (s.x, s.u, s.status, s.iterations), None
+
+
+# ----------------------------------------------------------------------------------
+# Implicit differentiation
+# ----------------------------------------------------------------------------------
+@eqx.filter_custom_vjp
+def _solve_implicit(
+    params: tuple[System, Cost, Array], u_init: Array, bounds: Any, cfg: _Config
+) -> tuple[Array, Array, Array, Array]:
+    system, cost, x0 = params
+    return _solve(system, cost, x0, u_init, bounds, cfg)[0]
+
+
+@_solve_implicit.def_fwd
+def _solve_implicit_fwd(
+    perturbed: Any, params: tuple[System, Cost, Array], u_init: Array, bounds: Any, cfg: _Config
+):
+    system, cost, x0 = params
+    out, factors = _solve(system, cost, x0, u_init, bounds, cfg)
+    return out, (out[0], out[1], factors)
+
+
+@_solve_implicit.def_bwd
+def _solve_implicit_bwd(
+    residuals: tuple[Array, Array, Any],
+    grad_obj: Any,
+    perturbed: Any,
+    params: tuple[System, Cost, Array],
+    u_init: Array,
+    bounds: Any,
+    cfg: _Config,
+):
+    xs, us, factors = residuals
+    gx, gu = grad_obj[0], grad_obj[1]
+    gx = jnp.zeros_like(xs) if gx is None else gx
+    gu = jnp.zeros_like(us) if gu is None else gu
+    grads = _implicit_vjp(params, xs, us, gx, gu, bounds, factors=factors)
+    return jax.tree.map(
+        lambda g, p: g if p else None, grads, perturbed, is_leaf=lambda v: v is None
+    )
+
+
+def _implicit_vjp(
+    params: tuple[System, Cost, Array],
+    xs: Array,
+    us: Array,
+    gx: Array,
+    gu: Array,
+    bounds: Any = None,
+    t0: Any = 0,
+    factors: Any = None,
+) -> tuple[System, Cost, Array]:
+    """Cotangents of ``(system, cost, x0)`` from cotangents ``gx`` (T+1, n), ``gu``
+    (T, m) of a locally optimal trajectory ``(xs, us)``, by the implicit function
+    theorem on the KKT conditions (one LQR-structured solve). ``factors = (K, L)``
+    from the forward Riccati pass of a linear–quadratic problem without limits are
+    reused (the KKT matrix is the same), leaving only a vector recursion."""
+    system, cost, x0 = params
+    T, m = us.shape
+    n = xs.shape[-1]
+    ts = jnp.asarray(t0) + jnp.arange(T)
+    xs, us = first_order_only((xs, us), "MPC(gradient='implicit')")
+    f = system.state_transition
+    F = _dynamics_jacobians(system, xs[:-1], us, ts)
+    # Costates λ_t (λ_0 is the multiplier of x_0 = x0): λ_T = ∇ℓ_T, λ_t = ∇_x ℓ_t + A_tᵀ λ_{t+1}.
+    H, g = jax.vmap(cost.quadratize)(xs[:-1], us, ts)
+    HT, gT = cost.quadratize_terminal(xs[-1])
+
+    def costate(lam: Array, inp: tuple[Array, Array]):
+        Ft, gt = inp
+        lam_t = gt[:n] + Ft[:, :n].T @ lam
+        return lam_t, lam
+
+    _, lam_next = jax.lax.scan(costate, gT, (F, g), reverse=True)  # λ_{t+1}, (T, n)
+    if not system.is_linear:
+
+        def dyn_hess(x: Array, u: Array, t: Array, lam: Array) -> Array:
+            fn = lambda tau: lam @ f(tau[:n], tau[n:], t)
+            return jax.hessian(fn)(jnp.concatenate([x, u]))
+
+        H = H + jax.vmap(dyn_hess)(xs[:-1], us, ts, lam_next)
+    free = None
+    if bounds is not None:
+        lo, hi = bounds
+        free = ~((us <= lo) | (us >= hi))
+    # KKT solve: min ½ wᵀ H w − ḡᵀ w  s.t. linearised dynamics, w_x0 = 0.
+    gtau = jnp.concatenate([gx[:-1], gu], -1)
+    zero_f = jnp.zeros((T, n), xs.dtype)
+    w0 = jnp.zeros((n,), xs.dtype)
+    if factors is not None and system.is_linear and free is None:
+        wx, wu = lqr_resolve(F, -gtau, -gx[-1], w0, *factors)
+    else:
+        sol = lqr_solve(F, zero_f, H, -gtau, w0, HT, -gx[-1], free)
+        wx, wu = sol.x, sol.u
+    wtau = jnp.concatenate([wx[:-1], wu], -1)
+    # Multipliers of the linearised constraints.
+    wyT = HT @ wx[-1] - gx[-1]
+
+    def mult(wy: Array, inp: tuple[Array, ...]):
+        Ht, Ft, wt, gt = inp
+        wy_t = (Ht @ wt + Ft.T @ wy - gt)[:n]
+        return wy_t, wy
+
+    wy0, wy_next = jax.lax.scan(mult, wyT, (H, F, wtau, gtau), reverse=True)
+
+    def S(p: tuple[System, Cost, Array]) -> Array:
+        sys_, cost_, x0_ = p
+
+        def stage(
+            x: Array, u: Array, t: Array, lam: Array, wxt: Array, wut: Array, wyt: Array
+        ) -> Array:
+            lag = lambda xx, uu: cost_.stage(xx, uu, t) + lam @ sys_.state_transition(xx, uu, t)
+            _, d = jax.jvp(lag, (x, u), (wxt, wut))
+            return d + wyt @ sys_.state_transition(x, u, t)
+
+        total = jnp.sum(jax.vmap(stage)(xs[:-1], us, ts, lam_next, wx[:-1], wu, wy_next))
+        _, dT = jax.jvp(cost_.terminal, (xs[-1],), (wx[-1],))
+        return total + dT + wy0 @ x0_
+
+    diff, static = eqx.partition(params, eqx.is_inexact_array)
+    grads = jax.grad(lambda d: S(eqx.combine(d, static)))(diff)
+    return jax.tree.map(jnp.negative, grads)
+
+
+# ----------------------------------------------------------------------------------
+# Module
+# ----------------------------------------------------------------------------------
+def _bound_field(x: Any) -> Any:
+    """Python-number limits as arrays, so that they are traced (not static) under jit."""
+    if isinstance(x, (int, float)) and not isinstance(x, bool):
+        return jnp.asarray(float(x))
+    return x
+
+
+class MPC(eqx.Module):
+    """Model-predictive controller over ``horizon`` steps.
+
+    ``MPC(system, cost, horizon, u_lower=None, u_upper=None, max_iter=50, tol=None,
+    gradient="implicit", solver="auto")``; ``mpc(x0, u_init=None) → MPCSolution``.
+    ``x0`` (n,) or batched (..., n) (vmapped; ``u_init`` (T, m) or (..., T, m)).
+    Control limits (m,) or (T, m) are enforced exactly (never ignored). Differentiable
+    w.r.t. the arrays of ``system``, ``cost`` and ``x0`` (see the module docstring)."""
+
+    system: System
+    cost: Cost
+    horizon: int = eqx.field(static=True)
+    u_lower: Array | None = eqx.field(default=None, converter=_bound_field)
+    u_upper: Array | None = eqx.field(default=None, converter=_bound_field)
+    max_iter: int = eqx.field(static=True, default=50)
+    tol: float | None = eqx.field(static=True, default=None)
+    gradient: str = eqx.field(static=True, default="implicit")
+    solver: str = eqx.field(static=True, default="auto")
+    box_iters: int = eqx.field(static=True, default=20)
+
+    def __check_init__(self) -> None:
+        check_horizon(self.horizon)
+        if self.gradient not in GRADIENTS:
+            raise ValueError(f"gradient: expected one of {GRADIENTS}, got {self.gradient!r}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver: expected one of {SOLVERS}, got {self.solver!r}")
+        if not isinstance(self.system, System):
+            raise TypeError(
+                f"system: expected a jaxpose.dynamics.System, got {type(self.system).__name__}"
+            )
+        if not isinstance(self.cost, Cost):
+            raise TypeError(
+                f"cost: expected a jaxpose.control.Cost, got {type(self.cost).__name__}"
+            )
+        if isinstance(self.cost, QuadraticCost) and isinstance(self.system, (LTI, LTV)):
+            lq_problem(self.system, self.cost, self.horizon)  # shape checks
+
+    def _m(self, x0: Array, u_init: Any) -> int:
+        if u_init is not None:
+            return int(jnp.shape(u_init)[-1])
+        if isinstance(self.system, (LTI, LTV)):
+            return self.system.input_dim
+        if isinstance(self.cost, QuadraticCost):
+            return self.cost.size - x0.shape[-1]
+        for b in (self.u_lower, self.u_upper):
+            if b is not None and jnp.ndim(b) >= 1:
+                return int(jnp.shape(b)[-1])
+        raise ValueError("u_init: needed to know the input size m for this system/cost")
+
+    def __call__(self, x0: Any, u_init: Any = None) -> MPCSolution:
+        """Solve the horizon-``T`` problem from ``x0`` (n,) or a batch (…, n) (vmapped).
+
+        ``u_init`` (T, m) or (…, T, m) warm-starts the controls (zeros by default). Returns an
+        :class:`MPCSolution` whose ``u[0]`` is the control to apply.
+
+        Checks run eagerly here; the solve is compiled with ``eqx.filter_jit`` (new arrays
+        of the same shapes, in ``x0``, ``u_init`` or the module, reuse the program).
+        """
+        x0 = as_array(x0, "x0")
+        if x0.ndim == 0:
+            raise ValueError("x0: expected a state (n,) or a batch (..., n), got a scalar")
+        n = x0.shape[-1]
+        if isinstance(self.system, (LTI, LTV)) and self.system.state_dim != n:
+            raise ValueError(
+                f"x0: expected last dimension {self.system.state_dim} "
+                f"(A is {self.system.state_dim}×{self.system.state_dim}), "
+                f"got shape {tuple(x0.shape)}"
+            )
+        T, m = self.horizon, self._m(x0, u_init)
+        if u_init is None:
+            u_init = jnp.zeros((T, m), x0.dtype)
+        u_init = as_array(u_init, "u_init")
+        if u_init.ndim < 2 or u_init.shape[-2:] != (T, m):
+            raise ValueError(
+                f"u_init: expected shape (..., {T}, {m}) (horizon, inputs), got "
+                f"{tuple(u_init.shape)}"
+            )
+        bounds = _bounds(self.u_lower, self.u_upper, T, m, x0.dtype)
+        cfg = _Config(
+            T, self.solver, self.max_iter, self.tol, self.gradient == "unroll", self.box_iters
+        )
+        return _mpc_solve(self, x0, u_init, bounds, cfg)
+
+    def _solve_one(self, x0: Array, u_init: Array, bounds: Any, cfg: _Config) -> MPCSolution:
+        if self.gradient == "implicit":
+            xs, us, status, it = _solve_implicit((self.system, self.cost, x0), u_init, bounds, cfg)
+        else:
+            xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, cfg)[0]
+        cost = self.cost.total(xs, us)
+        ok = jnp.isfinite(cost) | (status != Results.CONVERGED)
+        status = jnp.where(ok, status, Results.NON_FINITE)
+        return MPCSolution(xs, us, cost, status.astype(jnp.int32), it)
+
+    def control(self, x: Any, u_init: Any = None) -> tuple[Array, Array, MPCSolution]:
+        """Receding-horizon step: ``(u_0, warm start for the next step, solution)``; the
+        warm start is the solution's controls shifted by one (last one repeated)."""
+        sol = self(x, u_init)
+        warm = jnp.concatenate([sol.u[..., 1:, :], sol.u[..., -1:, :]], -2)
+        return sol.u[..., 0, :], warm, sol
+
+
+@eqx.filter_jit
+def _mpc_solve(mpc: MPC, x0: Array, u_init: Array, bounds: Any, cfg: _Config) -> MPCSolution:
+    """The compiled part of :meth:`MPC.__call__` (arguments already checked)."""
+    n, (T, m) = x0.shape[-1], u_init.shape[-2:]
+    batch = np.broadcast_shapes(x0.shape[:-1], u_init.shape[:-2])
+    one = lambda x, u: mpc._solve_one(x, u, bounds, cfg)  # noqa: E731
+    if not batch:
+        return one(x0, u_init)
+    xb = jnp.broadcast_to(x0, (*batch, n)).reshape(-1, n)
+    if u_init.ndim == 2:
+        out = jax.vmap(lambda x: one(x, u_init))(xb)
+    else:
+        ub = jnp.broadcast_to(u_init, (*batch, T, m)).reshape(-1, T, m)
+        out = jax.vmap(one)(xb, ub)
+    return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), out)
+
+
+@eqx.filter_jit
+def closed_loop(
+    mpc: MPC, plant: System, x0: Any, steps: int, u_init: Any = None
+) -> tuple[Array, Array, Array]:
+    """Simulate ``plant`` for ``steps`` steps under receding-horizon ``mpc`` with warm
+    starts (``lax.scan``). Returns ``xs`` (steps+1, n), ``us`` (steps, m) and the
+    per-step solver ``status`` (steps,). Compiled with ``eqx.filter_jit`` (``steps``
+    static)."""
+    steps = check_horizon(steps, "steps")
+    x0 = as_array(x0, "x0", 1)
+    T, m = mpc.horizon, mpc._m(x0, u_init)
+    u_init = jnp.zeros((T, m), x0.dtype) if u_init is None else as_array(u_init, "u_init", 2)
+
+    def step(carry: tuple[Array, Array], t: Array):
+        x, warm = carry
+        u0, warm, sol = mpc.control(x, warm)
+        x_next = plant.state_transition(x, u0, t)
+        return (x_next, warm), (x_next, u0, sol.status)
+
+    _, (xs, us, status) = jax.lax.scan(step, (x0, u_init), jnp.arange(steps))
+    return jnp.concatenate([x0[None], xs], 0), us, status

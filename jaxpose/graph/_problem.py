@@ -1,0 +1,297 @@
+"""Factor graphs: variables stacked per type, factors grouped per type, block-sparse algebra.
+
+Layout of the tangent vector: variable types in sorted-name order; within a type,
+variable ``i`` owns the contiguous slice ``offset + i·d : offset + (i+1)·d``.
+The block-sparsity pattern of the Gauss–Newton matrix H = J̃ᵀJ̃ (:mod:`.pattern`) is
+computed once on the host (numpy) when the graph is built (:mod:`.analysis`); each
+iteration only fills in
+values, so jit compiles one program whose size grows with the number of factor *types*,
+not factors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..lie._base import LieGroup
+from ._analysis import (
+    Structure,
+    Variables,
+    build_structure,
+    count,
+    join,
+    slot_pairs,
+    split_tangent,
+    tangent_dim,
+)
+from ._factor import Factor
+from ._pattern import scatter_blocks
+
+Array = jax.Array
+
+
+def _gather(value: Any, idx: Array) -> Any:
+    if isinstance(value, LieGroup):
+        return type(value)(value.data[idx])
+    return value[idx]
+
+
+def _retract(value: Any, delta: Array) -> Any:
+    if isinstance(value, LieGroup):
+        return value.retract(delta)
+    return value + delta
+
+
+class FactorGraph(eqx.Module):
+    """A nonlinear least-squares problem over stacked variables.
+
+    Args:
+        factors: the factor groups (:class:`Factor`).
+        variables: initial values, ``{name: group (n,) | array (n, d)}``.
+        fixed: ``{name: indices}`` of variables held constant (gauge freedom).
+        eliminate: optional variable type (e.g. the points of bundle adjustment) to
+            eliminate with the Schur complement (``solve(linear_solver="schur")``); no
+            factor may link two variables of this type.
+    """
+
+    factors: tuple[Factor, ...]
+    variables: Variables
+    structure: Structure
+
+    def __init__(
+        self,
+        factors: Sequence[Factor],
+        variables: Mapping[str, Any],
+        fixed: Mapping[str, Any] | None = None,
+        eliminate: str | None = None,
+    ):
+        if not factors:
+            raise ValueError("FactorGraph(factors): expected at least one Factor")
+        variables = dict(variables)
+        for name, value in variables.items():
+            if isinstance(value, LieGroup):
+                if len(value.shape) != 1:
+                    raise ValueError(
+                        f"FactorGraph(variables[{name!r}]): expected a batch of shape (n,), "
+                        f"got {value.shape}"
+                    )
+            else:
+                arr = jnp.asarray(value)
+                if arr.ndim != 2:
+                    raise ValueError(
+                        f"FactorGraph(variables[{name!r}]): expected an array (n, d), got "
+                        f"shape {arr.shape}"
+                    )
+                variables[name] = arr
+        for k, f in enumerate(factors):
+            if not isinstance(f, Factor):
+                raise TypeError(
+                    f"FactorGraph(factors[{k}]): expected Factor, got {type(f).__name__}"
+                )
+            for slot, idx in zip(f.slots, f.indices, strict=True):
+                if slot not in variables:
+                    raise KeyError(
+                        f"FactorGraph: factor {f.name!r} uses variable type {slot!r}, "
+                        f"not among {sorted(variables)}"
+                    )
+                n = count(variables[slot])
+                idx_np = np.asarray(idx)
+                if idx_np.size and (idx_np.min() < 0 or idx_np.max() >= n):
+                    raise IndexError(
+                        f"FactorGraph: factor {f.name!r} references {slot!r} index "
+                        f"{int(idx_np.max() if idx_np.max() >= n else idx_np.min())}, but only "
+                        f"{n} variables of that type exist"
+                    )
+        self.factors = tuple(factors)
+        self.variables = variables
+        self.structure = build_structure(self.factors, variables, dict(fixed or {}), eliminate)
+
+    @property
+    def size(self) -> int:
+        """Total tangent dimension."""
+        return self.structure.size
+
+
+# ----------------------------------------------------------------------------------
+# Evaluation
+# ----------------------------------------------------------------------------------
+class GraphLinearization(eqx.Module):
+    """A factor graph linearised at one point (:func:`linearize`): whitened residuals and
+    Jacobian blocks of every factor group, and the cost."""
+
+    residuals: tuple[Array, ...]  # per factor group: (m, r) whitened (and robustified)
+    jacobians: tuple[tuple[Array, ...], ...]  # per group, per slot: (m, r, d_slot)
+    cost: Array  # scalar 0.5·Σ ρ(|r̃|²)
+
+
+def _rho(kernel: Any, r: Array) -> Array:
+    """ρ(s) per row, s = |r|² (s itself when kernel is None)."""
+    s = jnp.sum(r * r, -1)
+    return s if kernel is None else kernel(s)
+
+
+def factor_residuals(factor: Factor, variables: Variables) -> Array:
+    """Whitened residuals (m, r) of one factor group (no kernel)."""
+    vals = [_gather(variables[s], i) for s, i in zip(factor.slots, factor.indices, strict=True)]
+    r = jax.vmap(lambda *a: factor.residual(*a[:-1], a[-1]))(*vals, factor.data)
+    if factor.sqrt_info is not None:
+        r = jnp.einsum("mij,mj->mi", factor.sqrt_info.astype(r.dtype), r)
+    return r
+
+
+def cost(graph: FactorGraph, variables: Variables) -> Array:
+    """0.5 · Σ ρ(rᵀΩr) over all factors."""
+    total = 0.0
+    for f in graph.factors:
+        total = total + 0.5 * jnp.sum(_rho(f.kernel, factor_residuals(f, variables)))
+    return jnp.asarray(total)
+
+
+def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
+    """Residuals and tangent-space Jacobian blocks (fixed variables get zero blocks).
+
+    Robust kernels enter through each factor's corrector (default FastTriggs: residual
+    and Jacobian rows scaled by sqrt(ρ'(s)), square-root IRLS); ``cost`` is the robust
+    cost 0.5·Σ ρ(s)."""
+    st = graph.structure
+    type_of = {n: k for k, n in enumerate(st.names)}
+    residuals, jacobians, total = [], [], 0.0
+    for f in graph.factors:
+        vals = [_gather(variables[s], i) for s, i in zip(f.slots, f.indices, strict=True)]
+
+        def one(*args: Any, f: Factor = f) -> tuple[Array, tuple[Array, ...]]:
+            point, data = args[:-1], args[-1]
+            if f.jacobian is not None:
+                r, *jac = f.jacobian(*point, data)
+                return r, tuple(jac)
+            zeros = tuple(jnp.zeros((tangent_dim(p),), _dtype(p)) for p in point)
+
+            def res(deltas: tuple[Array, ...]) -> tuple[Array, Array]:
+                moved = [_retract(p, d) for p, d in zip(point, deltas, strict=True)]
+                r = f.residual(*moved, data)
+                return r, r
+
+            jac, r = jax.jacfwd(res, has_aux=True)(zeros)
+            return r, jac
+
+        r, jac = jax.vmap(one)(*vals, f.data)
+        if f.sqrt_info is not None:
+            s = f.sqrt_info.astype(r.dtype)
+            r = jnp.einsum("mij,mj->mi", s, r)
+            jac = tuple(jnp.einsum("mij,mjk->mik", s, j) for j in jac)
+        rho = _rho(f.kernel, r)
+        if f.kernel is not None:
+            sizes = [j.shape[-1] for j in jac]
+            r, jcat = f.corrector(f.kernel, r, jnp.concatenate(jac, axis=-1))
+            jac = tuple(jnp.split(jcat, np.cumsum(sizes)[:-1].tolist(), axis=-1))
+        jac = tuple(
+            j * st.free[type_of[slot]][idx][:, None, None].astype(j.dtype)
+            for j, slot, idx in zip(jac, f.slots, f.indices, strict=True)
+        )
+        residuals.append(r)
+        jacobians.append(jac)
+        total = total + 0.5 * jnp.sum(rho)
+    return GraphLinearization(tuple(residuals), tuple(jacobians), jnp.asarray(total))
+
+
+def _dtype(p: Any) -> Any:
+    return p.dtype
+
+
+def split(graph: FactorGraph, flat: Array) -> tuple[Array, ...]:
+    """Flat tangent (N,) → per-type blocks (n, d)."""
+    return split_tangent(graph.structure, flat)
+
+
+def gradient(graph: FactorGraph, lin: GraphLinearization) -> Array:
+    """g = J̃ᵀ r̃ (N,)."""
+    st = graph.structure
+    type_of = {n: k for k, n in enumerate(st.names)}
+    dtype = lin.cost.dtype
+    out = [jnp.zeros((c, d), dtype) for c, d in zip(st.counts, st.dims, strict=True)]
+    for f, r, jac in zip(graph.factors, lin.residuals, lin.jacobians, strict=True):
+        for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
+            k = type_of[slot]
+            out[k] = out[k].at[idx].add(jnp.einsum("mri,mr->mi", j, r))
+    return join(out)
+
+
+def hessian_diagonal(graph: FactorGraph, lin: GraphLinearization) -> Array:
+    """diag(H) = column sums of J̃² (N,), without forming any block of H."""
+    st = graph.structure
+    type_of = {n: k for k, n in enumerate(st.names)}
+    dtype = lin.cost.dtype
+    out = [jnp.zeros((c, d), dtype) for c, d in zip(st.counts, st.dims, strict=True)]
+    for f, jac in zip(graph.factors, lin.jacobians, strict=True):
+        for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
+            k = type_of[slot]
+            out[k] = out[k].at[idx].add(jnp.sum(j * j, axis=1))
+    return join(out)
+
+
+def block_diagonal(graph: FactorGraph, lin: GraphLinearization) -> tuple[Array, ...]:
+    """Diagonal blocks of H per type: (n, d, d)."""
+    st = graph.structure
+    type_of = {n: k for k, n in enumerate(st.names)}
+    dtype = lin.cost.dtype
+    out = [jnp.zeros((c, d, d), dtype) for c, d in zip(st.counts, st.dims, strict=True)]
+    for f, jac in zip(graph.factors, lin.jacobians, strict=True):
+        for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
+            k = type_of[slot]
+            out[k] = out[k].at[idx].add(jnp.einsum("mri,mrj->mij", j, j))
+    return tuple(out)
+
+
+def hessian_vector(graph: FactorGraph, lin: GraphLinearization, v: Array) -> Array:
+    """H v = J̃ᵀ(J̃ v) without forming H (N,)."""
+    st = graph.structure
+    type_of = {n: k for k, n in enumerate(st.names)}
+    vb = split(graph, v)
+    out = [jnp.zeros_like(b) for b in vb]
+    for f, jac in zip(graph.factors, lin.jacobians, strict=True):
+        u = 0.0
+        for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
+            u = u + jnp.einsum("mri,mi->mr", j, vb[type_of[slot]][idx])
+        for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
+            k = type_of[slot]
+            out[k] = out[k].at[idx].add(jnp.einsum("mri,mr->mi", j, u))
+    return join(out)
+
+
+def hessian_blocks(graph: FactorGraph, lin: GraphLinearization) -> list[Array]:
+    """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``."""
+    st = graph.structure
+    contributions = []
+    for f, jac, classes, indices in zip(
+        graph.factors, lin.jacobians, st.block_class, st.block_index, strict=True
+    ):
+        prods: dict[tuple[int, int], Array] = {}
+        for (s, t), c, idx in zip(slot_pairs(len(f.slots)), classes, indices, strict=True):
+            # J_sᵀJ_t; the block (t, s) below the diagonal is the transpose of (s, t)
+            prods[s, t] = (
+                prods[t, s].mT if t < s else jnp.einsum("mri,mrj->mij", jac[s], jac[t])
+            )
+            contributions.append((c, idx, prods[s, t]))
+    return scatter_blocks(st.pattern.zeros(lin.cost.dtype), contributions)
+
+
+def csr_values(graph: FactorGraph, lin: GraphLinearization) -> Array:
+    """Values of H in the precomputed CSR pattern (nnz,)."""
+    return graph.structure.pattern.csr(hessian_blocks(graph, lin))
+
+
+def retract_all(graph: FactorGraph, variables: Variables, step: Array) -> Variables:
+    """Apply a flat tangent step to every variable type (fixed ones have zero steps)."""
+    blocks = split(graph, step)
+    return {
+        name: _retract(
+            variables[name], blocks[k] * graph.structure.free[k][:, None].astype(blocks[k].dtype)
+        )
+        for k, name in enumerate(graph.structure.names)
+    }

@@ -1,0 +1,599 @@
+"""Graduated non-convexity (GNC) for outlier-robust factor graphs.
+
+Yang, Antonante, Tzoumas, Carlone, "Graduated Non-Convexity for Robust Spatial
+Perception: From Non-Minimal Solvers to Global Outlier Rejection", RA-L 2020.
+
+Each factor k has a squared whitened residual ``s_k = r_kᵀ Ω_k r_k`` and an inlier
+threshold ``c̄²_k`` on s (default: the χ² quantile at probability 0.99 for the residual
+dimension, i.e. GTSAM's ``setInlierCostThresholdsAtProbability(0.99)``; GTSAM's
+``barcSq`` is half of ours because its factor error is ``0.5·s``). The robust cost is
+``0.5·Σ ρ(s_k)`` with
+
+* TLS (truncated least squares): ``ρ(s) = min(s, c̄²)``;
+* GM (Geman–McClure): ``ρ(s) = c̄² s / (c̄² + s)``.
+
+GNC minimises a sequence of surrogates ``ρ_μ`` by alternating (Black–Rangarajan duality)
+
+1. a weighted least-squares solve ``min_x 0.5·Σ w_k s_k(x)`` (inner solver: the sparse
+   :func:`jaxpose.graph.solve` or the dense :func:`jaxpose.optim.least_squares`),
+2. the closed-form weight update at fixed x (paper eqs. 12 and 14):
+
+   * TLS: ``w = 1`` if ``s ≤ μ/(μ+1)·c̄²``, ``w = 0`` if ``s ≥ (μ+1)/μ·c̄²``, else
+     ``w = c̄·√(μ(μ+1)/s) − μ``;
+   * GM: ``w = (μ c̄² / (s + μ c̄²))²``,
+
+3. a control-parameter update: TLS ``μ ← μ·mu_step`` (from ``μ₀ = c̄²/(2 s_max − c̄²)``,
+   convex for small μ), GM ``μ ← max(1, μ/mu_step)`` (from ``μ₀ = 2 s_max/c̄²``).
+
+It stops (GTSAM's rules) when the weights are binary within ``weights_tol`` (TLS), when
+μ reaches 1 (GM), when the weighted cost changes by less than ``cost_rtol`` relative, or
+after ``max_iterations`` outer iterations. Known inliers (e.g. the odometry edges of a
+pose graph) keep weight 1, known outliers weight 0. Defaults follow GTSAM's
+``GncParams`` (mu_step 1.4, cost_rtol 1e-5, weights_tol 1e-4, 100 iterations); unlike
+GTSAM (which first solves the unweighted problem, then restarts each inner solve from
+the initial values), the first weights are computed at the initial values
+(``initial_solve=True``: at the unweighted solution) and each inner solve starts from the
+previous estimate (``warm_start=False``: from the initial values).
+
+Weights enter the inner solve by scaling each factor's square-root information by
+``√w_k`` (a zero weight removes the factor). The whole outer loop is one
+``lax.while_loop`` around the inner solve, jitted once (``eqx.filter_jit``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..optim._solve import least_squares
+from ..results import Results
+from ._problem import FactorGraph, factor_residuals
+from ._solve import solve
+
+Array = jax.Array
+
+SURROGATES = ("tls", "gm")
+INNER_SOLVERS = ("sparse", "dense")
+
+
+# ----------------------------------------------------------------------------------
+# Closed forms of the paper
+# ----------------------------------------------------------------------------------
+def tls_weights(s: Array, mu: Array, barc_sq: Array) -> Array:
+    """TLS weight update (Yang et al. 2020, eq. 14) for squared residuals ``s``.
+
+    ``w = 1`` for ``s ≤ μ/(μ+1)·c̄²``, ``0`` for ``s ≥ (μ+1)/μ·c̄²``, otherwise
+    ``√(c̄² μ(μ+1)/s) − μ``; all arguments broadcast, result in [0, 1]."""
+    s, mu, barc_sq = jnp.broadcast_arrays(jnp.asarray(s), jnp.asarray(mu), jnp.asarray(barc_sq))
+    lower = mu / (mu + 1.0) * barc_sq
+    upper = (mu + 1.0) / mu * barc_sq
+    safe_s = jnp.where(s > 0, s, 1.0)
+    mid = jnp.sqrt(barc_sq * mu * (mu + 1.0) / safe_s) - mu
+    w = jnp.where(s <= lower, 1.0, jnp.where(s >= upper, 0.0, mid))
+    return jnp.clip(w, 0.0, 1.0)
+
+
+def gm_weights(s: Array, mu: Array, barc_sq: Array) -> Array:
+    """Geman–McClure weight update (Yang et al. 2020, eq. 12): ``(μc̄² / (s + μc̄²))²``."""
+    mc = jnp.asarray(mu) * jnp.asarray(barc_sq)
+    return jnp.square(mc / (jnp.asarray(s) + mc))
+
+
+def initial_mu(surrogate: str, s: Array, barc_sq: Array, mask: Array | None = None) -> Array:
+    """μ₀ of Remark 5 (as GTSAM): TLS ``min_k c̄²/(2 s_k − c̄²)`` over factors with
+    ``2 s_k > c̄²`` (clamped to ≥ 1e-6; −1 when no factor exceeds, i.e. nothing to
+    reject); GM ``max_k 2 s_k / c̄²``. ``mask`` selects the factors considered."""
+    s = jnp.asarray(s)
+    mask = jnp.ones(s.shape, bool) if mask is None else jnp.asarray(mask, bool)
+    barc_sq = jnp.broadcast_to(barc_sq, s.shape)
+    if surrogate == "gm":
+        return jnp.max(jnp.where(mask, 2.0 * s / barc_sq, 0.0), initial=0.0)
+    excess = 2.0 * s - barc_sq
+    ok = mask & (excess > 0)
+    cand = jnp.where(ok, barc_sq / jnp.where(ok, excess, 1.0), jnp.inf)
+    mu = jnp.min(cand, initial=jnp.inf)
+    mu = jnp.where((mu >= 0) & (mu < 1e-6), 1e-6, mu)
+    return jnp.where(jnp.isfinite(mu) & (mu > 0), mu, -1.0)
+
+
+def chi2_quantile(probability: float, dof: int) -> float:
+    """Quantile of the χ² distribution (MATLAB's ``chi2inv``), by bisection on the
+    regularised lower incomplete gamma function (series), to ~1e-12 relative."""
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"chi2_quantile(probability={probability!r}): expected 0 < p < 1")
+    if int(dof) != dof or dof < 1:
+        raise ValueError(f"chi2_quantile(dof={dof!r}): expected a positive integer")
+    a = 0.5 * dof
+
+    def cdf(x: float) -> float:  # P(a, x/2), series  Σ (x/2)^(a+n) e^(-x/2) / Γ(a+n+1)
+        z = 0.5 * x
+        if z <= 0:
+            return 0.0
+        term = math.exp(a * math.log(z) - z - math.lgamma(a + 1.0))
+        total, n = term, 0
+        while term > 1e-17 * total and n < 10000:
+            n += 1
+            term *= z / (a + n)
+            total += term
+        return min(total, 1.0)
+
+    lo, hi = 0.0, max(1.0, 2.0 * dof)
+    while cdf(hi) < probability:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if cdf(mid) < probability:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-13 * hi:
+            break
+    return 0.5 * (lo + hi)
+
+
+# ----------------------------------------------------------------------------------
+# Result
+# ----------------------------------------------------------------------------------
+class GNCSolution(eqx.Module):
+    """Result of :func:`gnc`.
+
+    * ``variables``: the estimate after the last inner solve;
+    * ``weights``: per factor group, (m,) inlier weights in [0, 1] (1 inlier, 0 outlier;
+      binary at convergence with TLS); ``inliers``: ``weights > 0.5``;
+    * ``barc_sq``: per factor group, (m,) inlier thresholds c̄² on ``s = rᵀΩr``;
+    * ``cost``: weighted cost ``0.5·Σ w s`` at ``variables``; ``robust_cost``: the
+      surrogate's limit ``0.5·Σ ρ(s)`` (TLS ``min(s, c̄²)``, GM ``c̄² s/(c̄² + s)``);
+      ``initial_cost``: ``0.5·Σ s`` at the initial variables;
+    * ``mu``: the last control parameter (−1: nothing to reject, one plain weighted solve);
+      ``iterations``: outer GNC iterations;
+      ``inner_iterations``: inner solver iterations summed over all solves;
+    * ``status``: 0 converged (binary weights, μ at its limit, cost plateau, or nothing
+      to reject), 1 max_steps (``max_iterations`` ran out), 3 non_finite (best estimate
+      of the previous iteration kept); ``inner_status``: status of the last inner solve.
+    """
+
+    variables: Any
+    weights: tuple[Array, ...]
+    barc_sq: tuple[Array, ...]
+    cost: Array
+    robust_cost: Array
+    initial_cost: Array
+    mu: Array
+    iterations: Array
+    inner_iterations: Array
+    status: Array
+    inner_status: Array
+
+    @property
+    def status_name(self) -> str:
+        """``status`` as text: converged, max_steps or non_finite
+        (:meth:`jaxpose.Results.name_of`)."""
+        return Results.name_of(self.status)
+
+    @property
+    def inliers(self) -> tuple[Array, ...]:
+        """Per factor group, (m,) booleans ``weights > 0.5``."""
+        return tuple(w > 0.5 for w in self.weights)
+
+
+# ----------------------------------------------------------------------------------
+# Weighted graphs
+# ----------------------------------------------------------------------------------
+def _residual_dims(graph: FactorGraph) -> list[int]:
+    return [
+        int(jax.eval_shape(factor_residuals, f, graph.variables).shape[-1]) for f in graph.factors
+    ]
+
+
+def weighted_graph(graph: FactorGraph, weights: Any) -> FactorGraph:
+    """``graph`` with factor k of group g scaled by ``weights[g][k]`` ≥ 0 (its square-root
+    information multiplied by √w; a zero weight removes the factor). ``weights``: one
+    (m_g,) array per factor group. Traceable (weights may be traced)."""
+    weights = tuple(weights)
+    if len(weights) != len(graph.factors):
+        raise ValueError(
+            f"weighted_graph(weights): expected {len(graph.factors)} arrays (one per factor "
+            f"group), got {len(weights)}"
+        )
+    dims = _residual_dims(graph)
+    factors = []
+    for g, (f, w, r) in enumerate(zip(graph.factors, weights, dims, strict=True)):
+        w = jnp.asarray(w)
+        if w.shape != (f.count,):
+            raise ValueError(
+                f"weighted_graph(weights[{g}]): expected shape ({f.count},) for factor "
+                f"{f.name!r}, got {w.shape}"
+            )
+        dtype = jnp.result_type(w.dtype, float)
+        root = jnp.sqrt(jnp.maximum(w, 0.0)).astype(dtype)[:, None, None]
+        base = jnp.eye(r, dtype=dtype) if f.sqrt_info is None else f.sqrt_info.astype(dtype)
+        factors.append(
+            eqx.tree_at(lambda x: x.sqrt_info, f, root * base, is_leaf=lambda x: x is None)
+        )
+    return eqx.tree_at(lambda x: x.factors, graph, tuple(factors))
+
+
+def _squared_norms(graph: FactorGraph, variables: Any) -> Array:
+    """Concatenated ``s_k = |S r_k|²`` of every factor (group order), (M,)."""
+    return jnp.concatenate(
+        [jnp.sum(jnp.square(factor_residuals(f, variables)), -1) for f in graph.factors]
+    )
+
+
+def _split(flat: Array, counts: list[int]) -> tuple[Array, ...]:
+    return tuple(jnp.split(flat, np.cumsum(counts)[:-1].tolist()))
+
+
+def _by_group(
+    name: str, graph: FactorGraph, parts: list, expected: str, unit: str,
+    per_group: Callable[[int, Any, int], np.ndarray],
+) -> np.ndarray:
+    """``per_group(g, part, m)`` (m,) for each factor group ``g`` of ``m`` factors,
+    concatenated (M,); ``parts`` must hold one entry per group (``expected`` and ``unit``
+    word the error)."""
+    counts = [f.count for f in graph.factors]
+    if len(parts) != len(counts):
+        raise ValueError(
+            f"gnc({name}): expected {expected} per factor group ({len(counts)}), "
+            f"got {len(parts)}{unit}"
+        )
+    return np.concatenate(
+        [per_group(g, p, m) for g, (p, m) in enumerate(zip(parts, counts, strict=True))]
+    )
+
+
+def _per_factor(value: Any, name: str, graph: FactorGraph, default: Any, dtype: Any) -> np.ndarray:
+    """A scalar, a (M,) array for a one-group graph, or one scalar/array per group -> (M,)."""
+    n_groups = len(graph.factors)
+    if value is None:
+        value = default
+    if np.ndim(value) == 0 or (
+        n_groups == 1 and np.ndim(value) == 1 and not isinstance(value, (list, tuple))
+    ):
+        parts = [value] if n_groups == 1 else [value] * n_groups
+    else:
+        parts = list(value)
+
+    def group(g: int, p: Any, m: int) -> np.ndarray:
+        arr = np.asarray(p, dtype)
+        if arr.ndim == 0:
+            arr = np.full(m, arr, dtype)
+        if arr.shape != (m,):
+            raise ValueError(
+                f"gnc({name}): factor group {g} ({graph.factors[g].name!r}) has {m} factors, "
+                f"got shape {arr.shape}"
+            )
+        return arr
+
+    return _by_group(name, graph, parts, "a scalar or one entry", "", group)
+
+
+def _known(value: Any, name: str, graph: FactorGraph) -> np.ndarray:
+    """None, indices or a boolean mask (one-group graph), or one such per group -> (M,) bool."""
+    if value is None:
+        return np.zeros(sum(f.count for f in graph.factors), bool)
+    one = len(graph.factors) == 1 and not (
+        isinstance(value, (list, tuple))
+        and len(value) == 1
+        and (value[0] is None or np.ndim(value[0]) == 1)
+    )
+    parts = [value] if one else list(value)
+
+    def group(g: int, p: Any, m: int) -> np.ndarray:
+        mask = np.zeros(m, bool)
+        if p is not None:
+            arr = np.asarray(p)
+            if arr.dtype == bool:
+                if arr.shape != (m,):
+                    raise ValueError(
+                        f"gnc({name}): a boolean mask for factor group {g} needs shape ({m},), "
+                        f"got {arr.shape}"
+                    )
+                mask = arr.copy()
+            else:
+                arr = arr.reshape(-1)
+                if arr.size and (
+                    not np.issubdtype(arr.dtype, np.integer) or arr.min() < 0 or arr.max() >= m
+                ):
+                    raise ValueError(
+                        f"gnc({name}): factor group {g} needs integer indices in [0, {m}), "
+                        f"got {p!r}"[:300]
+                    )
+                mask[arr] = True
+        return mask
+
+    return _by_group(name, graph, parts, "indices or a mask", " entries", group)
+
+
+# ----------------------------------------------------------------------------------
+# Inner solvers
+# ----------------------------------------------------------------------------------
+def _free_indices(graph: FactorGraph) -> dict[str, np.ndarray]:
+    st = graph.structure
+    out = {}
+    for name, free in zip(st.names, st.free, strict=True):
+        try:
+            mask = np.asarray(free)
+        except jax.errors.TracerArrayConversionError:
+            raise ValueError(
+                "gnc(inner='dense'): the graph's fixed-variable masks must be concrete (call "
+                "gnc outside jax.jit, or pass the graph as a static closure); gnc jits itself"
+            ) from None
+        out[name] = np.flatnonzero(mask > 0.5)
+    return out
+
+
+def _take(value: Any, idx: Any) -> Any:
+    return type(value)(value.data[idx]) if hasattr(value, "data") else value[idx]
+
+
+def _put(value: Any, idx: Any, part: Any) -> Any:
+    if hasattr(value, "data"):
+        return type(value)(value.data.at[idx].set(part.data))
+    return value.at[idx].set(part)
+
+
+def _inner_sparse(graph: FactorGraph, options: dict[str, Any]):
+    def run(x: Any, w: tuple[Array, ...]) -> tuple[Any, Array, Array]:
+        sol = solve(weighted_graph(graph, w), x, **options)
+        return sol.variables, sol.status, sol.iterations
+
+    return run
+
+
+def _inner_dense(graph: FactorGraph, free: dict[str, Any], options: dict[str, Any]):
+    names = [n for n in graph.structure.names if free[n].size]
+
+    def residuals(params: Any, args: Any) -> tuple[Array, ...]:
+        w, x = args
+        full = dict(x)
+        for n in names:
+            full[n] = _put(x[n], free[n], params[n])
+        return tuple(
+            jnp.sqrt(wk)[:, None] * factor_residuals(f, full)
+            for f, wk in zip(graph.factors, w, strict=True)
+        )
+
+    def run(x: Any, w: tuple[Array, ...]) -> tuple[Any, Array, Array]:
+        params = {n: _take(x[n], free[n]) for n in names}
+        w = tuple(jnp.maximum(wk, 0.0) for wk in w)
+        sol = least_squares(residuals, params, (w, x), **options)
+        out = dict(x)
+        for n in names:
+            out[n] = _put(x[n], free[n], sol.params[n])
+        return out, sol.status, sol.num_steps
+
+    return run
+
+
+# ----------------------------------------------------------------------------------
+# The outer loop
+# ----------------------------------------------------------------------------------
+def _robust_cost(surrogate: str, s: Array, barc_sq: Array) -> Array:
+    if surrogate == "tls":
+        return 0.5 * jnp.sum(jnp.minimum(s, barc_sq))
+    return 0.5 * jnp.sum(barc_sq * s / (barc_sq + s))
+
+
+@eqx.filter_jit
+def _run(
+    graph: FactorGraph,
+    x0: Any,
+    barc_sq: Array,
+    known_in: Array,
+    known_out: Array,
+    free: Any,
+    config: dict[str, Any],
+    options: dict[str, Any],
+) -> GNCSolution:
+    surrogate = config["surrogate"]
+    counts = [f.count for f in graph.factors]
+    inner = (
+        _inner_sparse(graph, options)
+        if config["inner"] == "sparse"
+        else _inner_dense(graph, free, options)
+    )
+    s0 = _squared_norms(graph, x0)
+    dtype = s0.dtype
+    barc_sq = jnp.asarray(barc_sq, dtype)
+    unknown = ~(known_in | known_out)
+    w_init = jnp.where(known_out, 0.0, 1.0).astype(dtype)
+
+    def fix_known(w: Array) -> Array:
+        return jnp.where(known_in, 1.0, jnp.where(known_out, 0.0, w)).astype(dtype)
+
+    if config["initial_solve"]:
+        x1, ist, iits = inner(x0, _split(w_init, counts))
+    else:
+        x1, ist, iits = x0, jnp.asarray(Results.CONVERGED), jnp.asarray(0)
+    cost1 = 0.5 * jnp.sum(w_init * _squared_norms(graph, x1))
+    mu0 = initial_mu(surrogate, s0, barc_sq, unknown).astype(dtype)
+    # nothing to decide (no unknown factor, or none above the threshold): the plain
+    # weighted solve is the answer (already done with initial_solve; else one iteration
+    # with the initial weights, marked by μ = −1)
+    nothing = (mu0 <= 0) | ~jnp.any(unknown)
+    mu0 = jnp.where(nothing, -1.0, mu0).astype(dtype)
+    solved = nothing & config["initial_solve"]
+    status0 = jnp.where(
+        ~jnp.isfinite(cost1),
+        Results.NON_FINITE,
+        jnp.where(solved, Results.CONVERGED, Results.RUNNING),
+    ).astype(jnp.int32)
+    init = dict(
+        x=x1,
+        w=w_init,
+        mu=mu0,
+        k=jnp.asarray(0, jnp.int32),
+        cost=cost1,
+        status=status0,
+        inner_status=jnp.asarray(ist, jnp.int32),
+        inner_its=jnp.asarray(iits, jnp.int32),
+    )
+    weight_fn = tls_weights if surrogate == "tls" else gm_weights
+
+    def body(state: dict[str, Any]) -> dict[str, Any]:
+        mu, x = state["mu"], state["x"]
+        plain = mu <= 0
+        w = jnp.where(
+            plain, w_init, fix_known(weight_fn(_squared_norms(graph, x), jnp.abs(mu), barc_sq))
+        )
+        start = x if config["warm_start"] else x0
+        x_new, ist, iits = inner(start, _split(w, counts))
+        cost_new = 0.5 * jnp.sum(w * _squared_norms(graph, x_new))
+        finite = jnp.isfinite(cost_new)
+        prev = state["cost"]
+        cost_conv = jnp.abs(cost_new - prev) / jnp.maximum(prev, 1e-7) < config["cost_rtol"]
+        if surrogate == "tls":
+            weights_conv = jnp.all(jnp.abs(w - jnp.round(w)) <= config["weights_tol"])
+            mu_conv = jnp.asarray(False)
+            mu_next = mu * config["mu_step"]
+        else:
+            weights_conv = jnp.asarray(False)
+            mu_conv = jnp.abs(mu - 1.0) < 1e-9
+            mu_next = jnp.maximum(1.0, mu / config["mu_step"])
+        k = state["k"] + 1
+        done = cost_conv | weights_conv | mu_conv | plain
+        status = jnp.where(
+            ~finite,
+            Results.NON_FINITE,
+            jnp.where(
+                done,
+                Results.CONVERGED,
+                jnp.where(k >= config["max_iterations"], Results.MAX_STEPS, Results.RUNNING),
+            ),
+        ).astype(jnp.int32)
+        keep = lambda new, old: jax.tree.map(  # noqa: E731
+            lambda a, b: jnp.where(finite, a, b), new, old
+        )
+        return dict(
+            x=keep(x_new, x),
+            w=keep(w, state["w"]),
+            mu=jnp.where(done, mu, mu_next),
+            k=k,
+            cost=jnp.where(finite, cost_new, prev),
+            status=status,
+            inner_status=jnp.asarray(ist, jnp.int32),
+            inner_its=state["inner_its"] + jnp.asarray(iits, jnp.int32),
+        )
+
+    if config["max_iterations"] <= 0:
+        init["status"] = jnp.where(init["status"] < 0, Results.MAX_STEPS, init["status"])
+    out = jax.lax.while_loop(lambda st: st["status"] < 0, body, init)
+    s = _squared_norms(graph, out["x"])
+    return GNCSolution(
+        variables=out["x"],
+        weights=_split(out["w"], counts),
+        barc_sq=_split(barc_sq, counts),
+        cost=out["cost"],
+        robust_cost=_robust_cost(surrogate, s, barc_sq),
+        initial_cost=0.5 * jnp.sum(s0),
+        mu=out["mu"],
+        iterations=out["k"],
+        inner_iterations=out["inner_its"],
+        status=out["status"],
+        inner_status=out["inner_status"],
+    )
+
+
+def gnc(
+    graph: FactorGraph,
+    variables: Any = None,
+    *,
+    surrogate: str = "tls",
+    barc_sq: Any = None,
+    inlier_probability: float = 0.99,
+    known_inliers: Any = None,
+    known_outliers: Any = None,
+    mu_step: float = 1.4,
+    max_iterations: int = 100,
+    cost_rtol: float = 1e-5,
+    weights_tol: float = 1e-4,
+    warm_start: bool = True,
+    initial_solve: bool = False,
+    inner: str = "sparse",
+    **solver_options: Any,
+) -> GNCSolution:
+    """Outlier-robust solve of a factor graph by graduated non-convexity (module docstring).
+
+    Args:
+        graph: a :class:`FactorGraph` whose factors carry no robust kernel (GNC supplies
+            the robust loss); its ``variables`` are the default start.
+        variables: optional starting values with the same structure.
+        surrogate: ``"tls"`` (truncated least squares) or ``"gm"`` (Geman–McClure).
+        barc_sq: inlier threshold c̄² on ``s = rᵀΩr``: a scalar, or one scalar / (m,)
+            array per factor group (a (m,) array for a one-group graph). Default: the χ²
+            quantile at ``inlier_probability`` for each group's residual dimension.
+        known_inliers, known_outliers: factors whose weight stays 1 / 0: indices or a
+            boolean mask (one-group graph), or one such (or None) per factor group.
+        mu_step: factor of the μ update (> 1). max_iterations: outer iterations.
+        cost_rtol: stop when the weighted cost changes by less than this, relatively.
+        weights_tol: (TLS) stop when every weight is within this of 0 or 1.
+        warm_start: start each inner solve from the previous estimate (False: from the
+            initial values, as GTSAM).
+        initial_solve: first solve the unweighted problem and compute the first weights
+            at its solution (the paper's Algorithm 1, and GTSAM); default False: the first
+            weights come from the initial values. With a local inner solver and warm
+            starts, an unweighted solve with many outliers throws away a good initial
+            guess (intel with 50 % outlier loop closures: 10 % of the inliers then end up
+            rejected; from the initial values all are classified right).
+        inner: ``"sparse"`` (:func:`jaxpose.graph.solve`; ``solver_options`` are its
+            keywords, e.g. ``linear_solver``, ``stopping``) or ``"dense"``
+            (:func:`jaxpose.optim.least_squares` over the stacked free variables;
+            ``solver_options`` are its keywords). Dense suits small graphs.
+
+    Returns:
+        :class:`GNCSolution` (estimate, per-factor weights, status).
+
+    The outer loop is a ``lax.while_loop`` around the inner solve, compiled once; it
+    vmaps with ``inner="dense"``. Gradients: differentiate a fixed-weight re-solve
+    (``solve(weighted_graph(graph, sol.weights), sol.variables)``) instead.
+    """
+    if not isinstance(graph, FactorGraph):
+        raise TypeError(f"gnc(graph): expected a FactorGraph, got {type(graph).__name__}")
+    if surrogate not in SURROGATES:
+        raise ValueError(f"gnc(surrogate={surrogate!r}): expected one of {SURROGATES}")
+    if inner not in INNER_SOLVERS:
+        raise ValueError(f"gnc(inner={inner!r}): expected one of {INNER_SOLVERS}")
+    if not mu_step > 1.0:
+        raise ValueError(f"gnc(mu_step={mu_step!r}): expected a float > 1")
+    if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 0):
+        raise ValueError(f"gnc(max_iterations={max_iterations!r}): expected an int >= 0")
+    if not 0.0 < inlier_probability < 1.0:
+        raise ValueError(f"gnc(inlier_probability={inlier_probability!r}): expected 0 < p < 1")
+    for f in graph.factors:
+        if f.kernel is not None:
+            raise ValueError(
+                f"gnc(graph): factor {f.name!r} has a robust kernel; GNC supplies the robust "
+                f"loss itself, build the graph without kernels"
+            )
+    dims = _residual_dims(graph)
+    default = [chi2_quantile(inlier_probability, r) for r in dims]
+    barc = _per_factor(barc_sq, "barc_sq", graph, default, np.float64)
+    if not np.all(np.isfinite(barc) & (barc > 0)):
+        raise ValueError("gnc(barc_sq): expected finite thresholds > 0")
+    known_in = _known(known_inliers, "known_inliers", graph)
+    known_out = _known(known_outliers, "known_outliers", graph)
+    if np.any(known_in & known_out):
+        raise ValueError(
+            f"gnc(known_inliers, known_outliers): factor {int(np.argmax(known_in & known_out))}"
+            f" (flat index) is in both"
+        )
+    free = _free_indices(graph) if inner == "dense" else None
+    x0 = graph.variables if variables is None else variables
+    config = dict(
+        surrogate=surrogate,
+        inner=inner,
+        mu_step=float(mu_step),
+        max_iterations=int(max_iterations),
+        cost_rtol=float(cost_rtol),
+        weights_tol=float(weights_tol),
+        warm_start=bool(warm_start),
+        initial_solve=bool(initial_solve),
+    )
+    return _run(graph, x0, barc, known_in, known_out, free, config, dict(solver_options))

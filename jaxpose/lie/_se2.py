@@ -1,0 +1,147 @@
+"""SE(2): planar rigid transforms stored as ``[tx, ty, cos θ, sin θ]``.
+
+Algebra se2: ``[ρx, ρy, θ]`` (translation first); Exp = (R(θ), V(θ)ρ) with
+V(θ) = [[sinθ/θ, −(1−cosθ)/θ], [(1−cosθ)/θ, sinθ/θ]].
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from . import series
+from ._base import Array, LieAlgebra, LieGroup
+from ._so2 import SO2, angle, conj2, mul2, normalize2, rot2, rotate2
+
+
+class se2(LieAlgebra):  # noqa: N801
+    """se(2) element: ``data`` (..., 3) = ``[ρx, ρy, θ]``."""
+
+    tangent_dim: ClassVar[int] = 3
+    layout: ClassVar[str] = "[ρx, ρy, θ]"
+
+
+def _v_coeffs(theta: Array) -> tuple[Array, Array]:
+    """a = sinθ/θ and b = (1−cosθ)/θ, smooth at θ = 0."""
+    t = theta * theta
+    return series.sinc(t), theta * series.one_minus_cos_over_t(t)
+
+
+def _perp(v: Array) -> Array:
+    """[vy, −vx]: the SE(2) adjoint column, J·v with J = [[0, 1], [−1, 0]]."""
+    return jnp.stack([v[..., 1], -v[..., 0]], -1)
+
+
+class SE2(LieGroup):
+    """SE(2) element: ``data`` (..., 4) = ``[tx, ty, cos θ, sin θ]``."""
+
+    storage_dim: ClassVar[int] = 4
+    tangent_dim: ClassVar[int] = 3
+    matrix_dim: ClassVar[int] = 3
+    point_dim: ClassVar[int] = 2
+    layout: ClassVar[str] = "[tx, ty, cos θ, sin θ]"
+    algebra: ClassVar[type[LieAlgebra]] = se2
+    unit_slice: ClassVar[tuple[int, int]] = (2, 4)
+
+    @staticmethod
+    def _identity_data() -> Array:
+        return jnp.array([0.0, 0.0, 1.0, 0.0])
+
+    @staticmethod
+    def _exp(xi: Array) -> Array:
+        rho, th = xi[..., :2], xi[..., 2]
+        a, b = _v_coeffs(th)
+        a, b = a[..., None], b[..., None]
+        t = jnp.concatenate(
+            [a * rho[..., :1] - b * rho[..., 1:], b * rho[..., :1] + a * rho[..., 1:]], -1
+        )
+        return jnp.concatenate([t, jnp.cos(th)[..., None], jnp.sin(th)[..., None]], -1)
+
+    @staticmethod
+    def _log(x: Array) -> Array:
+        t, th = x[..., :2], angle(x[..., 2:])
+        h = series.half_cot_half(th * th)[..., None]
+        half = 0.5 * th[..., None]
+        rho = jnp.concatenate(
+            [h * t[..., :1] + half * t[..., 1:], -half * t[..., :1] + h * t[..., 1:]], -1
+        )
+        return jnp.concatenate([rho, th[..., None]], -1)
+
+    @staticmethod
+    def _compose(a: Array, b: Array) -> Array:
+        t = a[..., :2] + rotate2(a[..., 2:], b[..., :2])
+        return jnp.concatenate([t, mul2(a[..., 2:], b[..., 2:])], -1)
+
+    @staticmethod
+    def _inv(x: Array) -> Array:
+        ci = conj2(x[..., 2:])
+        return jnp.concatenate([-rotate2(ci, x[..., :2]), ci], -1)
+
+    @staticmethod
+    def _act(x: Array, p: Array) -> Array:
+        return rotate2(x[..., 2:], p) + x[..., :2]
+
+    @staticmethod
+    def _matrix(x: Array) -> Array:
+        top = jnp.concatenate([rot2(x[..., 2:]), x[..., :2, None]], -1)
+        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], x.dtype), (*x.shape[:-1], 1, 3))
+        return jnp.concatenate([top, bottom], -2)
+
+    @staticmethod
+    def _from_matrix(m: Array) -> Array:
+        return jnp.concatenate([m[..., :2, 2], SO2._from_matrix(m[..., :2, :2])], -1)
+
+    @staticmethod
+    def _adj_matrix(x: Array) -> Array:
+        top = jnp.concatenate([rot2(x[..., 2:]), _perp(x[..., :2])[..., None]], -1)
+        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], x.dtype), (*x.shape[:-1], 1, 3))
+        return jnp.concatenate([top, bottom], -2)
+
+    @staticmethod
+    def _jl(xi: Array) -> Array:
+        rho, th = xi[..., :2], xi[..., 2]
+        t = th * th
+        a, b = _v_coeffs(th)
+        A = series.one_minus_cos_over_t(t)
+        B = th * series.theta_minus_sin_over_theta3(t)  # (θ − sinθ)/θ²
+        col = jnp.stack([B * rho[..., 0] + A * rho[..., 1], -A * rho[..., 0] + B * rho[..., 1]], -1)
+        v = jnp.stack([jnp.stack([a, -b], -1), jnp.stack([b, a], -1)], -2)
+        top = jnp.concatenate([v, col[..., None]], -1)
+        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], xi.dtype), (*xi.shape[:-1], 1, 3))
+        return jnp.concatenate([top, bottom], -2)
+
+    @staticmethod
+    def _jl_inv(xi: Array) -> Array:
+        # [[V, w], [0, 1]]⁻¹ = [[V⁻¹, −V⁻¹w], [0, 1]] with V⁻¹ = [[h, θ/2], [−θ/2, h]].
+        th = xi[..., 2]
+        jl = SE2._jl(xi)
+        h = series.half_cot_half(th * th)
+        vinv = jnp.stack([jnp.stack([h, 0.5 * th], -1), jnp.stack([-0.5 * th, h], -1)], -2)
+        col = -jnp.einsum("...ij,...j->...i", vinv, jl[..., :2, 2])
+        top = jnp.concatenate([vinv, col[..., None]], -1)
+        return jnp.concatenate([top, jl[..., 2:, :]], -2)
+
+    @staticmethod
+    def _hat(xi: Array) -> Array:
+        top = jnp.concatenate([SO2._hat(xi[..., 2:]), xi[..., :2, None]], -1)
+        return jnp.concatenate([top, jnp.zeros_like(top[..., :1, :])], -2)
+
+    @staticmethod
+    def _normalize(x: Array) -> Array:
+        return jnp.concatenate([x[..., :2], normalize2(x[..., 2:])], -1)
+
+    def translation(self) -> Array:
+        """Translation (…, 2)."""
+        return self.data[..., :2]
+
+    def rotation(self) -> SO2:
+        """Rotation part as SO2 (data (…, 2) = ``[cos θ, sin θ]``)."""
+        return SO2(self.data[..., 2:])
+
+    def angle(self) -> Array:
+        """Heading θ ∈ (−π, π] (…,)."""
+        return angle(self.data[..., 2:])
+
+
+se2.group = SE2

@@ -1,0 +1,157 @@
+"""SE(3): rigid transforms stored as ``[tx, ty, tz, qx, qy, qz, qw]`` (PyPose order).
+
+Algebra se3: twist ``[ρ(3), φ(3)]`` (translation part first), Exp(ξ) = (Exp(φ), Jl(φ)ρ).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from . import _quaternion as quat
+from . import series
+from ._base import Array, LieAlgebra, LieGroup, skew
+from ._so3 import SO3
+
+
+class se3(LieAlgebra):  # noqa: N801
+    """se(3) element: ``data`` (..., 6) = ``[ρx, ρy, ρz, φx, φy, φz]``."""
+
+    tangent_dim: ClassVar[int] = 6
+    layout: ClassVar[str] = "[ρx, ρy, ρz, φx, φy, φz]"
+
+
+def _split(x: Array) -> tuple[Array, Array]:
+    return x[..., :3], x[..., 3:]
+
+
+def q_block(rho: Array, phi: Array) -> Array:
+    """Barfoot's Q(ρ, φ) (…, 3, 3): the off-diagonal block of the SE(3) left Jacobian."""
+    t = series.safe_norm_sq(phi)
+    c1 = series.theta_minus_sin_over_theta3(t)[..., None, None]
+    c2 = series.se3_q_c2(t)[..., None, None]
+    c3 = series.se3_q_c3(t)[..., None, None]
+    P, R = skew(phi), skew(rho)
+    PR, RP = P @ R, R @ P
+    PRP = PR @ P
+    return (
+        0.5 * R
+        + c1 * (PR + RP + PRP)
+        + c2 * (P @ PR + RP @ P - 3.0 * PRP)
+        + c3 * (PRP @ P + P @ PRP)
+    )
+
+
+class SE3(LieGroup):
+    """SE(3) element: ``data`` (..., 7) = ``[tx, ty, tz, qx, qy, qz, qw]``."""
+
+    storage_dim: ClassVar[int] = 7
+    tangent_dim: ClassVar[int] = 6
+    matrix_dim: ClassVar[int] = 4
+    point_dim: ClassVar[int] = 3
+    layout: ClassVar[str] = "[tx, ty, tz, qx, qy, qz, qw]"
+    algebra: ClassVar[type[LieAlgebra]] = se3
+    unit_slice: ClassVar[tuple[int, int]] = (3, 7)
+
+    @staticmethod
+    def _identity_data() -> Array:
+        return jnp.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+
+    @staticmethod
+    def _exp(xi: Array) -> Array:
+        rho, phi = _split(xi)
+        return jnp.concatenate([quat.jl_apply(phi, rho), quat.exp(phi)], -1)
+
+    @staticmethod
+    def _log(x: Array) -> Array:
+        t, q = x[..., :3], x[..., 3:]
+        phi = quat.log(q)
+        return jnp.concatenate([quat.jl_inv_apply(phi, t), phi], -1)
+
+    @staticmethod
+    def _compose(a: Array, b: Array) -> Array:
+        t = a[..., :3] + quat.rotate(a[..., 3:], b[..., :3])
+        return jnp.concatenate([t, quat.multiply(a[..., 3:], b[..., 3:])], -1)
+
+    @staticmethod
+    def _inv(x: Array) -> Array:
+        qi = quat.conjugate(x[..., 3:])
+        return jnp.concatenate([-quat.rotate(qi, x[..., :3]), qi], -1)
+
+    @staticmethod
+    def _act(x: Array, p: Array) -> Array:
+        return quat.rotate(x[..., 3:], p) + x[..., :3]
+
+    @staticmethod
+    def _matrix(x: Array) -> Array:
+        r = quat.to_matrix(x[..., 3:])
+        top = jnp.concatenate([r, x[..., :3, None]], -1)
+        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], x.dtype), (*x.shape[:-1], 1, 4))
+        return jnp.concatenate([top, bottom], -2)
+
+    @staticmethod
+    def _from_matrix(m: Array) -> Array:
+        return jnp.concatenate([m[..., :3, 3], quat.from_matrix(m[..., :3, :3])], -1)
+
+    @staticmethod
+    def _adj_matrix(x: Array) -> Array:
+        r = quat.to_matrix(x[..., 3:])
+        z = jnp.zeros_like(r)
+        return jnp.concatenate(
+            [jnp.concatenate([r, skew(x[..., :3]) @ r], -1), jnp.concatenate([z, r], -1)], -2
+        )
+
+    @staticmethod
+    def _jl(xi: Array) -> Array:
+        rho, phi = _split(xi)
+        j = quat.jl(phi)
+        q = q_block(rho, phi)
+        z = jnp.zeros_like(j)
+        return jnp.concatenate(
+            [jnp.concatenate([j, q], -1), jnp.concatenate([z, j], -1)], -2
+        )
+
+    @staticmethod
+    def _jl_inv(xi: Array) -> Array:
+        rho, phi = _split(xi)
+        ji = quat.jl_inv(phi)
+        q = q_block(rho, phi)
+        z = jnp.zeros_like(ji)
+        return jnp.concatenate(
+            [jnp.concatenate([ji, -ji @ q @ ji], -1), jnp.concatenate([z, ji], -1)], -2
+        )
+
+    @staticmethod
+    def _hat(xi: Array) -> Array:
+        rho, phi = _split(xi)
+        top = jnp.concatenate([skew(phi), rho[..., None]], -1)
+        return jnp.concatenate([top, jnp.zeros_like(top[..., :1, :])], -2)
+
+    @staticmethod
+    def _normalize(x: Array) -> Array:
+        return jnp.concatenate([x[..., :3], quat.normalize(x[..., 3:])], -1)
+
+    # -- components --------------------------------------------------------------------
+    def translation(self) -> Array:
+        """Translation (…, 3)."""
+        return self.data[..., :3]
+
+    def rotation(self) -> SO3:
+        """Rotation part as SO3 (data (…, 4) = ``[qx, qy, qz, qw]``)."""
+        return SO3(self.data[..., 3:])
+
+    def euler(self) -> Array:
+        """Roll-pitch-yaw ``[r, p, y]`` (…, 3) of the rotation part."""
+        return self.rotation().euler()
+
+    @classmethod
+    def from_rotation_translation(cls, rotation: SO3, translation: Array) -> SE3:
+        """SE3 from an SO3 ``rotation`` (…) and a ``translation`` (…, 3); batch shapes broadcast."""
+        t = jnp.asarray(translation, rotation.dtype)
+        shape = jnp.broadcast_shapes(rotation.shape, t.shape[:-1])
+        return cls(jnp.concatenate([jnp.broadcast_to(t, (*shape, 3)),
+                                    jnp.broadcast_to(rotation.data, (*shape, 4))], -1))
+
+
+se3.group = SE3

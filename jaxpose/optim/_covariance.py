@@ -1,0 +1,119 @@
+"""Covariance of a least-squares solution (Ceres' ``Covariance``, dense).
+
+At the solution p*, the Gauss–Newton (Laplace) approximation gives
+``Cov(δ) = (J̃ᵀJ̃)⁻¹`` for the tangent perturbation δ of ``p = p* ⊕ δ`` (groups: right
+perturbation p*·Exp(δ); arrays: p* + δ), with J̃ the whitened, kernel-corrected Jacobian
+of :meth:`jaxpose.optim.Problem.linearize` — the same matrix the solver uses. As in Ceres,
+the residuals are taken as already whitened (no rescaling by the residual variance).
+
+Layout: the flat matrix follows ``ravel_pytree(manifold.zero_tangent(params))`` (tangent
+columns of group leaves, never storage columns), the same columns as the Jacobian. With
+``flat=False`` the result is a nested pytree like a Hessian: for leaves a and b of the
+tangent pytree, block ``[a][b]`` has shape ``(*shape_a, *shape_b)``.
+
+Everything is differentiable (``jax.grad`` through the covariance works: the Cholesky
+inverse and the Jacobian are differentiable functions of params and args).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..lie import manifold
+from ._correctors import Corrector
+from ._problem import Problem, as_problem
+from ._solution import Solution
+
+PyTree = Any
+Array = jax.Array
+METHODS = ("cholesky", "svd")
+
+
+@eqx.filter_jit
+def covariance(
+    residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem,
+    params: PyTree | Solution,
+    args: PyTree = None,
+    *,
+    weights: PyTree = None,
+    kernel: PyTree = None,
+    corrector: Corrector | None = None,
+    jacobian: str | Callable[..., Array] = "auto",
+    method: str = "cholesky",
+    rcond: float | None = None,
+    flat: bool = True,
+) -> Array | PyTree:
+    """Covariance of ``params`` in the tangent chart at ``params`` (module docstring).
+
+    Args:
+        residual_fn: the residual function (or a :class:`Problem`) that was minimised.
+        params: the solution: a params pytree or a :class:`Solution` (its ``params``).
+        args, weights, kernel, corrector, jacobian: as in
+            :func:`~jaxpose.optim.least_squares`.
+        method: ``"cholesky"`` (H must be positive definite; a singular H raises at run
+            time) or ``"svd"`` (pseudo-inverse of H, eigenvalues below
+            ``rcond·λ_max`` dropped, like Ceres' ``SPARSE_QR``/``DENSE_SVD`` with
+            ``min_reciprocal_condition_number``; default rcond: n·eps).
+        flat: True: an (n, n) matrix in ``ravel_pytree`` tangent order; False: a nested
+            pytree of blocks.
+
+    Returns:
+        The (n, n) covariance, or its nested-pytree form.
+
+    Compiled with ``eqx.filter_jit`` like :func:`~jaxpose.optim.least_squares`: a repeated
+    call with new arrays of the same shapes reuses the program.
+    """
+    if method not in METHODS:
+        raise ValueError(f"covariance(method={method!r}): expected one of {METHODS}")
+    if isinstance(params, Solution):
+        params = params.params
+    problem = as_problem(residual_fn, weights=weights, kernel=kernel, corrector=corrector,
+                         jacobian=jacobian)
+    problem.check(params, args)
+    lin = problem.linearize(params, args)
+    h = lin.jac.T @ lin.jac
+    n = h.shape[0]
+    if method == "cholesky":
+        chol = jnp.linalg.cholesky(h)
+        chol = eqx.error_if(
+            chol, ~jnp.all(jnp.isfinite(chol)),
+            "covariance: the Gauss-Newton matrix JᵀJ is singular or not positive definite "
+            "(an unobserved direction or a gauge freedom); fix it with a prior or use "
+            "method='svd'",
+        )
+        eye = jnp.eye(n, dtype=h.dtype)
+        linv = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
+        cov = linv.T @ linv
+    else:
+        w, v = jnp.linalg.eigh(h)
+        tol = (n * jnp.finfo(h.dtype).eps if rcond is None else rcond) * jnp.max(w)
+        keep = w > tol
+        inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
+        cov = (v * inv_w) @ v.T
+    cov = 0.5 * (cov + cov.T)
+    if flat:
+        return cov
+    return _nest(cov, manifold.zero_tangent(params))
+
+
+def _nest(cov: Array, tangent: PyTree) -> PyTree:
+    """(n, n) → nested pytree of blocks (*shape_a, *shape_b)."""
+    leaves, treedef = jax.tree.flatten(tangent)
+    sizes = [int(jnp.size(x)) for x in leaves]
+    starts = [sum(sizes[:k]) for k in range(len(sizes))]
+    rows = []
+    for a, sa, la in zip(leaves, starts, sizes, strict=True):
+        row = [
+            cov[sa : sa + la, sb : sb + lb].reshape(*jnp.shape(a), *jnp.shape(b))
+            for b, sb, lb in zip(leaves, starts, sizes, strict=True)
+        ]
+        rows.append(jax.tree.unflatten(treedef, row))
+    return jax.tree.unflatten(treedef, rows)
+
+
+__all__ = ["covariance"]
