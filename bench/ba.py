@@ -67,7 +67,8 @@ def _jaxpose_runner(problem: Any, solver: str, max_steps: int) -> tuple[float, A
     """(compile seconds, run) for one linear solver; ``run()`` returns the solution."""
     import jax
 
-    from jaxpose.graph import ba, solve
+    from jaxpose.graph import _ba as ba
+    from jaxpose.graph import solve
     from jaxpose.optim import Nielsen, Stopping
 
     graph = ba.bundle_adjustment_problem(problem, eliminate=solver == "schur")
@@ -138,7 +139,7 @@ def _spawn_gtsam(path: str, args: argparse.Namespace) -> dict[str, Any]:
 def bench_problem(name: str, problem: Any, path: str, args: argparse.Namespace,
                   floor: float | None) -> dict[str, Any]:
     """Run every contestant on one problem, interleaved; returns the rows' data."""
-    from jaxpose.graph import ba
+    from jaxpose.graph import _ba as ba
 
     solvers = [s for s in args.solvers.split(",") if s] if "jaxpose" in args.contestants else []
     runners: dict[str, Any] = {}

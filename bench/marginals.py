@@ -79,7 +79,8 @@ def _gtsam_values(gtsam, kind: str, poses: np.ndarray):
 
 def run_file(name: str, method: str, repeats: int, gtsam) -> dict:
     from jaxpose import read_g2o
-    from jaxpose.graph import default_stopping, marginals, pgo, se3_to_gtsam, solve
+    from jaxpose.graph import _pgo as pgo
+    from jaxpose.graph import default_stopping, marginals, se3_to_gtsam, solve
 
     path = _path(name)
     if not path.is_file():

@@ -110,7 +110,9 @@ def run_jaxpose(path: Path, solver: str, float32: bool, repeats: int, max_steps:
     import jax.numpy as jnp
 
     from jaxpose import read_g2o
-    from jaxpose.graph import initial_poses, linear, pgo, solve
+    from jaxpose.graph import _linear as linear
+    from jaxpose.graph import _pgo as pgo
+    from jaxpose.graph import initial_poses, solve
     from jaxpose.optim import Stopping
 
     # profile: time each host sparse factorisation (CHOLMOD) the solve calls back into;

@@ -125,7 +125,8 @@ def _threshold(kind: str) -> float:
 def run_jaxpose(graph: Any, how: str, max_steps: int) -> dict[str, Any]:
     import jax
 
-    from jaxpose.graph import default_stopping, pgo
+    from jaxpose.graph import _pgo as pgo
+    from jaxpose.graph import default_stopping
     from jaxpose.optim import Cauchy, Huber, Stopping
 
     t0 = time.perf_counter()
@@ -223,7 +224,7 @@ def run_file(name: str, rates: Sequence[float], args: argparse.Namespace) -> dic
 
     from jaxpose import read_g2o
     from jaxpose.datasets import corrupt_loop_closures
-    from jaxpose.graph import pgo
+    from jaxpose.graph import _pgo as pgo
     from jaxpose.optim import Stopping
 
     path = _path(name)

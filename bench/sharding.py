@@ -150,7 +150,7 @@ def graph_inputs(
     structure) and the stacked initial poses ``(B, K, 4)`` and measurements
     ``(B, E, 4)``."""
     from jaxpose.datasets import synthetic_pose_graph
-    from jaxpose.graph import pgo
+    from jaxpose.graph import _pgo as pgo
 
     graphs = [synthetic_pose_graph("SE2", n_poses=poses, noise=(0.02, 0.1), seed=seed + s)[0]
               for s in range(batch)]

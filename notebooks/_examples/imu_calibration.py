@@ -39,7 +39,7 @@ import optax
 
 from jaxpose.imu import NavState, dead_reckon, predict, preintegrate
 from jaxpose.lie import SO3
-from jaxpose.lie import quaternion as quat
+from jaxpose.lie import _quaternion as quat
 
 GRAVITY = (0.0, 0.0, -9.81)
 DT = 0.005  # 200 Hz

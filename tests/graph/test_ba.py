@@ -22,11 +22,11 @@ from jaxpose.graph import (
     Factor,
     FactorGraph,
     default_stopping,
-    linear,
     prior_residual,
     vector_prior_residual,
 )
 from jaxpose.graph import _ba as bal_graph
+from jaxpose.graph import _linear as linear
 from jaxpose.graph._problem import gradient, hessian_diagonal, linearize
 from jaxpose.graph._schur import schur_step
 from jaxpose.io import BALProblem, read_bal

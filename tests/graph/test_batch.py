@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from jaxpose.datasets import synthetic_pose_graph
-from jaxpose.graph import FactorGraph, pgo
+from jaxpose.graph import FactorGraph
+from jaxpose.graph import _pgo as pgo
 from jaxpose.graph import solve as graph_solve
 
 from .conftest import FAST_COMPILE, jit_solve, numpy_pose_graph_cost, with_values

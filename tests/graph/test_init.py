@@ -302,7 +302,7 @@ def test_cli_init_and_information_options(tmp_path, capsys):
 def test_cholmod_solves_several_right_hand_sides_with_one_factorisation():
     import scipy.sparse
 
-    from jaxpose.graph import cholmod
+    from jaxpose.graph import _cholmod as cholmod
 
     if not cholmod.available():
         pytest.skip(f"CHOLMOD unavailable: {cholmod.unavailable_reason()}")

@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxpose.graph import FactorGraph, linear, linearize
+from jaxpose.graph import FactorGraph, linearize
+from jaxpose.graph import _linear as linear
 from jaxpose.graph._problem import block_diagonal, csr_values, gradient, hessian_vector
 from jaxpose.optim import Huber
 

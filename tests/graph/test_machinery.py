@@ -22,8 +22,8 @@ from jaxpose.graph import (
     between_residual,
     default_stopping,
     linearize,
-    pgo,
 )
+from jaxpose.graph import _pgo as pgo
 from jaxpose.graph import solve as graph_solve
 from jaxpose.graph._problem import gradient, hessian_blocks, hessian_diagonal
 from jaxpose.lie import SE2, SE3, Sim3

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from jaxpose import read_g2o, synthetic_pose_graph
-from jaxpose.graph import default_stopping, pgo
+from jaxpose.graph import _pgo as pgo
+from jaxpose.graph import default_stopping
 from jaxpose.io import PoseGraph, connected_components
 
 from .conftest import GTSAM_COST, data_file, jit_solve, numpy_pose_graph_cost

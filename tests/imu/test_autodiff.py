@@ -12,7 +12,7 @@ import pytest
 
 from jaxpose.imu import ImuPreintegrator, NavState, dead_reckon, preintegrate
 from jaxpose.lie import SO3
-from jaxpose.lie import quaternion as quat
+from jaxpose.lie import _quaternion as quat
 
 from . import reference as ref
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxpose.lie import quaternion as quat
+from jaxpose.lie import _quaternion as quat
 
 jax.config.update("jax_enable_x64", True)
 
