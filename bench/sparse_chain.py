@@ -50,7 +50,7 @@ from bench._common import (  # noqa: E402
     parser,
     time_jax,
 )
-from jaxpose.optim import _problem as _problem  # noqa: E402
+from jaxpose.optim import _problem  # noqa: E402
 from jaxpose.optim import _sparse_hessian as sparse_hessian  # noqa: E402
 
 SIZES = (600, 1500, 3000)
