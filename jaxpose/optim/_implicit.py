@@ -1,26 +1,28 @@
-"""Implicit differentiation of a least-squares solution (one linear solve backwards).
+"""Implicit differentiation of a least-squares solution, exact at every order.
 
 At the solution X* the tangent gradient of the cost vanishes. With the chart
 φ(δ, θ) = cost(X* ⊕ δ, θ) (θ = residual args, weights and kernel parameters, plus
 anything the residual function closes over) the optimality condition ∇_δ φ(0, θ) = 0
-and the implicit function theorem give
+and the implicit function theorem give the solution's tangent
 
-    dδ*/dθ = −H⁻¹ ∂²φ/∂δ∂θ,   H = ∂²φ/∂δ² (n, n) at δ = 0,
+    δ̇ = −H⁻¹ (∂²φ/∂δ∂θ · θ̇),   H = ∂²φ/∂δ² (n, n) at δ = 0,   Ẋ = d/dε (X* ⊕ ε δ̇).
 
-so for a cotangent v on X* (pulled back to the tangent space through δ ↦ X* ⊕ δ) the
-backward pass solves H u = v once and returns θ̄ = −∇_θ (∇_δ φ · u). By default H is the
-exact Hessian of the (robust, weighted) cost, so the gradient is exact for any residual;
-``hessian="gauss_newton"`` uses J̃ᵀJ̃ from the whitened, kernel-corrected Jacobian instead
-(first derivatives only: cheaper to compile, exact for zero-residual problems); it keeps the
-coloured path's structure (block-diagonal or CSR H, see :mod:`jaxpose.optim._colouring`), so
-with ``linear_solver=Cholesky()`` a large sparse problem is solved backwards by sparse
-Cholesky too. The final cost's cotangent is propagated by the envelope theorem (∂cost/∂θ at
-fixed X*). Gradients with respect to the initial params are zero; ``history`` has no
-gradient. Reverse mode only (use ``adjoint="unrolled"`` for jvp). First order only:
-differentiating the backward pass again (``jax.hessian``, ``jacfwd(jacrev(...))``,
-``grad(grad(...))``) raises ``NotImplementedError`` rather than returning a wrong second
-derivative (the backward pass treats the solution's dependence on θ as fixed); use
-``adjoint="unrolled"`` for higher orders.
+This is a ``custom_jvp`` rule (one linear solve per tangent). Its right-hand side is
+linear in θ̇ and the solve linear in it, so reverse mode is its transpose (one solve
+with Hᵀ = H per cotangent), and the rule is written with differentiable operations on
+the (differentiable) solution, so differentiating it again gives the exact second
+derivative, and so on at any order: ``jax.grad``, ``jvp``, ``jacfwd``, ``jacrev``,
+``jacfwd(jacrev)``, ``hessian``. ``cost`` and ``initial_cost`` carry their total
+derivatives. Derivatives with respect to the initial params are zero (the solution does
+not depend on them), ``history``, ``grad_norm`` and the counters have none.
+
+By default H is the exact Hessian of the (robust, weighted) cost, so derivatives are exact
+for any residual. ``hessian="gauss_newton"`` uses J̃ᵀJ̃ from the whitened,
+kernel-corrected Jacobian instead: cheaper to compile, exact for zero-residual problems,
+and it keeps the coloured path's structure (block-diagonal or CSR H, see
+:mod:`jaxpose.optim._colouring`), so with ``linear_solver=Cholesky()`` a large sparse
+problem is differentiated by sparse Cholesky too. Its second derivatives would miss the
+Hessian's residual terms, so they raise ``NotImplementedError`` (never a wrong number).
 """
 
 from __future__ import annotations
@@ -83,20 +85,31 @@ def first_order_only(x: PyTree, what: str) -> PyTree:
     return ident(x)
 
 
-def _fill(ref: PyTree, ct: PyTree) -> PyTree:
-    leaves, treedef = jax.tree.flatten(ref)
-    if ct is None:
-        return jax.tree.unflatten(treedef, [jnp.zeros_like(x) for x in leaves])
-    cts = treedef.flatten_up_to(ct)
-    return jax.tree.unflatten(
-        treedef, [jnp.zeros_like(x) if c is None else c for x, c in zip(leaves, cts)]
-    )
+def _jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple[Any, Any]:
+    """``jax.jvp(f, (tree,), (t_tree,))`` where ``t_tree`` mirrors ``tree`` with ``None``
+    for leaves without a tangent (symbolic zeros, non-arrays): only the others vary."""
+    none = lambda x: x is None  # noqa: E731
+    xs, treedef = jax.tree.flatten(tree, is_leaf=none)
+    ts = jax.tree.flatten(t_tree, is_leaf=none)[0]
+    live = [i for i, t in enumerate(ts) if t is not None]
+
+    def f_live(vs: list[Any]) -> Any:
+        full = list(xs)
+        for i, v in zip(live, vs, strict=True):
+            full[i] = v
+        return f(jax.tree.unflatten(treedef, full))
+
+    if not live:
+        out = f(tree)
+        return out, jax.tree.map(jnp.zeros_like, out)
+    return jax.jvp(f_live, ([xs[i] for i in live],), ([ts[i] for i in live],))
 
 
-@eqx.filter_custom_vjp
+@eqx.filter_custom_jvp
 def _implicit(
     theta: tuple[PyTree, Problem],
     params0: PyTree,
+    *,
     run: Callable[..., Solution],
     adjoint: ImplicitAdjoint,
 ) -> Solution:
@@ -104,45 +117,29 @@ def _implicit(
     return run(problem, params0, args)
 
 
-@_implicit.def_fwd
-def _implicit_fwd(
-    perturbed: Any,
-    theta: tuple[PyTree, Problem],
-    params0: PyTree,
+@_implicit.def_jvp
+def _implicit_jvp(
+    primals: tuple[Any, Any],
+    tangents: tuple[Any, Any],
+    *,
     run: Callable[..., Solution],
     adjoint: ImplicitAdjoint,
-) -> tuple[Solution, Solution]:
-    args, problem = theta
-    sol = run(problem, params0, args)
-    return sol, sol
-
-
-@_implicit.def_bwd
-def _implicit_bwd(
-    sol: Solution,
-    grad_obj: Any,
-    perturbed: Any,
-    theta: tuple[PyTree, Problem],
-    params0: PyTree,
-    run: Callable[..., Solution],
-    adjoint: ImplicitAdjoint,
-) -> Any:
+) -> tuple[Solution, Any]:
+    theta, params0 = primals
+    t_theta, t_params0 = tangents
+    sol = _implicit(theta, params0, run=run, adjoint=adjoint)  # differentiable again
     x_star = sol.params
-    ct_params = None if grad_obj is None else grad_obj.params
-    ct_cost = None if grad_obj is None else grad_obj.cost
-    ct_init = None if grad_obj is None else grad_obj.initial_cost
     flat0, unravel = manifold.flat_tangent(x_star)
 
     def lift(eps: jax.Array) -> PyTree:
         return manifold.retract(x_star, unravel(eps))
 
-    _, vjp_lift = jax.vjp(lift, flat0)
-    (v,) = vjp_lift(_fill(x_star, ct_params))
-
     def phi(eps: jax.Array, th: tuple[PyTree, Problem]) -> jax.Array:
         a, prob = th
         return prob.cost(lift(eps), a)
 
+    # b = ∂(∇_δ φ)/∂θ · θ̇ (linear in θ̇)
+    _, b = _jvp_where(lambda th: jax.grad(phi)(flat0, th), theta, t_theta)
     if adjoint.hessian == "exact":
         hess = jax.hessian(phi)(flat0, theta)
         hess = 0.5 * (hess + hess.T)
@@ -150,18 +147,20 @@ def _implicit_bwd(
         args, problem = theta
         lin = problem.linearize_structured(x_star, args)
         hess, _ = normal_equations(lin.jac, lin.res)  # dense, BlockHessian or SparseHessian
-    u = adjoint.linear_solver.solve(hess, -v, hess, -v, jnp.zeros_like(v))
-    u = first_order_only(u, "least_squares(adjoint='implicit')")
-    dtype = flat0.dtype
-    c_cost = jnp.zeros((), dtype) if ct_cost is None else ct_cost
-    c_init = jnp.zeros((), dtype) if ct_init is None else ct_init
+        hess = first_order_only(hess, "least_squares(ImplicitAdjoint(hessian='gauss_newton'))")
+    # solve(jac, res, hess, grad, diag) returns −(hess + diag)⁻¹ grad: here −H⁻¹ b
+    eps_dot = adjoint.linear_solver.solve(hess, b, hess, b, jnp.zeros_like(b))
+    x_dot = jax.jvp(lift, (flat0,), (eps_dot,))[1]
 
-    def psi(th: tuple[PyTree, Problem]) -> jax.Array:
-        val, gu = jax.jvp(lambda e: phi(e, th), (flat0,), (u,))  # φ and ∇_δφ·u
-        a, prob = th
-        return c_cost * val + c_init * prob.cost(params0, a) - gu
+    # total derivatives of the costs (at X*(θ) and at the initial params)
+    def costs(th_p0: tuple[Any, Any]) -> tuple[jax.Array, jax.Array]:
+        (a, prob), p0 = th_p0
+        return prob.cost(x_star, a), prob.cost(p0, a)
 
-    return eqx.filter_grad(psi)(theta)
+    _, (dcost, dinit) = _jvp_where(costs, (theta, params0), (t_theta, t_params0))
+    dcost = dcost + jnp.dot(jax.grad(phi)(flat0, theta), eps_dot)
+    t_sol = Solution(x_dot, None, None, None, dcost, dinit, None, None)  # None: no tangent
+    return sol, t_sol
 
 
 def implicit_solve(
@@ -183,7 +182,7 @@ def implicit_solve(
     if callable(problem.jacobian):
         jac = eqx.filter_closure_convert(problem.jacobian, params0, args)
         problem = eqx.tree_at(lambda p: p.jacobian, problem, jac)
-    return _implicit((args, problem), params0, run, adjoint)
+    return _implicit((args, problem), params0, run=run, adjoint=adjoint)
 
 
 __all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "first_order_only", "implicit_solve"]

@@ -151,23 +151,100 @@ def _huber_fit_loss(y, adjoint):
     return jnp.sum(sol.params ** 2)
 
 
-def test_second_derivative_through_implicit_adjoint_raises_not_wrong():
-    """jacfwd(jacrev) through the implicit adjoint (Huber kernel) gave 0.017746 where
-    finite differences give 0.017514. The rule is exact at first order only, so a second
-    derivative must refuse; the unrolled adjoint gives it."""
+def _richardson_row(grad, y, i, eps=1e-3):
+    """Row i of the Hessian by Richardson-extrapolated central differences of ``grad``."""
+    e = jnp.zeros_like(y).at[i].set(eps)
+    d1 = (grad(y + e) - grad(y - e)) / (2 * eps)
+    d2 = (grad(y + e / 2) - grad(y - e / 2)) / eps
+    return (4 * d2 - d1) / 3
+
+
+def test_second_derivative_through_implicit_adjoint_matches_finite_differences():
+    """Issue 16's case: jacfwd(jacrev) through the implicit adjoint (Huber kernel) gave
+    0.017746 where finite differences give 0.017514 (the backward pass held the solution's
+    dependence on y fixed). The custom_jvp rule is differentiable, so it is exact now."""
     loss, y = _huber_fit_loss, _Y
-    g = jax.grad(loss)(y, "implicit")
-    np.testing.assert_allclose(g, jax.grad(loss)(y, "unrolled"), rtol=1e-5, atol=1e-6)
-    with pytest.raises(NotImplementedError, match=r"least_squares\(adjoint='implicit'\)"):
-        jax.jacfwd(jax.jacrev(loss))(y, "implicit")
-    with pytest.raises(NotImplementedError, match="first order"):
-        jax.grad(lambda y: jnp.sum(jax.grad(loss)(y, "implicit")))(y)
+    grad = jax.jit(jax.grad(loss), static_argnums=1)
+    np.testing.assert_allclose(grad(y, "implicit"), grad(y, "unrolled"), rtol=1e-5, atol=1e-6)
+    hess = jax.jit(jax.jacfwd(jax.jacrev(loss)), static_argnums=1)(y, "implicit")
+    for i in (3, 11):
+        fd = _richardson_row(lambda v: grad(v, "implicit"), y, i)
+        np.testing.assert_allclose(hess[i], fd, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(hess, hess.T, atol=1e-12)
+    np.testing.assert_allclose(jax.jit(jax.hessian(loss), static_argnums=1)(y, "implicit"),
+                               hess, atol=1e-12)
+
+
+def _root_mean_cube(y, dtype=jnp.float64):
+    """f(y) = p*³ where p* minimises ½Σ(p² − yᵢ)²: p*² = mean(y), so f = mean(y)^{3/2} —
+    a nonlinear fit with nonzero residuals and a closed-form derivative of every order."""
+    sol = jo.least_squares(lambda p, y: (p[0] ** 2 - y)[:, None], jnp.ones(1, dtype), y,
+                           gtol=1e-15, xtol=1e-16, cost_rtol=0.0, max_steps=80)
+    return sol.params[0] ** 3
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_implicit_derivatives_of_every_order_equal_the_closed_form(dtype):
+    y = jnp.array([1.0, 1.5, 2.5, 3.0], dtype)
+    n, m = 4, float(jnp.mean(y.astype(jnp.float64)))
+    rtol = 1e-10 if dtype == jnp.float64 else 2e-5  # the solve stops within ~1e-11
+    f = jax.jit(_root_mean_cube)
+    np.testing.assert_allclose(f(y), m**1.5, rtol=rtol)
+    d1 = np.full(n, 1.5 * m**0.5 / n)
+    d2 = np.full((n, n), 0.75 * m**-0.5 / n**2)
+    d3 = np.full((n, n, n), -0.375 * m**-1.5 / n**3)
+    np.testing.assert_allclose(jax.jit(jax.grad(f))(y), d1, rtol=rtol)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(f))(y), d1, rtol=rtol)
+    _, jv = jax.jit(lambda y, t: jax.jvp(f, (y,), (t,)))(y, jnp.ones_like(y))
+    np.testing.assert_allclose(jv, d1.sum(), rtol=rtol)
+    hess = jax.jit(jax.hessian(f))(y)
+    assert hess.dtype == dtype
+    np.testing.assert_allclose(hess, d2, rtol=rtol)
+    np.testing.assert_allclose(jax.jit(jax.jacrev(jax.jacrev(f)))(y), d2, rtol=rtol)
+    if dtype == jnp.float64:
+        np.testing.assert_allclose(jax.jit(jax.jacfwd(jax.jacfwd(jax.jacrev(f))))(y), d3,
+                                   rtol=1e-10)
+        batch = jnp.stack([y, 2.0 * y])
+        hb = jax.jit(jax.vmap(jax.hessian(f)))(batch)
+        np.testing.assert_allclose(hb[1], np.full((n, n), 0.75 * (2 * m) ** -0.5 / n**2),
+                                   rtol=rtol)
+
+
+def test_gauss_newton_adjoint_refuses_a_second_derivative():
+    """J̃ᵀJ̃ drops the Hessian's residual terms: first order is exact for zero residuals
+    only, and a second derivative would be wrong, so it raises."""
+    adj = jo.ImplicitAdjoint(hessian="gauss_newton")
+
+    def f(y):
+        sol = jo.least_squares(lambda p, y: (p[0] ** 2 - y)[:, None], jnp.ones(1), y,
+                               adjoint=adj, **TIGHT)
+        return sol.params[0] ** 3
+
+    y = jnp.array([1.0, 1.5, 2.5, 3.0])
+    assert np.all(np.isfinite(jax.grad(f)(y)))
+    with pytest.raises(NotImplementedError, match=r"gauss_newton.*first order"):
+        jax.hessian(f)(y)
+
+
+@pytest.mark.slow  # a Hessian through an SE3 fit compiles for ~20 s
+def test_pose_fit_implicit_hessian_matches_finite_differences():
+    w = jax.random.normal(jax.random.PRNGKey(5), (8,))
+
+    def loss(obs_flat):
+        sol = jo.least_squares(pose_residual, INIT, obs_flat.reshape(6, 3), **TIGHT)
+        return jnp.dot(w, ravel_pytree(sol.params)[0]) + sol.cost
+
+    x = OBS.reshape(-1)
+    hess = jax.jit(jax.jacfwd(jax.jacrev(loss)))(x)
+    grad = jax.jit(jax.grad(loss))
+    for i in (0, 7):
+        np.testing.assert_allclose(hess[i], _richardson_row(grad, x, i), rtol=1e-6, atol=1e-7)
 
 
 @pytest.mark.slow  # an eager Hessian through the unrolled LM loop (minutes of tracing)
 def test_second_derivative_through_unrolled_adjoint_matches_finite_differences():
-    """The unrolled adjoint, which the implicit rule's error points to, gives the second
-    derivative (one Hessian row against central differences of the gradient)."""
+    """The unrolled adjoint gives the second derivative too (one Hessian row against
+    central differences of the gradient)."""
     loss, y = _huber_fit_loss, _Y
     e = jnp.zeros_like(y).at[3].set(1e-5)
     hess = jax.jacfwd(jax.jacrev(loss))(y, "unrolled")
