@@ -303,25 +303,3 @@ class LQR(eqx.Module):
                 "which enforce them by projected Newton"
             )
         return lqr(self.system, self.cost, x0, self.horizon)
-
-
-def lqr_resolve(
-    F: Array, c: Array, cT: Array, x0: Array, K: Array, L: Array
-) -> tuple[Array, Array]:
-    """Re-solve an LQR problem with zero offsets whose quadratic part (F, C, C_T) is
-    unchanged, for new linear terms ``c`` (T, n+m), ``c_T`` (n,) and ``x0``, reusing the
-    gains ``K`` and the Cholesky factors ``L`` of Q_uu from :func:`riccati` (no
-    ``free`` mask, no regularisation). Only the vector recursion
-    ``q = c_t + F_tᵀ v``, ``k_t = −Q_uu⁻¹ q_u``, ``v ← q_x + K_tᵀ q_u`` and a rollout
-    remain: O(T·n·(n+m)) instead of O(T·(n+m)³). Returns ``(xs, us)``."""
-    n = F.shape[1]
-
-    def step(v: Array, inp: tuple[Array, ...]):
-        Ft, ct, Kt, Lt = inp
-        q = ct + Ft.T @ v
-        qx, qu = q[:n], q[n:]
-        kt = -cho_solve((Lt, True), qu)
-        return qx + Kt.T @ qu, kt
-
-    _, k = jax.lax.scan(step, cT, (F, c, K, L), reverse=True)
-    return policy_rollout(F, jnp.zeros(F.shape[:2], F.dtype), K, k, x0)

@@ -32,14 +32,12 @@ import numpy as np
 
 from ..dynamics._checks import as_array, check_horizon
 from ..dynamics._system import LTI, LTV, System
-from ..optim._implicit import first_order_only
+from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
 from ._cost import Cost, QuadraticCost
 from ._ilqr import ILQRSolution, _bounds, _dynamics_jacobians, ilqr
 from ._lqr import (
     lq_problem,
-    lqr_resolve,
-    lqr_solve,
     policy_rollout,
     riccati,
 )
@@ -118,123 +116,93 @@ def _solve(
 # ----------------------------------------------------------------------------------
 # Implicit differentiation
 # ----------------------------------------------------------------------------------
-@eqx.filter_custom_vjp
+@eqx.filter_custom_jvp
 def _solve_implicit(
-    params: tuple[System, Cost, Array], u_init: Array, bounds: Any, cfg: _Config
+    params: tuple[System, Cost, Array], u_init: Array, bounds: Any, *, cfg: _Config
 ) -> tuple[Array, Array, Array, Array]:
     system, cost, x0 = params
     return _solve(system, cost, x0, u_init, bounds, cfg)[0]
 
 
-@_solve_implicit.def_fwd
-def _solve_implicit_fwd(
-    perturbed: Any, params: tuple[System, Cost, Array], u_init: Array, bounds: Any, cfg: _Config
-):
-    system, cost, x0 = params
-    out, factors = _solve(system, cost, x0, u_init, bounds, cfg)
-    return out, (out[0], out[1], factors)
+@_solve_implicit.def_jvp
+def _solve_implicit_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...], *, cfg: _Config):
+    params, u_init, bounds = primals
+    t_params, _, t_bounds = tangents
+    out = _solve_implicit(params, u_init, bounds, cfg=cfg)  # differentiable again
+    wx, wu = _trajectory_tangent(params, t_params, out[0], out[1], bounds, t_bounds)
+    return out, (wx, wu, None, None)
 
 
-@_solve_implicit.def_bwd
-def _solve_implicit_bwd(
-    residuals: tuple[Array, Array, Any],
-    grad_obj: Any,
-    perturbed: Any,
+def _trajectory_tangent(
     params: tuple[System, Cost, Array],
-    u_init: Array,
-    bounds: Any,
-    cfg: _Config,
-):
-    xs, us, factors = residuals
-    gx, gu = grad_obj[0], grad_obj[1]
-    gx = jnp.zeros_like(xs) if gx is None else gx
-    gu = jnp.zeros_like(us) if gu is None else gu
-    grads = _implicit_vjp(params, xs, us, gx, gu, bounds, factors=factors)
-    return jax.tree.map(
-        lambda g, p: g if p else None, grads, perturbed, is_leaf=lambda v: v is None
-    )
-
-
-def _implicit_vjp(
-    params: tuple[System, Cost, Array],
+    t_params: Any,
     xs: Array,
     us: Array,
-    gx: Array,
-    gu: Array,
-    bounds: Any = None,
-    t0: Any = 0,
-    factors: Any = None,
-) -> tuple[System, Cost, Array]:
-    """Cotangents of ``(system, cost, x0)`` from cotangents ``gx`` (T+1, n), ``gu``
-    (T, m) of a locally optimal trajectory ``(xs, us)``, by the implicit function
-    theorem on the KKT conditions (one LQR-structured solve). ``factors = (K, L)``
-    from the forward Riccati pass of a linear–quadratic problem without limits are
-    reused (the KKT matrix is the same), leaving only a vector recursion."""
+    bounds: Any,
+    t_bounds: Any,
+) -> tuple[Array, Array]:
+    """Tangent ``(ẋ (T+1, n), u̇ (T, m))`` of a locally optimal trajectory ``(xs, us)``
+    along the parameter tangent ``t_params`` (and ``t_bounds``, moving the active
+    limits), by the implicit function theorem on the KKT conditions. The tangent system is
+    itself an LQR problem: min ½ wᵀ H w + ċᵀ w s.t. w_{t+1} = F_t w_t + ḟ_t, w_0 = ẋ0,
+    with H the Lagrangian Hessian, F the dynamics Jacobians, ċ = ∂_θ∇_τL·θ̇ and
+    ḟ = ∂_θ f·θ̇ (active control limits held at their own tangents). Linear in the
+    tangents and written with differentiable operations on ``(xs, us)``, so reverse mode
+    is its transpose and every order is exact."""
     system, cost, x0 = params
     T, m = us.shape
     n = xs.shape[-1]
-    ts = jnp.asarray(t0) + jnp.arange(T)
-    xs, us = first_order_only((xs, us), "MPC(gradient='implicit')")
-    f = system.state_transition
+    ts = jnp.arange(T)
     F = _dynamics_jacobians(system, xs[:-1], us, ts)
-    # Costates λ_t (λ_0 is the multiplier of x_0 = x0): λ_T = ∇ℓ_T, λ_t = ∇_x ℓ_t + A_tᵀ λ_{t+1}.
+    # Costates: λ_T = ∇ℓ_T, λ_t = ∇_x ℓ_t + A_tᵀ λ_{t+1}.
     H, g = jax.vmap(cost.quadratize)(xs[:-1], us, ts)
     HT, gT = cost.quadratize_terminal(xs[-1])
 
     def costate(lam: Array, inp: tuple[Array, Array]):
         Ft, gt = inp
-        lam_t = gt[:n] + Ft[:, :n].T @ lam
-        return lam_t, lam
+        return gt[:n] + Ft[:, :n].T @ lam, lam
 
     _, lam_next = jax.lax.scan(costate, gT, (F, g), reverse=True)  # λ_{t+1}, (T, n)
     if not system.is_linear:
 
         def dyn_hess(x: Array, u: Array, t: Array, lam: Array) -> Array:
-            fn = lambda tau: lam @ f(tau[:n], tau[n:], t)
+            fn = lambda tau: lam @ system.state_transition(tau[:n], tau[n:], t)
             return jax.hessian(fn)(jnp.concatenate([x, u]))
 
         H = H + jax.vmap(dyn_hess)(xs[:-1], us, ts, lam_next)
-    free = None
-    if bounds is not None:
-        lo, hi = bounds
-        free = ~((us <= lo) | (us >= hi))
-    # KKT solve: min ½ wᵀ H w − ḡᵀ w  s.t. linearised dynamics, w_x0 = 0.
-    gtau = jnp.concatenate([gx[:-1], gu], -1)
-    zero_f = jnp.zeros((T, n), xs.dtype)
-    w0 = jnp.zeros((n,), xs.dtype)
-    if factors is not None and system.is_linear and free is None:
-        wx, wu = lqr_resolve(F, -gtau, -gx[-1], w0, *factors)
-    else:
-        sol = lqr_solve(F, zero_f, H, -gtau, w0, HT, -gx[-1], free)
-        wx, wu = sol.x, sol.u
-    wtau = jnp.concatenate([wx[:-1], wu], -1)
-    # Multipliers of the linearised constraints.
-    wyT = HT @ wx[-1] - gx[-1]
 
-    def mult(wy: Array, inp: tuple[Array, ...]):
-        Ht, Ft, wt, gt = inp
-        wy_t = (Ht @ wt + Ft.T @ wy - gt)[:n]
-        return wy_t, wy
-
-    wy0, wy_next = jax.lax.scan(mult, wyT, (H, F, wtau, gtau), reverse=True)
-
-    def S(p: tuple[System, Cost, Array]) -> Array:
+    def kkt_terms(p: tuple[System, Cost, Array]) -> tuple[Array, Array, Array, Array]:
+        """∇_τ L_t (T, n+m), ∇ℓ_T (n,), f_t (T, n) at the fixed trajectory, and x0."""
         sys_, cost_, x0_ = p
 
-        def stage(
-            x: Array, u: Array, t: Array, lam: Array, wxt: Array, wut: Array, wyt: Array
-        ) -> Array:
-            lag = lambda xx, uu: cost_.stage(xx, uu, t) + lam @ sys_.state_transition(xx, uu, t)
-            _, d = jax.jvp(lag, (x, u), (wxt, wut))
-            return d + wyt @ sys_.state_transition(x, u, t)
+        def stage(x: Array, u: Array, t: Array, lam: Array) -> tuple[Array, Array]:
+            def lag(tau: Array) -> Array:
+                xx, uu = tau[:n], tau[n:]
+                return cost_.stage(xx, uu, t) + lam @ sys_.state_transition(xx, uu, t)
 
-        total = jnp.sum(jax.vmap(stage)(xs[:-1], us, ts, lam_next, wx[:-1], wu, wy_next))
-        _, dT = jax.jvp(cost_.terminal, (xs[-1],), (wx[-1],))
-        return total + dT + wy0 @ x0_
+            return jax.grad(lag)(jnp.concatenate([x, u])), sys_.state_transition(x, u, t)
 
-    diff, static = eqx.partition(params, eqx.is_inexact_array)
-    grads = jax.grad(lambda d: S(eqx.combine(d, static)))(diff)
-    return jax.tree.map(jnp.negative, grads)
+        c, f = jax.vmap(stage)(xs[:-1], us, ts, lam_next)
+        return c, jax.grad(cost_.terminal)(xs[-1]), f, x0_
+
+    _, (c_dot, cT_dot, f_dot, x0_dot) = _jvp_where(kkt_terms, params, t_params)
+    free, d = None, jnp.zeros_like(us)
+    if bounds is not None:
+        lo, hi = bounds
+        at_lo, at_hi = us <= lo, us >= hi
+        free = ~(at_lo | at_hi)
+        if t_bounds is not None:  # active limits move the clamped controls
+            t_lo, t_hi = t_bounds
+            if t_lo is not None:
+                d = d + jnp.where(at_lo, t_lo, 0.0)
+            if t_hi is not None:
+                d = d + jnp.where(at_hi & ~at_lo, t_hi, 0.0)
+        # the fixed part d of u̇ enters the dynamics offset and the linear cost term
+        f_dot = f_dot + jnp.einsum("tij,tj->ti", F[:, :, n:], d)
+        c_dot = c_dot + jnp.einsum("tij,tj->ti", H[:, :, n:], d)
+    K, k, _, _, _, _ = riccati(F, f_dot, H, c_dot, HT, cT_dot, free)
+    wx, wu = policy_rollout(F, f_dot, K, k, x0_dot)
+    return wx, wu + d
 
 
 # ----------------------------------------------------------------------------------
@@ -332,7 +300,9 @@ class MPC(eqx.Module):
 
     def _solve_one(self, x0: Array, u_init: Array, bounds: Any, cfg: _Config) -> MPCSolution:
         if self.gradient == "implicit":
-            xs, us, status, it = _solve_implicit((self.system, self.cost, x0), u_init, bounds, cfg)
+            xs, us, status, it = _solve_implicit(
+                (self.system, self.cost, x0), u_init, bounds, cfg=cfg
+            )
         else:
             xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, cfg)[0]
         cost = self.cost.total(xs, us)

@@ -85,7 +85,7 @@ def first_order_only(x: PyTree, what: str) -> PyTree:
     return ident(x)
 
 
-def _jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple[Any, Any]:
+def jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple[Any, Any]:
     """``jax.jvp(f, (tree,), (t_tree,))`` where ``t_tree`` mirrors ``tree`` with ``None``
     for leaves without a tangent (symbolic zeros, non-arrays): only the others vary."""
     none = lambda x: x is None  # noqa: E731
@@ -139,7 +139,7 @@ def _implicit_jvp(
         return prob.cost(lift(eps), a)
 
     # b = ∂(∇_δ φ)/∂θ · θ̇ (linear in θ̇)
-    _, b = _jvp_where(lambda th: jax.grad(phi)(flat0, th), theta, t_theta)
+    _, b = jvp_where(lambda th: jax.grad(phi)(flat0, th), theta, t_theta)
     if adjoint.hessian == "exact":
         hess = jax.hessian(phi)(flat0, theta)
         hess = 0.5 * (hess + hess.T)
@@ -157,7 +157,7 @@ def _implicit_jvp(
         (a, prob), p0 = th_p0
         return prob.cost(x_star, a), prob.cost(p0, a)
 
-    _, (dcost, dinit) = _jvp_where(costs, (theta, params0), (t_theta, t_params0))
+    _, (dcost, dinit) = jvp_where(costs, (theta, params0), (t_theta, t_params0))
     dcost = dcost + jnp.dot(jax.grad(phi)(flat0, theta), eps_dot)
     t_sol = Solution(x_dot, None, None, None, dcost, dinit, None, None)  # None: no tangent
     return sol, t_sol
@@ -185,4 +185,4 @@ def implicit_solve(
     return _implicit((args, problem), params0, run=run, adjoint=adjoint)
 
 
-__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "first_order_only", "implicit_solve"]
+__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "first_order_only", "implicit_solve", "jvp_where"]

@@ -211,22 +211,57 @@ def _limited_effort(a01, gradient):
     return jnp.sum(mpc(jnp.array([1.0, 0.0])).u ** 2)
 
 
-def test_second_derivative_through_implicit_mpc_raises_not_wrong():
-    """d²(Σu²)/dA[0,1]² through MPC with limits came out -23.59 where finite differences
-    give -79.98. Until the implicit rule is exact at second order it must refuse; the
-    unrolled gradient gives the second derivative."""
-    effort = _limited_effort
-    assert np.isfinite(float(jax.grad(effort)(0.1, "implicit")))
-    with pytest.raises(NotImplementedError, match=r"MPC\(gradient='implicit'\).*first order"):
-        jax.jacfwd(jax.jacrev(effort))(0.1, "implicit")
-    with pytest.raises(NotImplementedError, match="first order"):
-        jax.grad(jax.grad(effort))(0.1, "implicit")
+def _second_difference(f, a, h=1e-3):
+    """Richardson-extrapolated second central difference of a scalar function."""
+    d = lambda h: (f(a + h) - 2 * f(a) + f(a - h)) / h**2  # noqa: E731
+    return (4 * d(h / 2) - d(h)) / 3
+
+
+@pytest.mark.parametrize("limits", [True, False], ids=["limits", "no_limits"])
+def test_second_derivative_through_implicit_mpc_matches_finite_differences(limits):
+    """Issue 16's case (d²(Σu²)/dA[0,1]² through MPC with limits ±0.5, and without):
+    the former backward pass held the trajectory fixed and missed most of the second
+    derivative. The custom_jvp rule is exact at every order."""
+
+    def effort(a01):
+        A = jnp.array([[1.0, a01], [0.0, 1.0]])
+        B = jnp.array([[0.0], [0.1]])
+        lim = dict(u_lower=-0.5, u_upper=0.5) if limits else {}
+        mpc = MPC(LTI(A, B), QuadraticCost(jnp.eye(3)), 10, **lim)
+        return jnp.sum(mpc(jnp.array([1.0, 0.0])).u ** 2)
+
+    f = jax.jit(effort)
+    d2 = float(jax.jit(jax.jacfwd(jax.jacrev(effort)))(0.1))
+    assert d2 == pytest.approx(float(jax.jit(jax.hessian(effort))(0.1)), rel=1e-12)
+    assert d2 == pytest.approx(float(jax.jit(jax.grad(jax.grad(effort)))(0.1)), rel=1e-12)
+    fd = float(_second_difference(f, 0.1))
+    assert d2 == pytest.approx(fd, rel=1e-5)
+    d1 = float(jax.jit(jax.jacfwd(effort))(0.1))
+    assert d1 == pytest.approx(float(jax.jit(jax.grad(effort))(0.1)), rel=1e-12)
+
+
+def test_implicit_mpc_derivative_wrt_active_control_limits():
+    """An active limit moves its clamped controls (and through them the free ones):
+    d(Σu)/d(u_upper) and the second derivative against central differences."""
+
+    def total(hi):
+        mpc = MPC(LTI(jnp.array([[1.0, 0.1], [0.0, 1.0]]), jnp.array([[0.0], [0.1]])),
+                  QuadraticCost(jnp.eye(3)), 10, u_lower=-0.5, u_upper=hi)
+        return jnp.sum(mpc(jnp.array([-5.0, 0.0])).u)  # the first 4 controls at u_upper
+
+    f = jax.jit(total)
+    g = float(jax.jit(jax.grad(total))(0.5))
+    fd = float((f(0.5 + 1e-5) - f(0.5 - 1e-5)) / 2e-5)
+    assert g == pytest.approx(fd, rel=1e-6, abs=1e-8)
+    assert abs(g) > 0.5  # at least one control is at the limit
+    assert float(jax.jit(jax.hessian(total))(0.5)) == pytest.approx(
+        float(_second_difference(f, 0.5, 1e-3)), rel=1e-4, abs=1e-6)
 
 
 @pytest.mark.slow  # an eager Hessian through 10 unrolled box-QP solves (minutes of tracing)
 def test_second_derivative_through_unrolled_mpc_matches_finite_differences():
-    """The unrolled gradient, which the implicit rule's error points to, gives the second
-    derivative of the issue-16 case (-79.98 by finite differences)."""
+    """The unrolled gradient gives the second derivative of the issue-16 case too
+    (-79.98 by finite differences)."""
     effort = _limited_effort
     d2 = float(jax.jacfwd(jax.jacrev(effort))(0.1, "unroll"))
     f = jax.jit(lambda a: effort(a, "unroll"))
