@@ -96,7 +96,7 @@ def build_structure(
             if idx.size and (idx.min() < 0 or idx.max() >= c):
                 raise IndexError(f"FactorGraph(fixed[{n!r}]): index out of range for {c} variables")
             mask[idx] = 0.0
-        free.append(jnp.asarray(mask))
+        free.append(np.asarray(mask))
 
     pairs = []
     for f in factors:
@@ -108,7 +108,7 @@ def build_structure(
     for f in factors:
         n_pairs = len(slot_pairs(len(f.slots)))
         block_class.append(tuple(c for c, _ in located[k : k + n_pairs]))
-        block_index.append(tuple(jnp.asarray(i, jnp.int32) for _, i in located[k : k + n_pairs]))
+        block_index.append(tuple(np.asarray(i, np.int32) for _, i in located[k : k + n_pairs]))
         k += n_pairs
     schur = None
     if eliminate is not None:
@@ -240,7 +240,7 @@ def build_schur(
     u_class, u_index, i = [], [], 0
     for pairs in u_pairs:
         u_class.append(tuple(c for c, _ in located[i : i + len(pairs)]))
-        u_index.append(tuple(jnp.asarray(x, jnp.int32) for _, x in located[i : i + len(pairs)]))
+        u_index.append(tuple(np.asarray(x, np.int32) for _, x in located[i : i + len(pairs)]))
         i += len(pairs)
     pair_classes, pa, pb, pblk = [], [], [], []
     for (k1, k2, la, lb, va, vb), (c, blk) in zip(pair_groups, located[i:], strict=True):
@@ -264,8 +264,8 @@ def build_schur(
         order = np.argsort(key)
         idx = order[np.searchsorted(key[order], cols * (kc[kb] + kc[ka]) + rows)]
         mirror_classes.append((c, m, ka == kb))
-        mirror_mask.append(jnp.asarray(rows > cols))
-        mirror_index.append(jnp.asarray(idx, jnp.int32))
+        mirror_mask.append(np.asarray(rows > cols))
+        mirror_index.append(np.asarray(idx, np.int32))
     return SchurStructure(
         eliminated=e,
         kept=kept,
@@ -276,9 +276,9 @@ def build_schur(
         u_index=tuple(u_index),
         w_slots=tuple(w_slots),
         w_counts=tuple(w_counts),
-        w_order=tuple(jnp.asarray(o, jnp.int32) for o in w_order),
-        w_point=tuple(jnp.asarray(x, jnp.int32) for x in wp),
-        w_var=tuple(jnp.asarray(x, jnp.int32) for x in wv),
+        w_order=tuple(np.asarray(o, np.int32) for o in w_order),
+        w_point=tuple(np.asarray(x, np.int32) for x in wp),
+        w_var=tuple(np.asarray(x, np.int32) for x in wv),
         pair_classes=tuple(pair_classes),
         pair_a=tuple(pa),
         pair_b=tuple(pb),
@@ -294,7 +294,7 @@ def _chunked(x: np.ndarray, fill: int) -> Array:
     of x.size when that is smaller (small problems do not pay for a whole chunk)."""
     size = min(CHUNK, 1 << max(int(x.size) - 1, 0).bit_length())
     pad = (-x.size) % size
-    return jnp.asarray(np.pad(x, (0, pad), constant_values=fill).reshape(-1, size), jnp.int32)
+    return np.asarray(np.pad(x, (0, pad), constant_values=fill).reshape(-1, size), np.int32)
 
 
 def _block_coords(pattern: BlockPattern, c: int) -> tuple[np.ndarray, np.ndarray]:

@@ -108,6 +108,12 @@ class Factor(eqx.Module):
                 raise TypeError(
                     f"Factor(variables[{k}]): expected a (type_name, indices) pair, got {slot!r}"
                 )
+            if isinstance(slot[1], jax.core.Tracer):
+                raise TypeError(
+                    f"Factor(variables[{k}]): indices must be concrete (numpy or Python "
+                    f"ints), not traced: a graph's structure is static; trace its data "
+                    f"and information instead"
+                )
             ind = np.asarray(slot[1])
             if ind.ndim != 1 or not np.issubdtype(ind.dtype, np.integer):
                 raise ValueError(
@@ -121,7 +127,7 @@ class Factor(eqx.Module):
                     f"Factor(variables[{k}]): {ind.shape[0]} indices, but slot 0 has {count}"
                 )
             slots.append(slot[0])
-            idx.append(jnp.asarray(ind, jnp.int32))
+            idx.append(np.asarray(ind, np.int32))  # static structure, concrete under jit
         assert count is not None
         for leaf in jax.tree.leaves(data, is_leaf=lambda x: isinstance(x, LieGroup)):
             lead = leaf.shape[0] if not isinstance(leaf, LieGroup) else (leaf.shape or (None,))[0]
@@ -150,7 +156,13 @@ class Factor(eqx.Module):
 
 
 def _sqrt_information(information: Any, count: int) -> Array:
-    """Upper Cholesky factor S (Ω = SᵀS), (m, r, r); rejects non-SPD matrices eagerly."""
+    """Upper Cholesky factor S (Ω = SᵀS), (m, r, r); rejects non-SPD matrices eagerly.
+
+    Traced information (a Factor built inside ``jit``/``grad``, e.g. learned weights) is
+    factorised with ``jnp`` (differentiable); a matrix that is not positive definite then
+    raises at run time (``eqx.error_if``)."""
+    if isinstance(information, jax.core.Tracer):
+        return _traced_sqrt_information(information, count)
     om = np.asarray(information, dtype=np.float64)
     if om.ndim == 2:
         om = np.broadcast_to(om, (count, *om.shape))
@@ -176,6 +188,23 @@ def _sqrt_information(information: Any, count: int) -> Array:
             f"positive definite (smallest eigenvalue {eig[bad]:.3g})"
         ) from None
     return jnp.asarray(np.swapaxes(lower, 1, 2))
+
+
+def _traced_sqrt_information(information: Array, count: int) -> Array:
+    om = jnp.asarray(information)
+    if om.ndim == 2:
+        om = jnp.broadcast_to(om, (count, *om.shape))
+    if om.ndim != 3 or om.shape[0] != count or om.shape[1] != om.shape[2]:
+        raise ValueError(
+            f"Factor(information): expected shape ({count}, r, r) or (r, r), got {om.shape}"
+        )
+    lower = jnp.linalg.cholesky(0.5 * (om + jnp.swapaxes(om, 1, 2)))
+    lower = eqx.error_if(
+        lower,
+        ~jnp.all(jnp.isfinite(lower)),
+        "Factor(information): an information matrix is not positive definite (or not finite)",
+    )
+    return jnp.swapaxes(lower, 1, 2)
 
 
 # ----------------------------------------------------------------------------------

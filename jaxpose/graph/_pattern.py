@@ -113,8 +113,8 @@ def build_pattern(
     block_rows, block_cols = [], []
     for c in present:
         sel = order[cls_sorted == c]  # this class's blocks in rank order
-        block_rows.append(jnp.asarray(ka[sel] - base[var_type[ka[sel]]], jnp.int32))
-        block_cols.append(jnp.asarray(kb[sel] - base[var_type[kb[sel]]], jnp.int32))
+        block_rows.append(np.asarray(ka[sel] - base[var_type[ka[sel]]], np.int32))
+        block_cols.append(np.asarray(kb[sel] - base[var_type[kb[sel]]], np.int32))
 
     located = []
     for (ta, _, tb, _), (a, b) in zip(pairs, glob, strict=True):
@@ -125,10 +125,10 @@ def build_pattern(
         classes=classes,
         size=size,
         nnz=int(rows.size),
-        indices=jnp.asarray(cols, jnp.int32),
-        indptr=jnp.asarray(indptr, jnp.int32),
-        diag_pos=jnp.asarray(diag_pos, jnp.int32),
-        perm=jnp.asarray(perm, jnp.int32),
+        indices=np.asarray(cols, np.int32),
+        indptr=np.asarray(indptr, np.int32),
+        diag_pos=np.asarray(diag_pos, np.int32),
+        perm=np.asarray(perm, np.int32),
         block_rows=tuple(block_rows),
         block_cols=tuple(block_cols),
     )

@@ -264,21 +264,35 @@ def hessian_vector(graph: FactorGraph, lin: GraphLinearization, v: Array) -> Arr
     return join(out)
 
 
-def hessian_blocks(graph: FactorGraph, lin: GraphLinearization) -> list[Array]:
-    """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``."""
+def assemble_blocks(
+    graph: FactorGraph, pair_block: Any, dtype: Any
+) -> list[Array]:
+    """A matrix with H's block pattern from per-factor blocks: ``pair_block(k, s, t)``
+    gives factor group k's (m, d_s, d_t) blocks of slot pair (s, t). Returns the class
+    arrays of ``graph.structure.pattern``."""
     st = graph.structure
     contributions = []
-    for f, jac, classes, indices in zip(
-        graph.factors, lin.jacobians, st.block_class, st.block_index, strict=True
+    for k, (f, classes, indices) in enumerate(
+        zip(graph.factors, st.block_class, st.block_index, strict=True)
     ):
-        prods: dict[tuple[int, int], Array] = {}
         for (s, t), c, idx in zip(slot_pairs(len(f.slots)), classes, indices, strict=True):
-            # J_sᵀJ_t; the block (t, s) below the diagonal is the transpose of (s, t)
-            prods[s, t] = (
-                prods[t, s].mT if t < s else jnp.einsum("mri,mrj->mij", jac[s], jac[t])
-            )
-            contributions.append((c, idx, prods[s, t]))
-    return scatter_blocks(st.pattern.zeros(lin.cost.dtype), contributions)
+            contributions.append((c, idx, pair_block(k, s, t)))
+    return scatter_blocks(st.pattern.zeros(dtype), contributions)
+
+
+def hessian_blocks(graph: FactorGraph, lin: GraphLinearization) -> list[Array]:
+    """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``."""
+    cache: dict[tuple[int, int, int], Array] = {}
+
+    def jtj(k: int, s: int, t: int) -> Array:
+        # J_sᵀJ_t; the block (t, s) below the diagonal is the transpose of (s, t)
+        if (k, t, s) in cache:
+            return cache[k, t, s].mT
+        jac = lin.jacobians[k]
+        cache[k, s, t] = jnp.einsum("mri,mrj->mij", jac[s], jac[t])
+        return cache[k, s, t]
+
+    return assemble_blocks(graph, jtj, lin.cost.dtype)
 
 
 def csr_values(graph: FactorGraph, lin: GraphLinearization) -> Array:

@@ -38,6 +38,7 @@ from ..optim._stopping import Stopping
 from ..optim._strategies import LambdaFactor, NormalEquations, Strategy
 from ..results import Results
 from . import _linear as linear
+from ._implicit import solve_differentiable
 from ._problem import (
     FactorGraph,
     Variables,
@@ -296,6 +297,12 @@ def solve(
     Compiled with ``eqx.filter_jit``: the graph's arrays (variables, measurements,
     information, weights) are traced and its structure and the options are static, so a
     repeated call on a graph of the same structure with new values reuses the program.
+
+    Differentiable, exactly and at every order (``grad``, ``jvp``, ``jacfwd``,
+    ``hessian``), with respect to every floating-point array of the graph (measurements,
+    information, factor data) by the implicit function theorem at the solution, solved
+    sparse (see :mod:`jaxpose.graph._implicit`). The derivative with respect to the
+    starting values is zero.
     """
     linear_solver = _option(linear_solver, GraphLinearSolver, "linear_solver")
     damping = _option(damping, Damping, "damping")
@@ -311,9 +318,27 @@ def solve(
         raise TypeError(
             f"solve(stopping): expected a jaxpose.optim Stopping, got {type(stopping).__name__}"
         )
+    x0 = graph.variables if variables is None else variables
+    return solve_differentiable(
+        _run, graph, x0, strategy=strategy, stopping=stopping, linear_solver=linear_solver,
+        damping=damping, cg=cg, verbose=verbose,
+    )
+
+
+def _run(
+    graph: FactorGraph,
+    x0: Variables,
+    *,
+    strategy: Strategy,
+    stopping: Stopping | None,
+    linear_solver: GraphLinearSolver,
+    damping: Damping,
+    cg: PCG,
+    verbose: bool,
+) -> GraphSolution:
+    """The Levenberg–Marquardt loop of :func:`solve` (options already checked)."""
     method = linear_solver.resolve(graph)
     st = graph.structure
-    x0 = graph.variables if variables is None else variables
     lin0 = linearize(graph, x0)
     dtype = lin0.cost.dtype
     stopping = default_stopping(dtype=dtype) if stopping is None else stopping

@@ -1,0 +1,134 @@
+"""Exact derivatives of ``graph.solve`` (sparse implicit rule) at first and second order:
+against Richardson-extrapolated finite differences, against the dense ``least_squares``
+implicit derivatives of the same problem, and closed forms; jvp, vmap, a graph built
+inside the differentiated function (traced measurements and information)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxpose.optim as jo
+from jaxpose import graph as G
+from jaxpose.graph._factor import between_residual
+from jaxpose.lie import SE2
+
+N = 6
+_TH = 0.7 * np.arange(N)
+TRUTH = SE2(jnp.asarray(np.stack([np.cos(_TH), np.sin(_TH), np.cos(_TH + 1), np.sin(_TH + 1)], -1)))
+EDGES = np.array([[i, i + 1] for i in range(N - 1)] + [[0, 3], [1, 5], [2, 4]])
+Z_TRUE = TRUTH[EDGES[:, 0]].inv() @ TRUTH[EDGES[:, 1]]
+_rng = np.random.default_rng(0)
+NOISE = jnp.asarray(0.1 * _rng.normal(size=(len(EDGES), 3)))
+X0 = TRUTH.retract(jnp.asarray(0.2 * _rng.normal(size=(N, 3))))
+W = jnp.asarray(_rng.normal(size=(N, 4)))
+INFO = jnp.diag(jnp.array([1.0, 2.0, 3.0]))
+TIGHT = jo.Stopping(max_steps=100, cost_rtol=0.0, gtol=1e-14, xtol=0.0)
+
+
+def solved(noise, scale=1.0, kernel=None):
+    """Poses of the loop graph whose measurements are Z_TRUE ⊕ noise, information
+    scale·INFO (both traced), first pose fixed."""
+    info = jnp.broadcast_to(INFO * scale, (len(EDGES), 3, 3))
+    f = G.Factor(between_residual, [("pose", EDGES[:, 0]), ("pose", EDGES[:, 1])],
+                 data=Z_TRUE.retract(noise), information=info, kernel=kernel)
+    graph = G.FactorGraph([f], {"pose": X0}, fixed={"pose": np.array([0])})
+    return G.solve(graph, stopping=TIGHT)
+
+
+def loss(noise, scale=1.0, kernel=None):
+    sol = solved(noise, scale, kernel)
+    return jnp.sum(W * sol.variables["pose"].data) + sol.cost
+
+
+def _richardson(f, x, eps=1e-3):
+    """Central differences of f: R^k → R^m, Richardson-extrapolated, shape (m, k)."""
+    cols = []
+    for i in range(x.size):
+        e = jnp.zeros(x.size, x.dtype).at[i].set(eps).reshape(x.shape)
+        d1 = (f(x + e) - f(x - e)) / (2 * eps)
+        d2 = (f(x + e / 2) - f(x - e / 2)) / eps
+        cols.append(np.ravel((4 * d2 - d1) / 3))
+    return np.stack(cols, -1)
+
+
+GRAD = jax.jit(jax.grad(loss))  # shared by the tests below (one compilation)
+
+
+@pytest.mark.slow  # compiles grad through graph.solve twice more (~35 s)
+@pytest.mark.parametrize("kernel", [None, jo.Cauchy(0.3)], ids=["plain", "cauchy"])
+def test_gradient_matches_finite_differences(kernel):
+    grad = jax.jit(jax.grad(lambda n: loss(n, 1.0, kernel)))(NOISE)
+    fd = _richardson(jax.jit(lambda n: loss(n, 1.0, kernel)[None]), NOISE)
+    # the solve resolves X* to ~1e-9 (the cost's rounding), so the differences carry
+    # ~1e-6 of noise; the exact comparison is the dense-path test below
+    np.testing.assert_allclose(np.ravel(grad), fd[0], rtol=1e-5, atol=1e-5)
+
+
+def test_solution_jacobian_equals_dense_least_squares_implicit_derivative():
+    """The same problem through optim.least_squares (dense, its own implicit rule)."""
+
+    def dense(noise):
+        z = Z_TRUE.retract(noise)
+        s = jnp.linalg.cholesky(INFO).T
+
+        def residual(p, z):
+            poses = SE2(jnp.concatenate([X0.data[:1], p.data], 0))
+            r = jax.vmap(between_residual)(poses[EDGES[:, 0]], poses[EDGES[:, 1]], z)
+            return r @ s.T
+
+        sol = jo.least_squares(residual, X0[1:], z, gtol=1e-14, xtol=0.0, cost_rtol=0.0,
+                               max_steps=100)
+        return sol.params.data
+
+    sparse = jax.jit(jax.jacfwd(lambda n: solved(n).variables["pose"].data[1:]))(NOISE)
+    np.testing.assert_allclose(sparse, jax.jit(jax.jacrev(dense))(NOISE), atol=1e-9)
+
+
+@pytest.mark.slow  # four more compilations of derivatives of graph.solve (~70 s)
+def test_information_scale_closed_form_and_jvp():
+    """Scaling every information matrix by s leaves X* unchanged and scales the cost:
+    d cost/ds = cost/s, d²cost/ds² = 0, dX*/ds = 0."""
+    s = jnp.asarray(1.5)
+    sol = solved(NOISE, s)
+    dx = jax.jit(jax.jacfwd(lambda s: solved(NOISE, s).variables["pose"].data))(s)
+    np.testing.assert_allclose(dx, 0.0, atol=1e-9)
+    dc = jax.jit(jax.grad(lambda s: solved(NOISE, s).cost))(s)
+    assert float(dc) == pytest.approx(float(sol.cost / s), rel=1e-10)
+    d2 = jax.jit(jax.hessian(lambda s: solved(NOISE, s).cost))(s)
+    assert abs(float(d2)) < 1e-10
+    v = jnp.asarray(_rng.normal(size=NOISE.shape))
+    jv = jax.jit(lambda n: jax.jvp(loss, (n,), (v,))[1])(NOISE)
+    g = GRAD(NOISE)
+    assert float(jv) == pytest.approx(float(jnp.sum(g * v)), rel=1e-10)
+
+
+def test_second_derivative_matches_finite_differences_of_the_gradient():
+    grad = GRAD
+    hess = jax.jit(jax.jacfwd(jax.grad(loss)))(NOISE)  # (8, 3, 8, 3)
+    for i, j in ((1, 2), (6, 0)):
+        e = jnp.zeros_like(NOISE).at[i, j].set(1e-3)
+        d1 = (grad(NOISE + e) - grad(NOISE - e)) / 2e-3
+        d2 = (grad(NOISE + e / 2) - grad(NOISE - e / 2)) / 1e-3
+        np.testing.assert_allclose(hess[:, :, i, j], (4 * d2 - d1) / 3, rtol=1e-4, atol=1e-5)
+    flat = hess.reshape(NOISE.size, NOISE.size)
+    np.testing.assert_allclose(flat, flat.T, atol=1e-9)
+
+
+@pytest.mark.slow  # a vmapped gradient through graph.solve compiles for ~25 s
+def test_vmap_of_grad_gives_per_problem_derivatives():
+    batch = jnp.stack([NOISE, 0.5 * NOISE, -NOISE])
+    grads = jax.jit(jax.vmap(jax.grad(loss)))(batch)
+    single = GRAD
+    for k in range(3):
+        np.testing.assert_allclose(grads[k], single(batch[k]), rtol=1e-7, atol=1e-8)
+
+
+def test_traced_indices_are_refused_with_a_clear_error():
+    def build(idx):
+        return G.Factor(between_residual, [("pose", idx), ("pose", idx)], data=Z_TRUE[:1])
+
+    with pytest.raises(TypeError, match=r"indices must be concrete"):
+        jax.jit(build)(jnp.array([0]))
