@@ -81,6 +81,8 @@ WORKLOADS: dict[str, Spec] = {
     "marginals": Spec("Marginal covariances: jaxpose vs GTSAM"),
     "pgo_outliers": Spec("Pose graphs with outliers (GNC): jaxpose vs GTSAM"),
     "ekf_convention": Spec("EKF linearisation point: jaxpose vs PyPose"),
+    "compile": Spec("Compile time of differentiated solves (cold)",
+                    quick=("--quick", "--only", "ls_solve,ls_grad")),
 }
 KNOWN = WORKLOADS  # earlier name
 

@@ -12,7 +12,7 @@ import pytest
 
 import jaxpose.optim as jo
 from jaxpose import graph as G
-from jaxpose.graph._factor import between_residual
+from jaxpose.graph import between_residual
 from jaxpose.lie import SE2
 
 N = 6

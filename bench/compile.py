@@ -1,0 +1,189 @@
+"""Compile time of differentiated solves, each measured cold in its own process.
+
+What a user meets first in a notebook is the compilation of ``jax.jit(jax.grad(...))``
+through a solver. Every entry runs in a fresh subprocess (no JIT cache, XLA's default
+options, float64) and reports one line: the cold compile seconds of ``jit(f).lower(...)
+.compile()`` (tracing, lowering and XLA) and the steady-state seconds of one call.
+
+Entries (issue 16's budget on an idle 2-core CPU in brackets):
+
+* ``ls_solve``: ``least_squares`` on the InvNet problem (batch 100 SE3 poses, coloured
+  Jacobian, LM), the solve alone;
+* ``ls_grad``: ``grad`` of a scalar of its solution w.r.t. the 100 inputs [≤ 5 s];
+* ``ls_hessian``: ``hessian`` w.r.t. a 6-vector perturbing every input [≤ 15 s];
+* ``graph_solve``: ``graph.solve`` on parking-garage (1661 SE3 poses, 6275 edges), the
+  solve alone;
+* ``graph_grad``: ``grad`` w.r.t. the 6275 measurement perturbations [≤ 10 s].
+
+optimistix is not a peer here: its ``least_squares`` has no Lie-group parameters, so no
+comparable problem exists. Usage::
+
+    python bench/compile.py [--quick] [--only ls_grad,graph_grad] [--out F.md]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from bench._common import (  # noqa: E402 - imports no jax
+    ROOT,
+    emit_report,
+    environment,
+    fmt_seconds,
+    markdown_table,
+    parser,
+    spawn_worker,
+    worker_result,
+)
+
+BUDGET = {"ls_grad": 5.0, "ls_hessian": 15.0, "graph_grad": 10.0}
+GARAGE = ROOT.parent / "shared" / "data" / "g2o" / "parking-garage.g2o"
+
+
+# ----------------------------------------------------------------------------------
+# entries (run inside a worker)
+# ----------------------------------------------------------------------------------
+def _invnet(batch: int) -> tuple[Callable[..., Any], tuple[Any, ...], Any]:
+    import jax
+    import jax.numpy as jnp
+
+    import jaxpose.optim as jo
+    from bench.optim import make_problem, residual
+    from jaxpose.lie import SE3
+
+    prob = make_problem(batch, "float64")
+    x0, inp = SE3(jnp.asarray(prob["x0"])), SE3(jnp.asarray(prob["input"]))
+    w = jax.random.normal(jax.random.PRNGKey(0), (batch, 7))
+
+    def solve(inp_data: jax.Array) -> jax.Array:
+        sol = jo.least_squares(residual, x0, SE3(inp_data))
+        return jnp.sum(w * sol.params.data) + sol.cost
+
+    return solve, (inp.data,), inp
+
+
+def _garage() -> tuple[Callable[..., Any], Any]:
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxpose import graph as G
+    from jaxpose.graph import between_residual
+    from jaxpose.io import read_g2o
+    from jaxpose.lie import SE3
+
+    g = read_g2o(GARAGE)
+    z, x0 = SE3(jnp.asarray(g.measurements)), SE3(jnp.asarray(g.poses))
+    e = np.asarray(g.edges)
+    w = jnp.asarray(np.random.default_rng(0).normal(size=x0.data.shape))
+
+    def solve(noise: Any) -> Any:
+        f = G.Factor(between_residual, [("pose", e[:, 0]), ("pose", e[:, 1])],
+                     data=z.retract(noise), information=jnp.asarray(g.information))
+        graph = G.FactorGraph([f], {"pose": x0}, fixed={"pose": np.array([0])})
+        sol = G.solve(graph)
+        return jnp.sum(w * sol.variables["pose"].data) + sol.cost
+
+    return solve, jnp.zeros((e.shape[0], 6))
+
+
+def _entry(name: str, quick: bool) -> tuple[Callable[..., Any], tuple[Any, ...]]:
+    import jax
+    import jax.numpy as jnp
+
+    batch = 10 if quick else 100
+    if name == "ls_solve":
+        f, args, _ = _invnet(batch)
+        return f, args
+    if name == "ls_grad":
+        f, args, _ = _invnet(batch)
+        return jax.grad(f), args
+    if name == "ls_hessian":
+        f, _, inp = _invnet(batch)
+        return jax.hessian(lambda d: f(inp.retract(jnp.broadcast_to(d, (batch, 6))).data)), (
+            jnp.zeros(6),)
+    if name == "graph_solve":
+        f, noise = _garage()
+        return f, (noise,)
+    if name == "graph_grad":
+        f, noise = _garage()
+        return jax.grad(f), (noise,)
+    raise ValueError(f"unknown entry {name!r}")
+
+
+ENTRIES = ("ls_solve", "ls_grad", "ls_hessian", "graph_solve", "graph_grad")
+
+
+def worker(name: str, quick: bool) -> None:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    f, args = _entry(name, quick)
+    t0 = time.perf_counter()
+    compiled = jax.jit(f).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(*args))
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        runs.append(time.perf_counter() - t0)
+    worker_result({"compile_s": compile_s, "run_s": sorted(runs)[1]})
+
+
+# ----------------------------------------------------------------------------------
+# driver
+# ----------------------------------------------------------------------------------
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = parser(__doc__, quick="batch 10 for the least-squares entries", threads=False,
+                workers=True)
+    ap.add_argument("--only", default=",".join(ENTRIES), help="comma-separated entries")
+    ap.add_argument("--worker", default=None, help=argparse_hidden())
+    args = ap.parse_args(argv)
+    if args.worker:
+        worker(args.worker, args.quick)
+        return 0
+    rows = []
+    for name in args.only.split(","):
+        if name.startswith("graph") and not Path(GARAGE).exists():
+            rows.append([name, "—", "—", "—", f"skipped: {GARAGE} missing"])
+            continue
+        flags = ["--quick"] if args.quick else []
+        out = spawn_worker([str(Path(__file__)), "--worker", name, *flags], timeout=args.timeout,
+                           env={**os.environ, "XLA_FLAGS": ""})
+        if "failed" in out:
+            rows.append([name, "—", "—", "—", out["failed"]])
+            continue
+        budget = BUDGET.get(name)
+        verdict = "—" if budget is None else ("met" if out["compile_s"] <= budget else "over")
+        rows.append([name, fmt_seconds(out["compile_s"]), fmt_seconds(out["run_s"]),
+                     "—" if budget is None else f"≤ {budget:g} s", verdict])
+        print(f"{name}: compile {out['compile_s']:.2f} s, run {out['run_s']:.4f} s",
+              file=sys.stderr, flush=True)
+    text = "\n".join([
+        "# Compile time of differentiated solves (cold process per entry)",
+        "",
+        environment(),
+        "",
+        markdown_table(["entry", "cold compile", "steady run", "budget", "verdict"], rows),
+        "",
+    ])
+    emit_report(text, args.out)
+    return 0
+
+
+def argparse_hidden() -> str:
+    import argparse
+
+    return argparse.SUPPRESS
+
+
+if __name__ == "__main__":
+    sys.exit(main())
