@@ -41,17 +41,11 @@ from ._problem import (
     _rho,
     assemble_blocks,
     cost,
+    free_flat,
     retract_all,
 )
 
 Array = jax.Array
-
-
-def _free_flat(graph: FactorGraph, dtype: Any) -> Array:
-    st = graph.structure
-    return jnp.concatenate(
-        [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]
-    ).astype(dtype)
 
 
 def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
@@ -88,7 +82,7 @@ def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
 
     dtype = jax.tree.leaves(variables)[0].dtype
     values = st.pattern.csr(assemble_blocks(graph, block, dtype))
-    return values.at[st.diag_pos].add(1.0 - _free_flat(graph, dtype))
+    return values.at[st.diag_pos].add(1.0 - free_flat(graph, dtype))
 
 
 def _csr_matvec(graph: FactorGraph, values: Array, v: Array) -> Array:
@@ -126,7 +120,7 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     xs = sol.variables
     dtype = sol.cost.dtype
     zero = jnp.zeros((graph.structure.size,), dtype)
-    free = _free_flat(graph, dtype)
+    free = free_flat(graph, dtype)
 
     def phi(delta: Array, g: FactorGraph) -> Array:
         return cost(g, retract_all(g, xs, delta))

@@ -300,6 +300,14 @@ def csr_values(graph: FactorGraph, lin: GraphLinearization) -> Array:
     return graph.structure.pattern.csr(hessian_blocks(graph, lin))
 
 
+def free_flat(graph: FactorGraph, dtype: Any) -> Array:
+    """(N,) 1 for the tangent coordinates of free variables, 0 for fixed ones."""
+    st = graph.structure
+    return jnp.concatenate(
+        [jnp.repeat(jnp.asarray(f), d) for f, d in zip(st.free, st.dims, strict=True)]
+    ).astype(dtype)
+
+
 def retract_all(graph: FactorGraph, variables: Variables, step: Array) -> Variables:
     """Apply a flat tangent step to every variable type (fixed ones have zero steps)."""
     blocks = split(graph, step)

@@ -44,6 +44,7 @@ from ._problem import (
     Variables,
     block_diagonal,
     csr_values,
+    free_flat,
     gradient,
     hessian_diagonal,
     hessian_vector,
@@ -338,13 +339,10 @@ def _run(
 ) -> GraphSolution:
     """The Levenberg–Marquardt loop of :func:`solve` (options already checked)."""
     method = linear_solver.resolve(graph)
-    st = graph.structure
     lin0 = linearize(graph, x0)
     dtype = lin0.cost.dtype
     stopping = default_stopping(dtype=dtype) if stopping is None else stopping
-    free_flat = jnp.concatenate(
-        [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]
-    ).astype(dtype)
+    free = free_flat(graph, dtype)
     lin0 = eqx.error_if(
         lin0,
         ~jnp.isfinite(lin0.cost),
@@ -353,7 +351,7 @@ def _run(
     )
     g0 = gradient(graph, lin0)
     rule = LevenbergMarquardt(strategy=strategy)
-    path = _GraphPath(graph, method, linear_solver.dense_max, damping, cg, free_flat,
+    path = _GraphPath(graph, method, linear_solver.dense_max, damping, cg, free,
                       jnp.linalg.norm(g0))
     # a Jacobian that is not finite at the start: no step can be computed (as in
     # jaxpose.optim.least_squares, a status rather than an exception)

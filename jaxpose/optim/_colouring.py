@@ -229,7 +229,7 @@ class BlockHessian(eqx.Module):
     def _scatter(self, parts: list[Array]) -> Array:
         out = jnp.zeros((self.pattern.n,), parts[0].dtype)
         for g, p in zip(self.pattern.groups, parts):
-            out = out.at[g.reshape(-1)].set(p.reshape(-1))
+            out = out.at[g.reshape(-1)].set(p.reshape(-1), unique_indices=True)  # a partition
         return out
 
     def __matmul__(self, v: Array) -> Array:
@@ -297,6 +297,40 @@ def normal_equations(jac: Any, res: Array) -> tuple[Any, Array]:
     return jac.T @ jac, jac.T @ res
 
 
+def _hessian_colouring(pattern: Pattern) -> np.ndarray:
+    """Colour (n,) of H's columns such that no row of H holds two columns of one colour
+    (H has JᵀJ's pattern: block-diagonal groups or ``pattern.csr``), cached on the
+    pattern. Block-diagonal: the position inside the block."""
+    if "hc" not in pattern._plans:
+        if pattern.groups is not None:
+            colour = np.zeros(pattern.n, np.int64)
+            for g in pattern.groups:
+                colour[g.reshape(-1)] = np.tile(np.arange(g.shape[1]), g.shape[0])
+        else:
+            csr = pattern.csr
+            h = sp.csr_matrix((np.ones(csr.indices.size, np.int32), csr.indices, csr.indptr),
+                              shape=(csr.n, csr.n))
+            colour = greedy_colouring(h)
+        pattern._plans["hc"] = colour
+    return pattern._plans["hc"]
+
+
+def compressed_hessian(grad: Any, x: Array, pattern: Pattern) -> BlockHessian | SparseHessian:
+    """The Hessian of a scalar function with JᵀJ's sparsity, from one Hessian-vector
+    product (``jax.jvp`` of its gradient ``grad: (n,) -> (n,)``) per colour of H's
+    columns, in H's layout (:class:`BlockHessian` or ``SparseHessian``). Exact where the
+    function's Hessian has that pattern (a sum of per-residual-block terms)."""
+    colour = _hessian_colouring(pattern)
+    seeds = np.zeros((int(colour.max()) + 1, pattern.n))
+    seeds[colour, np.arange(pattern.n)] = 1.0
+    hs = jax.vmap(lambda s: jax.jvp(grad, (x,), (s,))[1])(jnp.asarray(seeds, x.dtype))
+    if pattern.groups is not None:  # blocks[b, i, j] = H[g[b, i], g[b, j]] = hs[j, g[b, i]]
+        return BlockHessian(tuple(jnp.swapaxes(hs[: g.shape[1], g], 0, 1).mT
+                                  for g in pattern.groups), pattern)
+    csr = pattern.csr
+    return SparseHessian(hs[colour[csr.indices], csr.row], pattern)
+
+
 def compressed_jacobian(f: Any, x: Array, pattern: Pattern) -> tuple[Array, Array]:
     """(f(x), C = J·S (m, c)): one JVP of ``f: (n,) -> (m,)`` at ``x`` per colour."""
     seeds = jnp.asarray(pattern.seeds, x.dtype)
@@ -308,6 +342,7 @@ __all__ = [
     "Pattern",
     "SparseJacobian",
     "as_dense",
+    "compressed_hessian",
     "compressed_jacobian",
     "diagonal",
     "greedy_colouring",

@@ -17,7 +17,10 @@ derivatives. Derivatives with respect to the initial params are zero (the soluti
 not depend on them), ``history``, ``grad_norm`` and the counters have none.
 
 By default H is the exact Hessian of the (robust, weighted) cost, so derivatives are exact
-for any residual. ``hessian="gauss_newton"`` uses J̃ᵀJ̃ from the whitened,
+for any residual. On the coloured path (``jacobian="sparse"``, or ``"auto"`` choosing it)
+H has JᵀJ's sparsity and is built from one Hessian-vector product per colour of its
+columns (:func:`~jaxpose.optim._colouring.compressed_hessian`: a ``BlockHessian`` or a CSR
+``SparseHessian``), not from n of them. ``hessian="gauss_newton"`` uses J̃ᵀJ̃ from the whitened,
 kernel-corrected Jacobian instead: cheaper to compile, exact for zero-residual problems,
 and it keeps the coloured path's structure (block-diagonal or CSR H, see
 :mod:`jaxpose.optim._colouring`), so with ``linear_solver=Cholesky()`` a large sparse
@@ -35,7 +38,7 @@ import jax
 import jax.numpy as jnp
 
 from ..lie import manifold
-from ._colouring import normal_equations
+from ._colouring import compressed_hessian, normal_equations
 from ._linear import SVD, LinearSolver
 from ._problem import Problem
 from ._solution import Solution
@@ -140,11 +143,15 @@ def _implicit_jvp(
 
     # b = ∂(∇_δ φ)/∂θ · θ̇ (linear in θ̇)
     _, b = jvp_where(lambda th: jax.grad(phi)(flat0, th), theta, t_theta)
+    args, problem = theta
     if adjoint.hessian == "exact":
-        hess = jax.hessian(phi)(flat0, theta)
-        hess = 0.5 * (hess + hess.T)
+        mode, pattern = problem.jacobian_mode(x_star, args)
+        if mode == "sparse":  # one Hessian-vector product per colour of H's columns
+            hess = compressed_hessian(lambda e: jax.grad(phi)(e, theta), flat0, pattern)
+        else:
+            hess = jax.hessian(phi)(flat0, theta)
+            hess = 0.5 * (hess + hess.T)
     else:
-        args, problem = theta
         lin = problem.linearize_structured(x_star, args)
         hess, _ = normal_equations(lin.jac, lin.res)  # dense, BlockHessian or SparseHessian
         hess = first_order_only(hess, "least_squares(ImplicitAdjoint(hessian='gauss_newton'))")

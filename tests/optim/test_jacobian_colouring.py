@@ -252,3 +252,22 @@ def test_sparse_jacobian_is_a_pytree_of_values_only():
     assert [leaf.shape for leaf in jax.tree.leaves(lin.jac)] == [(18, 6)]
     flat0, _ = ravel_pytree(manifold.zero_tangent(_poses(3, 23)))
     assert lin.jac.shape == (18, flat0.size)
+
+
+@pytest.mark.slow  # two Hessians through SE3 solves compile for ~40 s
+def test_second_derivative_through_the_coloured_exact_hessian_equals_dense():
+    """The implicit rule builds the exact Hessian from one HVP per colour of H's columns
+    (a BlockHessian here); its second derivatives equal those of the dense jax.hessian
+    path (robust kernel: nonzero curvature terms)."""
+    a = SE3.random(jax.random.PRNGKey(4), (5,), sigma=1.0)
+    x0 = SE3.random(jax.random.PRNGKey(5), (5,), sigma=1.0)
+    w = jax.random.normal(jax.random.PRNGKey(6), (5, 7))
+
+    def f(d6, mode):
+        inp = a.retract(jnp.broadcast_to(d6, (5, 6)))
+        sol = jo.least_squares(invnet, x0, inp, jacobian=mode, kernel=jo.Cauchy(1.0))
+        return jnp.sum(w * sol.params.data) + sol.cost
+
+    hess = jax.jit(jax.hessian(f), static_argnums=1)
+    np.testing.assert_allclose(hess(jnp.zeros(6), "sparse"), hess(jnp.zeros(6), "fwd"),
+                               atol=1e-10)
