@@ -39,7 +39,6 @@ import optax
 
 from jaxpose.imu import NavState, dead_reckon, predict, preintegrate
 from jaxpose.lie import SO3
-from jaxpose.lie import _quaternion as quat
 
 GRAVITY = (0.0, 0.0, -9.81)
 DT = 0.005  # 200 Hz
@@ -125,7 +124,7 @@ def simulate(key: jax.Array, sensor: SensorModel, num_seq: int, num_samples: int
                                 jnp.zeros((num_seq, 3), dtype))).rot.data
     before = jnp.concatenate([rot0.data[:, None], rots[:, :-1]], 1)
     g = jnp.asarray(GRAVITY, dtype)
-    f_true = quat.rotate(quat.conjugate(before), a_nav - g)  # Rᵀ(a − g)
+    f_true = SO3(before).inv().act(a_nav - g)  # Rᵀ(a − g)
     init = NavState(rot0, jnp.zeros((num_seq, 3), dtype), jnp.zeros((num_seq, 3), dtype))
     after = dead_reckon(omega, f_true, DT, g, init)
     states = jax.tree.map(lambda i, s: jnp.concatenate([i[:, None], s], 1), init, after)
@@ -186,7 +185,7 @@ def window_errors(gyro: jax.Array, acc: jax.Array, w: Windows) -> tuple[jax.Arra
     window from its true start state."""
     pre = preintegrate(gyro, acc, DT, bias_jacobians=False, check=False)
     end = predict(w.start, pre, jnp.asarray(GRAVITY, gyro.dtype))
-    rot = quat.log(quat.multiply(quat.conjugate(w.end.rot.data), end.rot.data))
+    rot = (w.end.rot.inv() @ end.rot).log().data
     return jnp.linalg.norm(rot, axis=-1), jnp.linalg.norm(end.pos - w.end.pos, axis=-1)
 
 
@@ -197,7 +196,7 @@ def loss_fn(model: Corrector, w: Windows, pos_weight: float = 10.0) -> jax.Array
     g, a = model(w.gyro, w.acc)
     pre = preintegrate(g, a, DT, bias_jacobians=False, check=False)
     end = predict(w.start, pre, jnp.asarray(GRAVITY, g.dtype))
-    rot = quat.log(quat.multiply(quat.conjugate(w.end.rot.data), end.rot.data))
+    rot = (w.end.rot.inv() @ end.rot).log().data
     return jnp.mean(jnp.sum(rot**2, -1) + pos_weight * jnp.sum((end.pos - w.end.pos) ** 2, -1))
 
 
