@@ -87,16 +87,15 @@ def _use_lqr(system: System, cost: Cost, bounds: Any, solver: str) -> bool:
 
 def _solve(
     system: System, cost: Cost, x0: Array, u_init: Array, bounds: Any, cfg: _Config
-) -> tuple[tuple[Array, Array, Array, Array], Any]:
-    """Forward solve for one element: ``(x, u, status, iterations)`` and, on the LQR
-    path, the Riccati factors ``(K, L)`` that the implicit backward pass reuses."""
+) -> tuple[Array, Array, Array, Array]:
+    """Forward solve for one element: ``(x, u, status, iterations)``."""
     if _use_lqr(system, cost, bounds, cfg.solver):
         F, f, C, c, CT, cT = lq_problem(system, cost, cfg.horizon)
-        K, k, _, _, ok, L = riccati(F, f, C, c, CT, cT)
+        K, k, _, _, ok, _ = riccati(F, f, C, c, CT, cT)
         xs, us = policy_rollout(F, f, K, k, x0)
         finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us))
         status = jnp.where(finite, Results.CONVERGED, Results.NON_FINITE).astype(jnp.int32)
-        return (xs, us, status, jnp.array(1)), (K, L)
+        return xs, us, status, jnp.array(1)
     lo, hi = (None, None) if bounds is None else bounds
     s: ILQRSolution = ilqr(
         system,
@@ -110,7 +109,7 @@ def _solve(
         unroll=cfg.unroll,
         box_iters=cfg.box_iters,
     )
-    return (s.x, s.u, s.status, s.iterations), None
+    return s.x, s.u, s.status, s.iterations
 
 
 # ----------------------------------------------------------------------------------
@@ -121,7 +120,7 @@ def _solve_implicit(
     params: tuple[System, Cost, Array], u_init: Array, bounds: Any, *, cfg: _Config
 ) -> tuple[Array, Array, Array, Array]:
     system, cost, x0 = params
-    return _solve(system, cost, x0, u_init, bounds, cfg)[0]
+    return _solve(system, cost, x0, u_init, bounds, cfg)
 
 
 @_solve_implicit.def_jvp
@@ -304,7 +303,7 @@ class MPC(eqx.Module):
                 (self.system, self.cost, x0), u_init, bounds, cfg=cfg
             )
         else:
-            xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, cfg)[0]
+            xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, cfg)
         cost = self.cost.total(xs, us)
         ok = jnp.isfinite(cost) | (status != Results.CONVERGED)
         status = jnp.where(ok, status, Results.NON_FINITE)

@@ -11,8 +11,8 @@ with H = ∂²φ/∂δ² the exact Hessian of the (robust, weighted) cost. H has
 pattern of J̃ᵀJ̃ (a factor only couples its own variables), so it is assembled in the
 graph's CSR pattern from per-factor Hessians (one ``jax.hessian`` of a factor's cost,
 vmapped over the group) and solved by the sparse direct solver inside
-``jax.lax.custom_linear_solve``. Fixed variables have zero tangents (unit diagonal, zero
-right-hand side).
+``jax.lax.custom_linear_solve`` (:func:`~jaxpose.graph._linear.solve_sparse_spd`).
+Fixed variables have zero tangents (unit diagonal, zero right-hand side).
 
 The rule is a ``custom_jvp``: its right-hand side is linear in θ̇ and the solve linear in
 it, so reverse mode is its transpose (one sparse solve per cotangent), and every step is
@@ -32,7 +32,7 @@ import jax.numpy as jnp
 
 from ..optim._implicit import jvp_where
 from ._analysis import tangent_dim
-from ._linear import solve_sparse_direct
+from ._linear import solve_sparse_spd
 from ._problem import (
     FactorGraph,
     Variables,
@@ -85,26 +85,6 @@ def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
     return values.at[st.diag_pos].add(1.0 - free_flat(graph, dtype))
 
 
-def _csr_matvec(graph: FactorGraph, values: Array, v: Array) -> Array:
-    st = graph.structure
-    n, nnz = st.size, st.nnz
-    rows = jnp.repeat(jnp.arange(n), jnp.diff(st.csr_indptr), total_repeat_length=nnz)
-    return jax.ops.segment_sum(values * v[st.csr_indices], rows, num_segments=n)
-
-
-def _sparse_solve(graph: FactorGraph, values: Array, b: Array) -> Array:
-    """H⁻¹ b for the SPD matrix H = (values in the graph's CSR pattern), differentiable
-    in ``values`` and ``b`` (implicit rule of ``custom_linear_solve``)."""
-    st = graph.structure
-
-    def direct(_: Any, rhs: Array) -> Array:
-        return solve_sparse_direct(values, st.csr_indices, st.csr_indptr, rhs)
-
-    return jax.lax.custom_linear_solve(
-        lambda v: _csr_matvec(graph, values, v), b, direct, symmetric=True
-    )
-
-
 @eqx.filter_custom_jvp
 def _differentiable(graph: FactorGraph, x0: Variables, *, run: Callable[..., Any],
                     options: dict[str, Any]) -> Any:
@@ -125,11 +105,15 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     def phi(delta: Array, g: FactorGraph) -> Array:
         return cost(g, retract_all(g, xs, delta))
 
-    _, b = jvp_where(lambda g: jax.grad(phi)(zero, g), graph, t_graph)
-    eps_dot = -_sparse_solve(graph, exact_hessian_csr(graph, xs), b * free)
+    # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost) and
+    # b = ∂(∇_δφ)/∂θ · θ̇
+    grad0, b = jvp_where(lambda g: jax.grad(phi)(zero, g), graph, t_graph)
+    st = graph.structure
+    hess = exact_hessian_csr(graph, xs)
+    eps_dot = -solve_sparse_spd(hess, st.csr_indices, st.csr_indptr, b * free)
     x_dot = jax.jvp(lambda d: retract_all(graph, xs, d), (zero,), (eps_dot,))[1]
     _, dcost = jvp_where(lambda g: cost(g, xs), graph, t_graph)
-    dcost = dcost + jnp.dot(jax.grad(phi)(zero, graph), eps_dot)
+    dcost = dcost + jnp.dot(grad0, eps_dot)
     _, dinit = jvp_where(lambda gx: cost(*gx), (graph, x0), (t_graph, t_x0))
     t_sol = type(sol)(x_dot, dcost, dinit, None, None, None, None)  # None: no tangent
     return sol, t_sol

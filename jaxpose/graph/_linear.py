@@ -87,6 +87,25 @@ def solve_sparse_direct(data: Array, indices: Array, indptr: Array, b: Array) ->
     )
 
 
+def solve_sparse_spd(data: Array, indices: Array, indptr: Array, b: Array) -> Array:
+    """:func:`solve_sparse_direct` inside ``jax.lax.custom_linear_solve`` (A symmetric):
+    jit, vmap and derivatives of any order in ``data`` and ``b`` (the implicit rule of the
+    linear solve, with the CSR product as its operator; the callback is never
+    differentiated)."""
+    n = b.shape[0]
+    rows = jnp.repeat(jnp.arange(n), jnp.diff(jnp.asarray(indptr)),
+                      total_repeat_length=data.shape[0])
+
+    def matvec(v: Array) -> Array:
+        return jax.ops.segment_sum(data * v[indices], rows, num_segments=n,
+                                   indices_are_sorted=True)
+
+    def direct(_: object, rhs: Array) -> Array:
+        return solve_sparse_direct(data, indices, indptr, rhs)
+
+    return jax.lax.custom_linear_solve(matvec, b, direct, symmetric=True)
+
+
 def _two_norm(x: Array) -> Array:
     return jnp.sqrt(jnp.sum(x * x))
 

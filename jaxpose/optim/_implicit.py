@@ -141,8 +141,9 @@ def _implicit_jvp(
         a, prob = th
         return prob.cost(lift(eps), a)
 
-    # b = ∂(∇_δ φ)/∂θ · θ̇ (linear in θ̇)
-    _, b = jvp_where(lambda th: jax.grad(phi)(flat0, th), theta, t_theta)
+    # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost) and
+    # b = ∂(∇_δφ)/∂θ · θ̇ (linear in θ̇)
+    grad0, b = jvp_where(lambda th: jax.grad(phi)(flat0, th), theta, t_theta)
     args, problem = theta
     if adjoint.hessian == "exact":
         mode, pattern = problem.jacobian_mode(x_star, args)
@@ -165,7 +166,7 @@ def _implicit_jvp(
         return prob.cost(x_star, a), prob.cost(p0, a)
 
     _, (dcost, dinit) = jvp_where(costs, (theta, params0), (t_theta, t_params0))
-    dcost = dcost + jnp.dot(jax.grad(phi)(flat0, theta), eps_dot)
+    dcost = dcost + jnp.dot(grad0, eps_dot)
     t_sol = Solution(x_dot, None, None, None, dcost, dinit, None, None)  # None: no tangent
     return sol, t_sol
 

@@ -125,17 +125,11 @@ class SparseHessian(eqx.Module):
     def solve(self, rhs: Array, diag_add: Array) -> Array:
         """x (n,) with (H + diag(diag_add)) x = rhs by sparse Cholesky (CHOLMOD on the
         host); NaN when the damped matrix is not positive definite."""
-        from ..graph._linear import solve_sparse_direct  # graph imports optim: import late
+        from ..graph._linear import solve_sparse_spd  # graph imports optim: import late
 
         csr = self.pattern.csr
         data = self.data.at[csr.diag].add(diag_add)
-        indices, indptr = jnp.asarray(csr.indices), jnp.asarray(csr.indptr)
-
-        def direct(_: object, b: Array) -> Array:
-            return solve_sparse_direct(data, indices, indptr, b)
-
-        return jax.lax.custom_linear_solve(lambda v: _matvec(csr, data, v), rhs, direct,
-                                           symmetric=True)
+        return solve_sparse_spd(data, jnp.asarray(csr.indices), jnp.asarray(csr.indptr), rhs)
 
 
 __all__ = ["CSRStructure", "SPARSE_MAX_FILL", "SPARSE_MIN_SIZE", "SparseHessian", "assemble",
