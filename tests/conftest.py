@@ -7,9 +7,11 @@
   options — about half the compile time (and one code-generation thread per compilation:
   about a quarter less CPU time); results agree with the default optimisation level to
   rounding. ``JAXPOSE_TEST_XLA_DEFAULT=1`` keeps the environment's flags unchanged.
-* Markers: ``slow`` (deselected by the default command), ``integration`` (set here on every
-  test of a module that drives a subprocess: notebooks, docs build, CLI, benchmark smoke
-  runs; ``-m "not integration"`` gives the in-process unit tests alone), ``peer``.
+* Markers: ``slow`` (deselected by the default command: long tests, and the in-process tests
+  listed in tests/extended_tier.txt, whose lines the default tier covers), ``integration``
+  (set here on every test of a module that drives a subprocess: notebooks, docs build, CLI,
+  benchmark smoke runs; ``-m "not integration"`` gives the in-process unit tests alone),
+  ``peer``.
 """
 
 from __future__ import annotations
@@ -87,6 +89,17 @@ def work_unit(item: pytest.Item) -> str:
     return unit
 
 
+def _extended_tier() -> set[str]:
+    """Node ids of tests/extended_tier.txt: in-process tests whose lines of ``jaxpose/`` and
+    whose test function the default tier already covers (chosen by tests/_tiers.py from a
+    coverage run); marked ``slow``, so ``-m slow`` runs them."""
+    path = Path(__file__).with_name("extended_tier.txt")
+    if not path.exists():
+        return set()
+    text = path.read_text(encoding="utf-8").splitlines()
+    return {line for line in text if line and not line.startswith("#")}
+
+
 def _unit_costs() -> dict[str, float]:
     path = Path(__file__).with_name("durations.json")
     return json.loads(path.read_text(encoding="utf-8")) if path.exists() else {}
@@ -96,9 +109,12 @@ def _unit_costs() -> dict[str, float]:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     costs = _unit_costs()
     default = sorted(costs.values())[len(costs) // 2] if costs else 0.0
+    extended = _extended_tier()
     for item in items:
         if item.path.name in INTEGRATION_MODULES:
             item.add_marker(pytest.mark.integration)
+        if item.nodeid in extended:
+            item.add_marker(pytest.mark.slow)
         item.add_marker(pytest.mark.xdist_group(work_unit(item)))
     # Longest units first (with --no-loadscope-reorder xdist hands them out in this order),
     # so no long unit starts last and leaves one worker busy alone at the end.

@@ -80,7 +80,7 @@ class Factor(eqx.Module):
     indices: tuple[Array, ...]
     data: Any
     sqrt_info: Array | None
-    kernel: Kernel | None = eqx.field(static=True)
+    kernel: Kernel | None  # a pytree: array parameters are traced and differentiable
     corrector: Corrector = eqx.field(static=True)
     jacobian: Callable[..., Any] | None = eqx.field(static=True)
     name: str = eqx.field(static=True)

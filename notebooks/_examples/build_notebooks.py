@@ -76,6 +76,20 @@ print(Results.name_of(sol.status), int(sol.iterations), "iterations; cost", floa
 print("final state", sol.x[-1], "| force range", float(sol.u.min()), float(sol.u.max()))
 plot(sol, dt=0.05)""",
     },
+    "learned_weights": {
+        "title": "Learning to reject wrong loop closures, through graph.solve",
+        "run": SMOKE + """
+jax.config.update("jax_enable_x64", True)
+# laps around a circle; 30 % of the loop closures are replaced by random edges
+graph, _ = synthetic_pose_graph("SE2", n_poses=60 if SMOKE else 400, seed=0)
+result = experiment(
+    graph, 0.3, train_seeds=[0] if SMOKE else [0, 1, 2],
+    test_seeds=[1000] if SMOKE else [1000, 1001], steps=3 if SMOKE else 60,
+    scales=(1.0,) if SMOKE else SCALES, kernels=("cauchy",) if SMOKE else tuple(KERNELS),
+)
+print(report(result))
+plot(result)""",
+    },
     "bicycle_filters": {
         "title": "EKF, UKF and particle filter on a kinematic bicycle",
         "run": SMOKE + """

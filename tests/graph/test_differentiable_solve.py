@@ -132,3 +132,14 @@ def test_traced_indices_are_refused_with_a_clear_error():
 
     with pytest.raises(TypeError, match=r"indices must be concrete"):
         jax.jit(build)(jnp.array([0]))
+
+
+@pytest.mark.slow  # one more compilation of grad through graph.solve (~15 s)
+def test_kernel_parameter_is_traced_and_differentiable():
+    """A robust kernel's scale is data, not structure: it may be traced (built inside jit)
+    and the solution is differentiated with respect to it (Richardson differences)."""
+    f = jax.jit(lambda d: loss(NOISE, 1.0, jo.Cauchy(d)))
+    g = jax.jit(jax.grad(lambda d: loss(NOISE, 1.0, jo.Cauchy(d))))(0.3)
+    fd = _richardson(lambda d: f(d)[None], jnp.asarray(0.3), eps=1e-3)
+    assert float(g) == pytest.approx(float(fd[0, 0]), rel=1e-5, abs=1e-7)
+    assert float(f(0.3)) != pytest.approx(float(f(0.6)))  # the scale is not baked in

@@ -1,0 +1,145 @@
+"""Choose the default test tier from a coverage run: the cheapest set of in-process tests
+that covers every line of ``jaxpose/`` the whole in-process suite covers, and keeps a case of
+every test function whose cheapest case is quick (``--fn-cap``, 0.5 s) and every test that
+costs next to nothing (``--free``, 0.05 s); the rest is written to
+``tests/extended_tier.txt`` and runs under ``-m slow`` (``tests/conftest.py`` marks it).
+
+Subprocess-driven tests (``integration``: notebooks, docs, CLI, benchmark smoke runs) and
+tests already marked ``slow`` are not candidates: the first always run, the second never
+by default.
+
+Regenerate after adding or renaming many tests (a test missing from the file runs by
+default, so a stale file only costs time)::
+
+    COVERAGE_FILE=/tmp/cov/.coverage python -m pytest -n auto -m "not slow and not integration" \
+        --cov=jaxpose --cov-context=test --cov-report= --junitxml=/tmp/cov/junit.xml
+    python tests/_tiers.py /tmp/cov/.coverage /tmp/cov/junit.xml
+
+The selection is a weighted greedy set cover (gain in uncovered lines and test functions
+per second of the test's measured duration) followed by a pass that drops, longest first,
+every chosen test whose lines and function the others still cover.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import heapq
+import sqlite3
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+from coverage.numbits import numbits_to_nums
+
+HERE = Path(__file__).resolve().parent
+TIER_FILE = HERE / "extended_tier.txt"
+HEADER = (
+    "# Tests deselected from the default run (marked slow by tests/conftest.py): the default\n"
+    "# tier covers their lines of jaxpose/ (and their test function, if it is quick). Made by\n"
+    "# tests/_tiers.py from a coverage run; run them with  python -m pytest -m slow\n"
+)
+
+
+def strip_group(nodeid: str) -> str:
+    """The node id without the "@group" suffix xdist's ``--dist loadgroup`` appends."""
+    at = nodeid.rfind("@")
+    return nodeid[:at] if at > nodeid.rfind("]") and at > nodeid.rfind("::") else nodeid
+
+
+def read_coverage(path: str) -> dict[str, set[tuple[int, int]]]:
+    """nodeid → {(file id, line)} from a coverage database recorded with test contexts."""
+    con = sqlite3.connect(path)
+    contexts = dict(con.execute("select id, context from context"))
+    lines: dict[str, set[tuple[int, int]]] = collections.defaultdict(set)
+    rows = con.execute("select file_id, context_id, numbits from line_bits")
+    for file_id, context_id, bits in rows:
+        nodeid = strip_group(contexts[context_id].rsplit("|", 1)[0])
+        if nodeid:
+            lines[nodeid].update((file_id, n) for n in numbits_to_nums(bits))
+    return lines
+
+
+def read_durations(path: str) -> dict[str, float]:
+    """nodeid → seconds (setup + call + teardown) from a pytest junit xml."""
+    out = {}
+    for case in ET.parse(path).getroot().iter("testcase"):
+        module = case.get("classname", "").split(".")
+        name = case.get("name", "")
+        # classname "tests.lie.test_x" or "tests.lie.test_x.TestClass"
+        parts, cls = module, []
+        while parts and not parts[-1].startswith("test_"):
+            cls.insert(0, parts.pop())
+        nodeid = "/".join(parts) + ".py::" + "::".join([*cls, name])
+        out[strip_group(nodeid)] = float(case.get("time", 0.0))
+    return out
+
+
+def function_of(nodeid: str) -> str:
+    return nodeid.split("[", 1)[0]
+
+
+def select(lines: dict[str, set], cost: dict[str, float], fn_cap: float = 0.5,
+           free: float = 0.05) -> set[str]:
+    """The default tier: covers ∪ lines, and every test function whose cheapest case takes
+    at most ``fn_cap`` seconds, at low total cost; plus every test that takes at most
+    ``free`` seconds."""
+    tests = sorted(cost)
+    cheapest: dict[str, float] = {}
+    for t in tests:
+        cheapest[function_of(t)] = min(cheapest.get(function_of(t), np.inf), cost[t])
+    quick = {f for f, c in cheapest.items() if c <= fn_cap}
+    feats = {t: lines.get(t, set()) | ({("fn", function_of(t))} & {("fn", f) for f in quick})
+             for t in tests}
+    need = set().union(*feats.values())
+    chosen: set[str] = set()
+    # lazy greedy: a test's gain only shrinks, so a stale heap entry is an upper bound
+    heap = [(-len(feats[t]) / (cost[t] + 0.05), t) for t in tests]
+    heapq.heapify(heap)
+    while need and heap:
+        _, t = heapq.heappop(heap)
+        gain = feats[t] & need
+        if not gain:
+            continue
+        score = -len(gain) / (cost[t] + 0.05)
+        if heap and score > heap[0][0]:  # no longer the best: re-queue with its true gain
+            heapq.heappush(heap, (score, t))
+            continue
+        chosen.add(t)
+        need -= gain
+    count = collections.Counter(f for t in chosen for f in feats[t])
+    for t in sorted(chosen, key=lambda t: -cost[t]):
+        if all(count[f] > 1 for f in feats[t]):
+            chosen.discard(t)
+            count.subtract(feats[t])
+    return chosen | {t for t in tests if cost[t] <= free}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("coverage", help="coverage database recorded with --cov-context=test")
+    ap.add_argument("junit", help="junit xml of the same run (per-test durations)")
+    ap.add_argument("--fn-cap", type=float, default=0.5,
+                    help="keep a case of every test function whose cheapest case takes at most "
+                         "this many seconds (default 0.5)")
+    ap.add_argument("--free", type=float, default=0.05,
+                    help="keep every test that takes at most this many seconds (default 0.05)")
+    args = ap.parse_args(argv)
+    lines = read_coverage(args.coverage)
+    cost = read_durations(args.junit)
+    chosen = select(lines, cost, args.fn_cap, args.free)
+    extended = sorted(set(cost) - chosen)
+    total = set().union(*lines.values())
+    kept = set().union(*(lines.get(t, set()) for t in chosen))
+    print(
+        f"{len(cost)} in-process tests, {sum(cost.values()):.0f} s; default tier {len(chosen)} "
+        f"tests, {sum(cost[t] for t in chosen):.0f} s (measured alone, with coverage); "
+        f"lines {len(kept)}/{len(total)}"
+    )
+    TIER_FILE.write_text(HEADER + "".join(f"{t}\n" for t in extended), encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
