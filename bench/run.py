@@ -83,6 +83,8 @@ WORKLOADS: dict[str, Spec] = {
     "ekf_convention": Spec("EKF linearisation point: jaxpose vs PyPose"),
     "compile": Spec("Compile time of differentiated solves (cold)",
                     quick=("--quick", "--only", "ls_solve,ls_grad")),
+    "backward": Spec("Backward pass through graph.solve vs one forward LM iteration",
+                     quick=("--quick",)),
     "learned_weights": Spec("Learned edge weights through graph.solve vs tuned kernels",
                             quick=("--quick",)),
 }

@@ -1,7 +1,6 @@
 """Choose the default test tier from a coverage run: the cheapest set of in-process tests
 that covers every line of ``jaxpose/`` the whole in-process suite covers, and keeps a case of
-every test function whose cheapest case is quick (``--fn-cap``, 0.5 s) and every test that
-costs next to nothing (``--free``, 0.05 s); the rest is written to
+every test function whose cheapest case is quick (``--fn-cap``, 0.5 s); the rest is written to
 ``tests/extended_tier.txt`` and runs under ``-m slow`` (``tests/conftest.py`` marks it).
 
 Subprocess-driven tests (``integration``: notebooks, docs, CLI, benchmark smoke runs) and
@@ -80,11 +79,10 @@ def function_of(nodeid: str) -> str:
     return nodeid.split("[", 1)[0]
 
 
-def select(lines: dict[str, set], cost: dict[str, float], fn_cap: float = 0.5,
-           free: float = 0.05) -> set[str]:
+def select(lines: dict[str, set], cost: dict[str, float], fn_cap: float = 0.5) -> set[str]:
     """The default tier: covers ∪ lines, and every test function whose cheapest case takes
-    at most ``fn_cap`` seconds, at low total cost; plus every test that takes at most
-    ``free`` seconds."""
+    at most ``fn_cap`` seconds, at low total cost. (A test's measured cost depends on what
+    its worker compiled before it, so the tier is checked by a timed run, not this sum.)"""
     tests = sorted(cost)
     cheapest: dict[str, float] = {}
     for t in tests:
@@ -113,7 +111,7 @@ def select(lines: dict[str, set], cost: dict[str, float], fn_cap: float = 0.5,
         if all(count[f] > 1 for f in feats[t]):
             chosen.discard(t)
             count.subtract(feats[t])
-    return chosen | {t for t in tests if cost[t] <= free}
+    return chosen
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -123,12 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fn-cap", type=float, default=0.5,
                     help="keep a case of every test function whose cheapest case takes at most "
                          "this many seconds (default 0.5)")
-    ap.add_argument("--free", type=float, default=0.05,
-                    help="keep every test that takes at most this many seconds (default 0.05)")
     args = ap.parse_args(argv)
     lines = read_coverage(args.coverage)
     cost = read_durations(args.junit)
-    chosen = select(lines, cost, args.fn_cap, args.free)
+    chosen = select(lines, cost, args.fn_cap)
     extended = sorted(set(cost) - chosen)
     total = set().union(*lines.values())
     kept = set().union(*(lines.get(t, set()) for t in chosen))

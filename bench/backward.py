@@ -1,0 +1,176 @@
+"""Cost of the backward pass through ``graph.solve`` against one forward LM iteration.
+
+For each problem (parking-garage and sphere2500 pose graphs, the largest BAL problem in
+``../shared/data/bal``) a loss ``L(θ) = Σ w ⊙ X*(θ) + cost`` of the solution ``X*`` is
+differentiated with respect to a perturbation θ of every measurement (pose graphs:
+``Z ⊕ θ``; BAL: observations + θ). Each contestant runs in its own cold process:
+
+* ``forward``: ``jit(L)`` — one LM solve (its iteration count k gives the time of one
+  iteration, forward / k);
+* ``grad``: ``jit(grad(L))`` — the same solve plus the backward pass (exact Hessian at
+  the solution, one sparse factorisation and solve, the cross-derivative product).
+
+Backward = grad − forward (steady state, median of 3). Peak memory is the process's
+maximum resident set (``ru_maxrss``: XLA buffers, CHOLMOD's factor and the host copies),
+the grad process against the forward one. Compile time is reported next to each.
+The issue's bar: backward ≤ one forward iteration, peak memory ≤ 1.5× the forward's.
+
+Usage::
+
+    python bench/backward.py [--only garage,sphere2500,bal] [--quick] [--out F.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):  # run as a script: make `bench` and `jaxpose` importable
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from bench._common import (  # noqa: E402 - imports no jax
+    ROOT,
+    emit_report,
+    environment,
+    fmt_seconds,
+    markdown_table,
+    parser,
+    spawn_worker,
+    worker_result,
+)
+
+DATA = ROOT.parent / "shared" / "data"
+PROBLEMS = ("garage", "sphere2500", "bal")
+QUICK = ("garage",)
+
+
+def _bal_file() -> Path | None:
+    files = sorted((DATA / "bal").glob("*.txt"), key=lambda p: p.stat().st_size)
+    return files[-1] if files else None
+
+
+def _source(name: str) -> Path | None:
+    if name == "bal":
+        return _bal_file()
+    path = DATA / "g2o" / ("parking-garage.g2o" if name == "garage" else f"{name}.g2o")
+    return path if path.exists() else None
+
+
+def _problem(name: str) -> tuple[Any, Any]:
+    """(loss(θ) -> (scalar, iterations), θ0) for problem ``name``."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxpose import graph as jg
+    from jaxpose.io import read_bal, read_g2o
+    from jaxpose.lie import LieGroup
+
+    path = _source(name)
+    if name == "bal":
+        graph = jg.bundle_adjustment_problem(read_bal(path))
+        options = dict(linear_solver="sparse")
+    else:
+        graph = jg.pose_graph_problem(read_g2o(path))
+        options = dict(linear_solver="sparse")
+    data = graph.factors[0].data
+    theta0 = jnp.zeros((graph.factors[0].count, data.tangent_dim if isinstance(data, LieGroup)
+                        else data.shape[-1]))
+    leaves = jax.tree.leaves(graph.variables)
+    rng = np.random.default_rng(0)
+    weights = [jnp.asarray(rng.normal(size=x.shape)) for x in leaves]
+
+    def loss(theta: Any) -> Any:
+        new = data.retract(theta) if isinstance(data, LieGroup) else data + theta
+        sol = jg.solve(eqx.tree_at(lambda g: g.factors[0].data, graph, new), **options)
+        value = sum(jnp.sum(w * x) for w, x in zip(weights, jax.tree.leaves(sol.variables),
+                                                   strict=True))
+        return value + sol.cost, sol.iterations
+
+    return loss, theta0
+
+
+def worker(name: str, mode: str) -> None:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    loss, theta0 = _problem(name)
+    f = (lambda t: loss(t)) if mode == "forward" else jax.grad(loss, has_aux=True)
+    t0 = time.perf_counter()
+    compiled = jax.jit(f).lower(theta0).compile()
+    compile_s = time.perf_counter() - t0
+    out = jax.block_until_ready(compiled(theta0))
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(theta0))
+        runs.append(time.perf_counter() - t0)
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    worker_result({"compile_s": compile_s, "run_s": sorted(runs)[1], "iterations": int(out[1]),
+                   "peak_mb": peak_mb})
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = parser(__doc__, quick="parking-garage only", threads=False, workers=True)
+    ap.add_argument("--only", default=None, help=f"comma-separated of {','.join(PROBLEMS)}")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: NAME:MODE
+    args = ap.parse_args(argv)
+    if args.worker:
+        worker(*args.worker.split(":"))
+        return 0
+    names = args.only.split(",") if args.only else list(QUICK if args.quick else PROBLEMS)
+    rows, verdicts = [], []
+    for name in names:
+        src = _source(name)
+        if src is None:
+            rows.append([name, "—", "—", "—", "—", "—", "—", "—", "skipped: data missing"])
+            continue
+        res = {}
+        for mode in ("forward", "grad"):
+            res[mode] = spawn_worker([__file__, "--worker", f"{name}:{mode}"],
+                                     timeout=args.timeout)
+        fw, gr = res["forward"], res["grad"]
+        if "failed" in fw or "failed" in gr:
+            why = fw.get("failed") or gr.get("failed")
+            rows.append([name, "—", "—", "—", "—", "—", "—", "—", f"failed: {why}"])
+            verdicts.append(False)
+            continue
+        per_iter = fw["run_s"] / max(fw["iterations"], 1)
+        backward = gr["run_s"] - fw["run_s"]
+        mem = gr["peak_mb"] / fw["peak_mb"]
+        ok = backward <= per_iter and mem <= 1.5
+        verdicts.append(ok)
+        rows.append([
+            f"{name} ({src.name})", f"{fw['iterations']}", fmt_seconds(fw["run_s"]),
+            fmt_seconds(per_iter), fmt_seconds(backward), f"{backward / per_iter:.2f}",
+            f"{fw['peak_mb']:.0f} / {gr['peak_mb']:.0f} MB ({mem:.2f}x)",
+            f"{fmt_seconds(fw['compile_s'])} / {fmt_seconds(gr['compile_s'])}",
+            "yes" if ok else "no",
+        ])
+    header = ["problem", "LM iterations", "forward", "per iteration", "backward",
+              "backward / iteration", "peak RSS forward / grad", "compile forward / grad",
+              "bar met"]
+    text = "\n".join([
+        "## Backward pass through graph.solve vs one forward LM iteration (float64)",
+        "",
+        f"{environment()}. Sparse direct solver (CHOLMOD); steady state, median of 3; each "
+        "contestant in a cold process.",
+        "",
+        markdown_table(header, rows),
+        "",
+        f"Result: backward ≤ one forward iteration and peak memory ≤ 1.5x on "
+        f"{sum(verdicts)} of {len(verdicts)} problems.",
+    ])
+    emit_report(text, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
