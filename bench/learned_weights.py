@@ -56,7 +56,7 @@ def build_parser() -> Any:
     ap.add_argument("--train", type=int, default=2, help="training draws per rate")
     ap.add_argument("--test", type=int, default=2, help="held-out draws per rate")
     ap.add_argument("--steps", type=int, default=40, help="Adam steps")
-    ap.add_argument("--lr", type=float, default=3e-2)
+    ap.add_argument("--lr", type=float, default=1e-2)
     return ap
 
 

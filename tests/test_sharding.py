@@ -122,9 +122,11 @@ def _worker() -> dict:
 @pytest.fixture(scope="module")
 def four_devices() -> dict:
     env = dict(os.environ)
-    # only our flag: flags inherited from the session (another test's settings) could
-    # make XLA ignore or reject it
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    # the session's flags (tests/conftest.py's probed fast-compile options) minus any
+    # device count of its own, then ours
+    inherited = [f for f in env.get("XLA_FLAGS", "").split()
+                 if not f.startswith("--xla_force_host_platform_device_count")]
+    env["XLA_FLAGS"] = " ".join([*inherited, "--xla_force_host_platform_device_count=4"])
     env["JAX_PLATFORMS"] = "cpu"
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     proc = subprocess.run(

@@ -6,9 +6,10 @@ kernel ρ. From that solution each edge gets three features: its whitened square
 ``s`` relative to the χ² 0.99 threshold τ (``log(1 + s/τ)`` and ``τ/(s + τ)``) and the
 length of the loop it closes (``log|i − j| / log n``, zero for odometry). A small equinox
 MLP maps them to a factor on the kernel's own weight ρ'(s) (the weight of iteratively
-reweighted least squares): ``w = ρ'(s) · 2 sigmoid(MLP(features))``, with the MLP's last
-layer zero at the start, so the untrained network reproduces the kernel's solution (its
-stationary point).
+reweighted least squares): ``w = ρ'(s) · sigmoid(MLP(features))``. The MLP's last layer
+starts at weight 0 and bias 4, a uniform factor sigmoid(4) that leaves the minimiser
+unchanged, so the untrained network reproduces the kernel's solution (its stationary
+point) and training can only lower an edge's weight relative to the kernel's.
 The weighted graph is solved again from the kernel's solution, and the network is trained
 to minimise the mean squared position error of that solution against the clean graph's
 optimum. The gradient flows through the sparse LM solve by implicit differentiation
@@ -84,8 +85,8 @@ def edge_features(graph: Any, poses: Any, kernel: Any) -> np.ndarray:
 
 
 class WeightNet(eqx.Module):
-    """Per-edge weight: the kernel's weight ρ'(s) times a factor in (0, 2) from an MLP of
-    the edge's features (1 at initialisation)."""
+    """Per-edge weight: the kernel's weight ρ'(s) times a factor in (0, 1) from an MLP of
+    the edge's features (uniform at initialisation)."""
 
     mlp: eqx.nn.MLP
 
@@ -93,11 +94,11 @@ class WeightNet(eqx.Module):
         mlp = eqx.nn.MLP(N_FEATURES, "scalar", width, depth, activation=jax.nn.tanh, key=key)
         last = mlp.layers[-1]
         self.mlp = eqx.tree_at(lambda m: (m.layers[-1].weight, m.layers[-1].bias), mlp,
-                               (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)))
+                               (jnp.zeros_like(last.weight), jnp.full_like(last.bias, 4.0)))
 
     def __call__(self, inputs: Any) -> Any:
         """(m, 4) inputs (:func:`edge_features`) → (m,) weights."""
-        return inputs[:, -1] * 2.0 * jax.nn.sigmoid(jax.vmap(self.mlp)(inputs[:, :-1]))
+        return inputs[:, -1] * jax.nn.sigmoid(jax.vmap(self.mlp)(inputs[:, :-1]))
 
 
 @dataclasses.dataclass
@@ -178,7 +179,7 @@ class Training:
 
 
 def train(net: WeightNet, draws: list, bases: list, ref: np.ndarray, kernel: Any,
-          steps: int = 60, lr: float = 3e-2) -> Training:
+          steps: int = 60, lr: float = 1e-2) -> Training:
     """Adam on the mean over ``draws`` of the weighted solution's position MSE; ``bases``:
     each draw's solution with ``kernel``."""
     kind = draws[0].graph.kind
@@ -227,7 +228,7 @@ def clean_optimum(graph: Any, start: np.ndarray, max_steps: int) -> np.ndarray:
 
 
 def experiment(graph: Any, rate: float, train_seeds: Any, test_seeds: Any, *, steps: int = 60,
-               max_steps: int = 100, lr: float = 3e-2, seed: int = 0,
+               max_steps: int = 100, lr: float = 1e-2, seed: int = 0,
                scales: Any = SCALES, kernels: Any = tuple(KERNELS)) -> dict[str, Any]:
     """Tune the kernels and train the weights on ``train_seeds`` draws; APEs on
     ``test_seeds`` draws (held out) for each tuned kernel, the untrained and the trained
