@@ -10,7 +10,7 @@ differentiated with respect to a perturbation θ of every measurement (pose grap
 * ``grad``: ``jit(grad(L))`` — the same solve plus the backward pass (exact Hessian at
   the solution, one sparse factorisation and solve, the cross-derivative product).
 
-Backward = grad − forward (steady state, median of 3). Memory: the compiled program's XLA
+Backward = grad − forward (steady state, median of the repeats). Memory: the compiled program's XLA
 buffers (arguments, outputs and temporaries from ``memory_analysis()``; CHOLMOD's factor
 lives in the host callback and is not counted), grad against forward; the process's peak
 resident set (``ru_maxrss``) is shown too but is dominated by compilation, which is
@@ -44,6 +44,7 @@ from bench._common import (  # noqa: E402 - imports no jax
     markdown_table,
     parser,
     spawn_worker,
+    time_callable,
     worker_result,
 )
 
@@ -76,12 +77,8 @@ def _problem(name: str) -> tuple[Any, Any]:
     from jaxpose.lie import LieGroup
 
     path = _source(name)
-    if name == "bal":
-        graph = jg.bundle_adjustment_problem(read_bal(path))
-        options = dict(linear_solver="sparse")
-    else:
-        graph = jg.pose_graph_problem(read_g2o(path))
-        options = dict(linear_solver="sparse")
+    graph = (jg.bundle_adjustment_problem(read_bal(path)) if name == "bal"
+             else jg.pose_graph_problem(read_g2o(path)))
     data = graph.factors[0].data
     theta0 = jnp.zeros((graph.factors[0].count, data.tangent_dim if isinstance(data, LieGroup)
                         else data.shape[-1]))
@@ -91,7 +88,8 @@ def _problem(name: str) -> tuple[Any, Any]:
 
     def loss(theta: Any) -> Any:
         new = data.retract(theta) if isinstance(data, LieGroup) else data + theta
-        sol = jg.solve(eqx.tree_at(lambda g: g.factors[0].data, graph, new), **options)
+        sol = jg.solve(eqx.tree_at(lambda g: g.factors[0].data, graph, new),
+                       linear_solver="sparse")
         value = sum(jnp.sum(w * x) for w, x in zip(weights, jax.tree.leaves(sol.variables),
                                                    strict=True))
         return value + sol.cost, sol.iterations
@@ -104,21 +102,17 @@ def worker(name: str, mode: str) -> None:
 
     jax.config.update("jax_enable_x64", True)
     loss, theta0 = _problem(name)
-    f = (lambda t: loss(t)) if mode == "forward" else jax.grad(loss, has_aux=True)
+    f = loss if mode == "forward" else jax.grad(loss, has_aux=True)
     t0 = time.perf_counter()
-    compiled = jax.jit(f).lower(theta0).compile()
+    compiled = jax.jit(f).lower(theta0).compile()  # kept: its memory_analysis() below
     compile_s = time.perf_counter() - t0
-    out = jax.block_until_ready(compiled(theta0))
-    runs = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(theta0))
-        runs.append(time.perf_counter() - t0)
+    timing, out = time_callable(lambda: compiled(theta0), repeats=3,
+                                sync=jax.block_until_ready)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     mem = compiled.memory_analysis()
     xla_mb = (mem.temp_size_in_bytes + mem.argument_size_in_bytes + mem.output_size_in_bytes
               ) / 2**20 if mem is not None else float("nan")
-    worker_result({"compile_s": compile_s, "run_s": sorted(runs)[1], "iterations": int(out[1]),
+    worker_result({"compile_s": compile_s, "run_s": timing.median, "iterations": int(out[1]),
                    "peak_mb": peak_mb, "xla_mb": xla_mb})
 
 
@@ -167,8 +161,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     text = "\n".join([
         "## Backward pass through graph.solve vs one forward LM iteration (float64)",
         "",
-        f"{environment()}. Sparse direct solver (CHOLMOD); steady state, median of 3; each "
-        "contestant in a cold process.",
+        f"{environment()}. Sparse direct solver (CHOLMOD); steady state, median of the "
+        "repeats; each contestant in a cold process.",
         "",
         markdown_table(header, rows),
         "",

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import os
 import sys
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from bench._common import (  # noqa: E402 - imports no jax
     markdown_table,
     parser,
     spawn_worker,
+    time_jax,
     worker_result,
 )
 
@@ -126,16 +126,8 @@ def worker(name: str, quick: bool) -> None:
 
     jax.config.update("jax_enable_x64", True)
     f, args = _entry(name, quick)
-    t0 = time.perf_counter()
-    compiled = jax.jit(f).lower(*args).compile()
-    compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(*args))
-    runs = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        runs.append(time.perf_counter() - t0)
-    worker_result({"compile_s": compile_s, "run_s": sorted(runs)[1]})
+    timing, _ = time_jax(f, *args, repeats=3)
+    worker_result({"compile_s": timing.compile_s, "run_s": timing.median})
 
 
 # ----------------------------------------------------------------------------------
