@@ -38,6 +38,7 @@ import optax
 
 import jaxpose.graph as jg
 from jaxpose.datasets import corrupt_loop_closures, synthetic_pose_graph  # noqa: F401
+from jaxpose.graph._robust import chi2_quantile
 from jaxpose.lie import SE2, SE3
 from jaxpose.optim import Cauchy, GemanMcClure, Huber, Stopping
 
@@ -51,8 +52,9 @@ def stopping(max_steps: int = 100) -> Stopping:
 
 
 def threshold(kind: str) -> float:
-    """τ: the χ² 0.99 quantile of a pose residual (3 dof in 2D, 6 in 3D)."""
-    return {"SE2": 11.344866730144373, "SE3": 16.811893829770927}[kind]
+    """τ: the χ² 0.99 quantile of a pose residual (3 dof in 2D, 6 in 3D), GNC's default
+    inlier threshold."""
+    return chi2_quantile(0.99, 6 if kind == "SE3" else 3)
 
 
 def _group(kind: str) -> Any:
@@ -111,9 +113,11 @@ class Draw:
     start: np.ndarray  # the poses every contestant starts from
     max_steps: int
     _compiled: dict = dataclasses.field(default_factory=dict)
+    _solved: dict = dataclasses.field(default_factory=dict)
 
     def kernel_solve(self, name: str, delta: float) -> np.ndarray:
-        """Poses solved with kernel ``name`` of scale ``delta`` (one compilation per kernel)."""
+        """Poses solved with kernel ``name`` of scale ``delta`` (one compilation per kernel,
+        one solve per scale: tuning, the bases and the plot reuse it)."""
         if name not in self._compiled:
             kind = KERNELS[name]
 
@@ -122,7 +126,10 @@ class Draw:
                 return jg.solve(problem, stopping=stopping(self.max_steps)).variables["pose"].data
 
             self._compiled[name] = jax.jit(run)
-        return np.asarray(self._compiled[name](jnp.asarray(delta, float)))
+        key = (name, float(delta))
+        if key not in self._solved:
+            self._solved[key] = np.asarray(self._compiled[name](jnp.asarray(delta, float)))
+        return self._solved[key]
 
     def weighted_solve(self, base: np.ndarray) -> Any:
         """``f(weights) -> poses``: the graph with its edges weighted by (m,) ``weights``,
