@@ -24,12 +24,12 @@ from __future__ import annotations
 import argparse
 import collections
 import heapq
+import math
 import sqlite3
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-import numpy as np
 from coverage.numbits import numbits_to_nums
 
 HERE = Path(__file__).resolve().parent
@@ -86,9 +86,9 @@ def select(lines: dict[str, set], cost: dict[str, float], fn_cap: float = 0.5) -
     tests = sorted(cost)
     cheapest: dict[str, float] = {}
     for t in tests:
-        cheapest[function_of(t)] = min(cheapest.get(function_of(t), np.inf), cost[t])
-    quick = {f for f, c in cheapest.items() if c <= fn_cap}
-    feats = {t: lines.get(t, set()) | ({("fn", function_of(t))} & {("fn", f) for f in quick})
+        cheapest[function_of(t)] = min(cheapest.get(function_of(t), math.inf), cost[t])
+    feats = {t: lines.get(t, set()) | ({("fn", function_of(t))}
+                                       if cheapest[function_of(t)] <= fn_cap else set())
              for t in tests}
     need = set().union(*feats.values())
     chosen: set[str] = set()
