@@ -16,16 +16,33 @@ offsets, and a small SPD and a non-SPD system must solve/fail as expected). On a
 
 Matrices are given as symmetric CSR (full pattern, sorted column indices); CHOLMOD reads
 the same arrays as CSC and uses one triangle (``stype = 1``).
+
+BLAS: cholespy's wheel links CHOLMOD against the reference BLAS, whose dense kernels are
+what a supernodal factorisation spends its time in (3.3x slower than OpenBLAS on the
+sphere2500 Gauss–Newton matrix, one thread). Before loading that library, this module loads
+an optimised LP64 BLAS into the global symbol scope, so CHOLMOD's ``dgemm_``/``dsyrk_``/
+``dtrsm_``/``dpotrf_`` bind to it: the library named by the environment variable
+``JAXPOSE_BLAS`` (a path or soname; ``reference`` keeps cholespy's own), else the system's
+OpenBLAS where one is installed (Debian/Ubuntu: ``apt-get install libopenblas0``), set to
+one thread unless ``OPENBLAS_NUM_THREADS`` says otherwise (the calls run inside XLA host
+callbacks, where idle OpenBLAS threads would spin against XLA's; a second thread gained
+under 10 % on sphere2500).
+:func:`blas` says which one is in use; the self-test includes a dense block, so a BLAS that
+computes wrong results is caught at load.
 """
 
 from __future__ import annotations
 
 import atexit
 import ctypes
+import ctypes.util
 import glob
+import importlib.util
 import os
 import struct
+import sys
 import threading
+import warnings
 import zlib
 from collections import OrderedDict
 from typing import Any
@@ -142,38 +159,79 @@ class _Library:
             self.lib.cholmod_finish(self.common)
 
 
-def _self_test(lib: _Library) -> None:
-    """A 3×3 SPD system must solve exactly and an indefinite one must be reported."""
-    a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+def _csr(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rows, cols = np.nonzero(a)
-    indptr = np.searchsorted(rows, np.arange(4)).astype(np.int32)
-    indices = cols.astype(np.int32)
-    b = np.array([1.0, 2.0, 3.0])
-    x = lib.solve(a[rows, cols].copy(), indices, indptr, b)
-    if not np.allclose(x, np.linalg.solve(a, b), rtol=1e-12, atol=0):
-        raise OSError("CHOLMOD self-test: wrong solution")
+    indptr = np.searchsorted(rows, np.arange(a.shape[0] + 1)).astype(np.int32)
+    return a[rows, cols].copy(), cols.astype(np.int32), indptr
+
+
+def _self_test(lib: _Library) -> None:
+    """SPD systems must solve to rounding and an indefinite one must be reported: a 3×3
+    one and a 96×96 one with a dense 64×64 block (a supernode large enough to go through
+    the BLAS kernels)."""
+    a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+    rng = np.random.default_rng(0)
+    g = rng.normal(size=(64, 64))
+    big = np.diag(np.full(96, 4.0)) + np.diag(np.ones(95), 1) + np.diag(np.ones(95), -1)
+    big[32:, 32:] += g @ g.T / 64
+    for m in (a, big):
+        b = np.linspace(1.0, 3.0, m.shape[0])
+        x = lib.solve(*_csr(m), b)
+        if not np.allclose(x, np.linalg.solve(m, b), rtol=1e-10, atol=0):
+            raise OSError("CHOLMOD self-test: wrong solution (check the BLAS it uses: "
+                          f"{_BLAS}; set JAXPOSE_BLAS=reference to use cholespy's own)")
     a[2, 2] = -2.0
-    if not np.all(np.isnan(lib.solve(a[rows, cols].copy(), indices, indptr, b))):
+    if not np.all(np.isnan(lib.solve(*_csr(a), np.ones(3)))):
         raise OSError("CHOLMOD self-test: an indefinite matrix was not reported")
     lib.clear()
+
+
+def _preload_blas() -> str:
+    """Load the optimised BLAS CHOLMOD should bind to (module docstring); returns what
+    :func:`blas` reports. Warns (and keeps the reference BLAS) when ``JAXPOSE_BLAS`` names
+    a library that cannot be loaded."""
+    choice = os.environ.get("JAXPOSE_BLAS", "").strip()
+    if choice == "reference":
+        return "reference (JAXPOSE_BLAS=reference)"
+    if "cholespy._cholespy_core" in sys.modules:
+        return "reference (cholespy was imported before jaxpose loaded CHOLMOD)"
+    if not choice and not sys.platform.startswith("linux"):
+        return "cholespy's own"
+    name = choice or ctypes.util.find_library("openblas")
+    if name is None:
+        return "reference (no system OpenBLAS found)"
+    try:
+        lib = ctypes.CDLL(name, mode=ctypes.RTLD_GLOBAL)
+    except OSError as err:
+        if choice:
+            warnings.warn(f"JAXPOSE_BLAS={choice!r} could not be loaded ({err}); expected the "
+                          "path or soname of an LP64 BLAS, or 'reference'. CHOLMOD keeps "
+                          "cholespy's reference BLAS.", RuntimeWarning, stacklevel=4)
+        return f"reference ({name!r} could not be loaded)"
+    if "OPENBLAS_NUM_THREADS" not in os.environ and hasattr(lib, "openblas_set_num_threads"):
+        lib.openblas_set_num_threads(1)  # see the module docstring
+    return name
 
 
 _LIB: _Library | None = None
 _LOAD_ERROR: str | None = None
 _LOADED = False
+_BLAS = "not loaded"
 
 
 def _load() -> _Library | None:
-    global _LIB, _LOAD_ERROR, _LOADED
+    global _LIB, _LOAD_ERROR, _LOADED, _BLAS
     if _LOADED:
         return _LIB
     _LOADED = True
     try:
-        import cholespy
-
-        paths = glob.glob(os.path.join(os.path.dirname(cholespy.__file__), "_cholespy_core*"))
+        spec = importlib.util.find_spec("cholespy")  # located, not imported (see _preload_blas)
+        if spec is None or not spec.submodule_search_locations:
+            raise ImportError("cholespy is not installed")
+        paths = glob.glob(os.path.join(spec.submodule_search_locations[0], "_cholespy_core*"))
         if not paths:
             raise OSError("cholespy's compiled core not found")
+        _BLAS = _preload_blas()
         lib = _Library(paths[0])
         _self_test(lib)
         _LIB = lib
@@ -186,6 +244,13 @@ def _load() -> _Library | None:
 def available() -> bool:
     """True when CHOLMOD could be loaded and passed its layout checks."""
     return _load() is not None
+
+
+def blas() -> str:
+    """The BLAS CHOLMOD's dense kernels use: a library path/soname, or ``reference ...``
+    with the reason no optimised one was loaded (module docstring)."""
+    _load()
+    return _BLAS
 
 
 def unavailable_reason() -> str | None:
