@@ -165,7 +165,7 @@ def run_jaxpose(path: Path, solver: str, float32: bool, repeats: int, max_steps:
         initial_cost=float(sol.initial_cost), cost=float(sol.cost),
         linear_iterations=int(sol.linear_iterations), baseline_rss=baseline,
         peak_rss=_peak_rss(), version=_version("jaxpose"), jax=jax.__version__,
-        backend=jax.default_backend(),
+        backend=jax.default_backend(), blas=_cholmod_blas(),
     )
 
 
@@ -228,6 +228,12 @@ def run_gtsam(path: Path, repeats: int, max_steps: int) -> dict:
         out["own_failed"] = f"{type(err).__name__}: {str(err).splitlines()[0][:60]}"
     out.update(baseline_rss=baseline, peak_rss=_peak_rss())
     return out
+
+
+def _cholmod_blas() -> str:
+    from jaxpose.graph import _cholmod
+
+    return _cholmod.blas() if _cholmod.available() else "—"
 
 
 def _version(dist: str) -> str:
@@ -342,7 +348,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
     lines.append(
         f"jaxpose {jp_any.get('version', '?')} (jax {jp_any.get('jax', '?')}, "
         f"{jp_any.get('backend', '?')}), default `jaxpose pgo` (init auto), linear solver "
-        f"`{args.solver}`, {'float32' if args.float32 else 'float64'}; "
+        f"`{args.solver}` (CHOLMOD's BLAS: {jp_any.get('blas', '?')}), "
+        f"{'float32' if args.float32 else 'float64'}; "
         + (f"GTSAM {gt_any['version']}" if gt_any else f"GTSAM {gt_skip or 'not run'}")
         + f"; max {args.max_steps} iterations, best of {args.repeats} runs."
     )

@@ -54,11 +54,44 @@ def _project_so(m: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
-def _psd_sqrt(m: np.ndarray) -> np.ndarray:
-    """Symmetric square root of each (..., k, k) symmetric matrix, negative eigenvalues
-    clipped to zero."""
-    w, v = np.linalg.eigh(0.5 * (m + np.swapaxes(m, -1, -2)))
-    return (v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]) @ np.swapaxes(v, -1, -2)
+def _psd_parts(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, M⁺)`` for each (m, k, k) symmetric positive semi-definite ``M``: a square root
+    ``RᵀR = M`` (negative eigenvalues clipped to zero) and the pseudo-inverse (eigenvalues
+    at most 1e-15 of the largest count as zero, as ``np.linalg.pinv(hermitian=True)``).
+
+    Diagonal matrices (most files' information blocks) take square roots and reciprocals
+    of the diagonal; the others Cholesky (``R = Lᵀ``) when every pivot is above 1e-12 of
+    the largest diagonal entry, else an eigendecomposition (``R`` symmetric)."""
+    m = 0.5 * (m + np.swapaxes(m, -1, -2))
+    eye = np.eye(m.shape[-1])
+
+    def parts(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        big = np.abs(w) > 1e-15 * np.max(np.abs(w), axis=-1, keepdims=True)
+        return np.sqrt(np.clip(w, 0.0, None)), np.where(big, 1.0 / np.where(big, w, 1.0), 0.0)
+
+    d = np.diagonal(m, axis1=-2, axis2=-1)
+    root, pinv = (eye * x[..., None, :] for x in parts(d))
+    full = ~np.all(m == eye * d[..., None, :], axis=(-2, -1))
+    # Cholesky pivots are ratios of leading principal minors
+    minors = np.stack([np.ones(m.shape[0])]
+                      + [np.linalg.det(m[:, :s, :s]) for s in range(1, m.shape[-1] + 1)], -1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pivots = minors[:, 1:] / minors[:, :-1]
+    tol = 1e-12 * np.max(np.abs(d), -1, keepdims=True)
+    chol = full & np.all(minors[:, :-1] > 0, -1) & np.all(pivots > tol, -1)
+    eig = full & ~chol
+    if np.any(chol):
+        lower = np.linalg.cholesky(m[chol])
+        lower_inv = np.linalg.inv(lower)
+        root[chol] = np.swapaxes(lower, -1, -2)
+        pinv[chol] = np.swapaxes(lower_inv, -1, -2) @ lower_inv
+    if np.any(eig):
+        w, v = np.linalg.eigh(m[eig])
+        vt = np.swapaxes(v, -1, -2)
+        sq, inv = parts(w)
+        root[eig] = (v * sq[..., None, :]) @ vt
+        pinv[eig] = (v * inv[..., None, :]) @ vt
+    return root, pinv
 
 
 def _v_inverse(phi: np.ndarray) -> np.ndarray:
@@ -218,11 +251,11 @@ def _translations(
     dt = zt.shape[-1]
     i = edges[:, 0]
     o_tt, o_tr = info[:, :dt, :dt], info[:, :dt, dt:]
-    s = _psd_sqrt(o_tt)
+    s, o_tt_pinv = _psd_parts(o_tt)
     # target of the translation residual: −Ω_tt⁻¹·Ω_tR·φ (pinv: Ω_tt may be singular)
     target = -np.einsum(
         "mij,mj->mi",
-        np.linalg.pinv(o_tt, hermitian=True),
+        o_tt_pinv,
         np.einsum("mij,mj->mi", o_tr, phi.reshape(len(i), -1)),
     )
     a = vinv @ np.swapaxes(zr, -1, -2)  # V⁻¹·Z_Rᵀ
@@ -237,7 +270,7 @@ def _chordal_se3(poses, edges, z, info, anchors, i, j) -> np.ndarray:
     zr = quat_to_matrix(z[:, 3:])
     o_rr = info[:, 3:, 3:]
     mm = 0.5 * np.trace(o_rr, axis1=1, axis2=2)[:, None, None] * np.eye(3) - o_rr
-    w = _psd_sqrt(mm)
+    w = _psd_parts(mm)[0]
     # unknowns X_v = R_vᵀ (3×3; its columns are the rows of R_v): W·R_jᵀ − W·Z_ijᵀ·R_iᵀ = 0
     bj = w
     bi = -w @ np.swapaxes(zr, -1, -2)

@@ -29,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.sparse
+from scipy.sparse.csgraph import connected_components as components
 
 from .._checks import set_numpy_field
 from ..lie._numpy import compose1, identity, inverse, normalize
@@ -686,23 +688,14 @@ def connected_components(graph: PoseGraph) -> np.ndarray:
     (or a prior) per piece.
     """
     n = graph.n_poses
-    parent = np.arange(n)
-
-    def find(v: int) -> int:
-        root = v
-        while parent[root] != root:
-            root = parent[root]
-        while parent[v] != root:
-            parent[v], v = root, parent[v]
-        return root
-
-    for i, j in graph.edges.tolist():
-        ri, rj = find(i), find(j)
-        if ri != rj:
-            parent[max(ri, rj)] = min(ri, rj)
-    roots = np.array([find(v) for v in range(n)], np.int64)
-    _, labels = np.unique(roots, return_inverse=True)
-    return labels.astype(np.int64)
+    edges = np.asarray(graph.edges, np.int64).reshape(-1, 2)
+    adjacency = scipy.sparse.coo_matrix(
+        (np.ones(edges.shape[0]), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, raw = components(adjacency, directed=False)
+    _, first = np.unique(raw, return_index=True)  # first vertex of each piece
+    rank = np.empty(first.size, np.int64)
+    rank[np.argsort(first)] = np.arange(first.size)
+    return rank[raw]
 
 
 # ----------------------------------------------------------------------------- writing

@@ -316,3 +316,23 @@ def test_cholmod_solves_several_right_hand_sides_with_one_factorisation():
     x1 = cholmod.solve(h.data, h.indices, h.indptr, b[:, 1])
     assert x1.shape == (40,)
     np.testing.assert_allclose(x1, x[:, 1], rtol=1e-13)
+
+
+def test_psd_parts_matches_the_eigendecomposition_on_every_branch():
+    """Square root (RᵀR = M with negative eigenvalues clipped) and pseudo-inverse of
+    diagonal, positive definite full, singular and indefinite blocks, mixed in one batch."""
+    from jaxpose.graph._init import _psd_parts
+
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(12, 3, 3))
+    m = a @ np.swapaxes(a, -1, -2) + 0.1 * np.eye(3)  # full, positive definite
+    m[:3] = np.eye(3) * rng.uniform(0.5, 2.0, (3, 1, 3))  # diagonal
+    m[3] = np.diag([1.0, 0.0, 2.0])  # diagonal, singular
+    b = rng.normal(size=(3, 2))
+    m[4] = b @ b.T  # full, rank 2
+    m[5] = np.eye(3) - 0.9 * np.ones((3, 3))  # indefinite
+    root, pinv = _psd_parts(m)
+    w, v = np.linalg.eigh(m)
+    clipped = (v * np.clip(w, 0.0, None)[..., None, :]) @ np.swapaxes(v, -1, -2)
+    np.testing.assert_allclose(np.swapaxes(root, -1, -2) @ root, clipped, atol=1e-12)
+    np.testing.assert_allclose(pinv, np.linalg.pinv(m, hermitian=True), rtol=1e-9, atol=1e-9)
