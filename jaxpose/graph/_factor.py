@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lie._base import LieGroup
+from ..lie._base import LieGroup, small_matmul
 from ..optim._correctors import Corrector, FastTriggs
 from ..optim._kernels import Kernel
 
@@ -222,7 +222,7 @@ def between_jacobian(xi: LieGroup, xj: LieGroup, z: LieGroup) -> tuple[Array, Ar
     rel = xi.inv().compose(xj)
     r = z.inv().compose(rel).log()
     jr_inv = r.jr_inv()
-    return r.data, -jr_inv @ rel.inv().adj_matrix(), jr_inv
+    return r.data, -small_matmul(jr_inv, rel.inv().adj_matrix()), jr_inv
 
 
 def prior_residual(x: LieGroup, z: LieGroup) -> Array:

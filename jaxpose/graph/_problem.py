@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lie._base import LieGroup
+from ..lie._base import LieGroup, small_matmul
 from ._analysis import (
     Structure,
     Variables,
@@ -184,7 +184,7 @@ def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
         if f.sqrt_info is not None:
             s = f.sqrt_info.astype(r.dtype)
             r = jnp.einsum("mij,mj->mi", s, r)
-            jac = tuple(jnp.einsum("mij,mjk->mik", s, j) for j in jac)
+            jac = tuple(small_matmul(s, j) for j in jac)
         rho = _rho(f.kernel, r)
         if f.kernel is not None:
             sizes = [j.shape[-1] for j in jac]
@@ -244,7 +244,7 @@ def block_diagonal(graph: FactorGraph, lin: GraphLinearization) -> tuple[Array, 
     for f, jac in zip(graph.factors, lin.jacobians, strict=True):
         for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
             k = type_of[slot]
-            out[k] = out[k].at[idx].add(jnp.einsum("mri,mrj->mij", j, j))
+            out[k] = out[k].at[idx].add(small_matmul(j.mT, j))
     return tuple(out)
 
 
@@ -289,7 +289,7 @@ def hessian_blocks(graph: FactorGraph, lin: GraphLinearization) -> list[Array]:
         if (k, t, s) in cache:
             return cache[k, t, s].mT
         jac = lin.jacobians[k]
-        cache[k, s, t] = jnp.einsum("mri,mrj->mij", jac[s], jac[t])
+        cache[k, s, t] = small_matmul(jac[s].mT, jac[t])
         return cache[k, s, t]
 
     return assemble_blocks(graph, jtj, lin.cost.dtype)

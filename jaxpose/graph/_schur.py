@@ -29,6 +29,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from ..lie._base import small_matmul
 from ._analysis import SchurStructure, split_tangent
 from ._pattern import scatter_blocks
 
@@ -102,11 +103,11 @@ def reduced_system(
         for (s, t), c, idx in zip(pairs, classes, indices, strict=True):
             ka, kb, _ = sc.pattern.classes[c]
             if ka <= kb:  # lower classes are mirrored from the upper ones below
-                u_contrib.append((c, idx, jnp.einsum("mri,mrj->mij", jac[s], jac[t])))
+                u_contrib.append((c, idx, small_matmul(jac[s].mT, jac[t])))
         if q >= 0:
-            v = v.at[f.indices[q]].add(jnp.einsum("mri,mrj->mij", jac[q], jac[q]))
+            v = v.at[f.indices[q]].add(small_matmul(jac[q].mT, jac[q]))
             for s, k in ws:
-                w_parts[k].append(jnp.einsum("mri,mrj->mij", jac[s], jac[q]))
+                w_parts[k].append(small_matmul(jac[s].mT, jac[q]))
     u = scatter_blocks(sc.pattern.zeros(dtype), u_contrib)
     w = [jnp.concatenate(p)[o] if p else jnp.zeros((0, st.dims[t], d_e), dtype)
          for p, t, o in zip(w_parts, kept, sc.w_order, strict=True)]

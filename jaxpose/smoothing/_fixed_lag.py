@@ -53,6 +53,7 @@ import jax.scipy.linalg as jsl
 from jax.flatten_util import ravel_pytree
 
 from ..lie import manifold
+from ..lie._base import small_matmul
 
 Array = jax.Array
 PyTree = Any
@@ -309,9 +310,9 @@ class FixedLagSmoother(eqx.Module):
         ja, jb = jnp.where(mask, ja, 0.0), jnp.where(mask, jb, 0.0)
         r = jnp.where(mask[:, :, 0], r, 0.0)
         diag = jnp.zeros((k, d, d), r.dtype)
-        diag = diag.at[:-1].add(jnp.einsum("mra,mrb->mab", ja, ja))
-        diag = diag.at[1:].add(jnp.einsum("mra,mrb->mab", jb, jb))
-        up = jnp.einsum("mra,mrb->mab", ja, jb)
+        diag = diag.at[:-1].add(small_matmul(ja.mT, ja))
+        diag = diag.at[1:].add(small_matmul(jb.mT, jb))
+        up = small_matmul(ja.mT, jb)
         g = jnp.zeros((k, d), r.dtype)
         g = g.at[:-1].add(jnp.einsum("mra,mr->ma", ja, r))
         g = g.at[1:].add(jnp.einsum("mra,mr->ma", jb, r))
@@ -319,7 +320,7 @@ class FixedLagSmoother(eqx.Module):
             ru, ju = self._unary_terms(x)
             ju = jnp.where(valid[:, None, None], ju, 0.0)
             ru = jnp.where(valid[:, None], ru, 0.0)
-            diag = diag + jnp.einsum("mra,mrb->mab", ju, ju)
+            diag = diag + small_matmul(ju.mT, ju)
             g = g + jnp.einsum("mra,mr->ma", ju, ru)
         hp, gp, _ = self._prior_terms(_take(x, 0), _take(self.prior_point, 0))
         diag = diag.at[0].add(hp)
@@ -366,10 +367,10 @@ class FixedLagSmoother(eqx.Module):
             r = jnp.where(mask[:, None], r, 0.0)
             ja = jnp.where(mask[:, None, None], ja, 0.0)
             jb = jnp.where(mask[:, None, None], jb, 0.0)
-            h = h.at[a, :, a, :].add(jnp.einsum("mra,mrb->mab", ja, ja))
-            h = h.at[a, :, b, :].add(jnp.einsum("mra,mrb->mab", ja, jb))
-            h = h.at[b, :, a, :].add(jnp.einsum("mra,mrb->mab", jb, ja))
-            h = h.at[b, :, b, :].add(jnp.einsum("mra,mrb->mab", jb, jb))
+            h = h.at[a, :, a, :].add(small_matmul(ja.mT, ja))
+            h = h.at[a, :, b, :].add(small_matmul(ja.mT, jb))
+            h = h.at[b, :, a, :].add(small_matmul(jb.mT, ja))
+            h = h.at[b, :, b, :].add(small_matmul(jb.mT, jb))
             g = g.at[a].add(jnp.einsum("mra,mr->ma", ja, r))
             g = g.at[b].add(jnp.einsum("mra,mr->ma", jb, r))
             return h, g, cost + 0.5 * jnp.sum(r * r)
