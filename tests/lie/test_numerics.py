@@ -742,3 +742,24 @@ def test_derivatives_higher_order_finite(G, dtype, name):
     for label, arr in (("second", h2), ("third", h3)):
         bad = [POINT_NAMES[i] for i in range(len(v)) if not np.all(np.isfinite(arr[i]))]
         assert not bad, f"{_gid(G)} {name} {label} derivative non-finite at {bad}"
+
+
+@pytest.mark.parametrize("shape", [(5, 6, 6, 6), (3, 2, 12, 12), (2, 4, 20, 3), (1, 1, 1)])
+def test_small_matmul_equals_matmul_and_differentiates(shape):
+    """The fused outer-product form (inner sizes ≤ 16) and the matmul fallback (> 16)
+    against numpy's matmul, with the product rule for the derivative."""
+    from jaxpose.lie._base import small_matmul
+
+    *batch, n, k, p = shape
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(*batch, n, k))
+    b = rng.normal(size=(*batch, k, p))
+    np.testing.assert_allclose(jax.jit(small_matmul)(a, b), a @ b, rtol=1e-13, atol=1e-13)
+    da, db = rng.normal(size=a.shape), rng.normal(size=b.shape)
+    _, tangent = jax.jvp(small_matmul, (jnp.asarray(a), jnp.asarray(b)),
+                         (jnp.asarray(da), jnp.asarray(db)))
+    np.testing.assert_allclose(tangent, da @ b + a @ db, rtol=1e-12, atol=1e-12)
+    a32 = jnp.asarray(a, jnp.float32)
+    out32 = small_matmul(a32, jnp.asarray(b, jnp.float32))
+    assert out32.dtype == jnp.float32
+    np.testing.assert_allclose(out32, a @ b, rtol=1e-4, atol=1e-4)
