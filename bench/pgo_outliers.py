@@ -117,7 +117,7 @@ def inlier_scores(weights: np.ndarray, loops: np.ndarray, outliers: np.ndarray) 
 # Contestants
 # ----------------------------------------------------------------------------------
 def _threshold(kind: str) -> float:
-    from jaxpose.graph._robust import chi2_quantile
+    from jaxpose.graph import chi2_quantile
 
     return chi2_quantile(0.99, 6 if kind == "SE3" else 3)
 

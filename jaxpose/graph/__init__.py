@@ -28,7 +28,7 @@ from ._init import chordal_initialization, initial_poses, pose_graph_cost
 from ._marginals import Marginals, marginals, se3_to_gtsam
 from ._pgo import optimize_pose_graph, pose_graph_problem
 from ._problem import FactorGraph, GraphLinearization, cost, linearize
-from ._robust import GNCSolution, gm_weights, gnc, tls_weights, weighted_graph
+from ._robust import GNCSolution, chi2_quantile, gm_weights, gnc, tls_weights, weighted_graph
 from ._solve import (
     PCG,
     Damping,
@@ -56,6 +56,7 @@ __all__ = [
     "between_jacobian",
     "between_residual",
     "bundle_adjustment_problem",
+    "chi2_quantile",
     "chordal_initialization",
     "cost",
     "default_rtol",

@@ -38,7 +38,7 @@ import optax
 
 import jaxpose.graph as jg
 from jaxpose.datasets import corrupt_loop_closures, synthetic_pose_graph  # noqa: F401
-from jaxpose.graph._robust import chi2_quantile
+from jaxpose.graph import chi2_quantile
 from jaxpose.lie import SE2, SE3
 from jaxpose.optim import Cauchy, GemanMcClure, Huber, Stopping
 

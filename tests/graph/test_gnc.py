@@ -15,9 +15,16 @@ import pytest
 
 from jaxpose.datasets import corrupt_loop_closures, synthetic_pose_graph
 from jaxpose.graph import _pgo as pgo
-from jaxpose.graph import default_stopping, gm_weights, gnc, tls_weights, weighted_graph
+from jaxpose.graph import (
+    chi2_quantile,
+    default_stopping,
+    gm_weights,
+    gnc,
+    tls_weights,
+    weighted_graph,
+)
 from jaxpose.graph._problem import cost, factor_residuals
-from jaxpose.graph._robust import chi2_quantile, initial_mu
+from jaxpose.graph._robust import initial_mu
 from jaxpose.optim import Huber
 
 
