@@ -48,6 +48,13 @@ def _retract(value: Any, delta: Array) -> Any:
     return value + delta
 
 
+def _retract_linear(value: Any, delta: Array) -> Any:
+    """:func:`_retract` to first order in δ (for Jacobians at δ = 0 only)."""
+    if isinstance(value, LieGroup):
+        return value.retract_linear(delta)
+    return value + delta
+
+
 class FactorGraph(eqx.Module):
     """A nonlinear least-squares problem over stacked variables.
 
@@ -173,7 +180,7 @@ def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
             zeros = tuple(jnp.zeros((tangent_dim(p),), _dtype(p)) for p in point)
 
             def res(deltas: tuple[Array, ...]) -> tuple[Array, Array]:
-                moved = [_retract(p, d) for p, d in zip(point, deltas, strict=True)]
+                moved = [_retract_linear(p, d) for p, d in zip(point, deltas, strict=True)]
                 r = f.residual(*moved, data)
                 return r, r
 

@@ -589,6 +589,24 @@ class LieGroup(_Element):
         broadcast_batch(self.shape, data.shape[:-1], what=name)
         return type(self)(self._compose(self.data, self._exp(data)))
 
+    def retract_linear(self: G, delta: Any) -> G:
+        """``X · E(δ)`` with ``E`` the first-order Taylor polynomial of ``Exp`` at 0: the
+        value and the first derivative in δ at δ = 0 equal :meth:`retract`'s, so a
+        Jacobian taken there (and its derivatives of any order with respect to X or
+        anything else) is exact, from a much smaller program than ``Exp``'s. ``E(δ)``
+        leaves the manifold for δ ≠ 0: use it only inside a first derivative in δ at
+        δ = 0, never for a step or for second derivatives in δ."""
+        name = f"{type(self).__name__}.retract_linear(delta)"
+        data = _tangent_data(delta, self.algebra, name)
+        broadcast_batch(self.shape, data.shape[:-1], what=name)
+        return type(self)(self._compose(self.data, self._exp_linear(data)))
+
+    @classmethod
+    def _exp_linear(cls, delta: Array) -> Array:
+        """First-order Taylor polynomial of ``_exp`` at 0 (storage layout); groups give
+        it in closed form, this default is ``_exp`` itself (exact to every order)."""
+        return cls._exp(delta)
+
     def rminus(self, other: LieGroup) -> Array:
         """Right minus ``Log(other⁻¹ · self)`` so that ``other ⊕ (self ⊖ other) = self``."""
         _check_same_type(self, other, f"{type(self).__name__}.rminus")

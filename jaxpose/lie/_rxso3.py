@@ -64,6 +64,11 @@ class RxSO3(LieGroup):
         return jnp.concatenate([quat.exp(a[..., :3]), jnp.exp(a[..., 3:])], -1)
 
     @staticmethod
+    def _exp_linear(a: Array) -> Array:
+        one = jnp.ones_like(a[..., :1])
+        return jnp.concatenate([0.5 * a[..., :3], one, one + a[..., 3:]], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         return jnp.concatenate([quat.log(x[..., :4]), jnp.log(x[..., 4:])], -1)
 

@@ -59,6 +59,10 @@ class SE2(LieGroup):
         return jnp.concatenate([t, jnp.cos(th)[..., None], jnp.sin(th)[..., None]], -1)
 
     @staticmethod
+    def _exp_linear(xi: Array) -> Array:
+        return jnp.concatenate([xi[..., :2], jnp.ones_like(xi[..., 2:]), xi[..., 2:]], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         t, th = x[..., :2], angle(x[..., 2:])
         h = series.half_cot_half(th * th)[..., None]

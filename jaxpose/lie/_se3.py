@@ -64,6 +64,10 @@ class SE3(LieGroup):
         return jnp.concatenate([quat.jl_apply(phi, rho), quat.exp(phi)], -1)
 
     @staticmethod
+    def _exp_linear(xi: Array) -> Array:
+        return jnp.concatenate([xi[..., :3], 0.5 * xi[..., 3:], jnp.ones_like(xi[..., :1])], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         t, q = x[..., :3], x[..., 3:]
         phi = quat.log(q)

@@ -66,6 +66,11 @@ class Sim3(LieGroup):
         return jnp.concatenate([t, quat.exp(phi), jnp.exp(sigma)[..., None]], -1)
 
     @staticmethod
+    def _exp_linear(xi: Array) -> Array:
+        one = jnp.ones_like(xi[..., :1])
+        return jnp.concatenate([xi[..., :3], 0.5 * xi[..., 3:6], one, one + xi[..., 6:]], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         phi = quat.log(x[..., 3:7])
         sigma = jnp.log(x[..., 7])

@@ -70,6 +70,10 @@ class SO2(LieGroup):
         return jnp.concatenate([jnp.cos(a), jnp.sin(a)], -1)
 
     @staticmethod
+    def _exp_linear(a: Array) -> Array:
+        return jnp.concatenate([jnp.ones_like(a), a], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         return angle(x)[..., None]
 

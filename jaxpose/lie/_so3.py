@@ -37,6 +37,11 @@ class SO3(LieGroup):
         return jnp.array([0.0, 0.0, 0.0, 1.0])
 
     _exp = staticmethod(quat.exp)
+
+    @staticmethod
+    def _exp_linear(phi: Array) -> Array:
+        return jnp.concatenate([0.5 * phi, jnp.ones_like(phi[..., :1])], -1)
+
     _log = staticmethod(quat.log)
     _compose = staticmethod(quat.multiply)
     _inv = staticmethod(quat.conjugate)

@@ -70,6 +70,21 @@ def retract(params: PyTree, delta: PyTree) -> PyTree:
     return _map(plus, params, delta)
 
 
+def retract_linear(params: PyTree, delta: PyTree) -> PyTree:
+    """:func:`retract` to first order in ``delta``: ``X·E(δ)`` on group leaves
+    (:meth:`~jaxpose.lie.LieGroup.retract_linear`), a + δ on array leaves. Same value and
+    first derivative at δ = 0, so use it for Jacobians taken at δ = 0 (exact, and
+    exactly differentiable in everything else) — never for a step or a second
+    derivative in δ."""
+
+    def plus(x: Any, d: Any) -> Any:
+        if is_group(x):
+            return x.retract_linear(d)
+        return x + d
+
+    return _map(plus, params, delta)
+
+
 def rminus(a: PyTree, b: PyTree) -> PyTree:
     """``a ⊖ b``: Log(b⁻¹·a) on group leaves, a − b on array leaves."""
 

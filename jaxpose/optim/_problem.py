@@ -248,12 +248,13 @@ class Problem(eqx.Module):
 
     def _flat_fn(self, params: PyTree, args: PyTree, holder: list[Any] | None = None
                  ) -> tuple[Array, Callable[[Array], Array]]:
-        """(zeros (n,), g): g(ε) is the flattened residual at ``params ⊕ ε``; each call
-        appends the residual's unravel function to ``holder`` when one is given."""
+        """(zeros (n,), g): g(ε) is the flattened residual at ``params ⊕ ε`` (to first
+        order in ε: g is only differentiated once, at ε = 0); each call appends the
+        residual's unravel function to ``holder`` when one is given."""
         flat0, unravel = manifold.flat_tangent(params)
 
         def g(eps: Array) -> Array:
-            out = self.residual_fn(manifold.retract(params, unravel(eps)), args)
+            out = self.residual_fn(manifold.retract_linear(params, unravel(eps)), args)
             flat, unravel_out = ravel_pytree(out)
             if holder is not None:
                 holder.append(unravel_out)

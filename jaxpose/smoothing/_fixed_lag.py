@@ -246,6 +246,10 @@ class FixedLagSmoother(eqx.Module):
     def _plus(self, x: PyTree, e: Array) -> PyTree:
         return manifold.retract(x, self._unravel()(e))
 
+    def _plus_linear(self, x: PyTree, e: Array) -> PyTree:
+        """:meth:`_plus` to first order in e (for Jacobians at e = 0 only)."""
+        return manifold.retract_linear(x, self._unravel()(e))
+
     def _minus(self, x: PyTree, y: PyTree) -> Array:
         return ravel_pytree(manifold.rminus(x, y))[0]
 
@@ -254,7 +258,7 @@ class FixedLagSmoother(eqx.Module):
 
         def one(a, b, dat):
             def f(e):
-                return fn(self._plus(a, e[:d]), self._plus(b, e[d:]), dat)
+                return fn(self._plus_linear(a, e[:d]), self._plus_linear(b, e[d:]), dat)
 
             z = jnp.zeros(2 * d, self.prior_grad.dtype)
             r = f(z)
@@ -277,7 +281,7 @@ class FixedLagSmoother(eqx.Module):
 
         def one(xs, dat):
             def f(e):
-                return unary(self._plus(xs, e), dat)
+                return unary(self._plus_linear(xs, e), dat)
 
             z = jnp.zeros(d, self.prior_grad.dtype)
             return f(z), jax.jacfwd(f)(z)
@@ -289,7 +293,7 @@ class FixedLagSmoother(eqx.Module):
         d = self.tangent_dim
         delta = self._minus(y0, xb0)
         if self.exact_prior_jacobian:
-            jac = jax.jacfwd(lambda e: self._minus(self._plus(y0, e), xb0))(
+            jac = jax.jacfwd(lambda e: self._minus(self._plus_linear(y0, e), xb0))(
                 jnp.zeros(d, delta.dtype)
             )
         else:
@@ -389,7 +393,7 @@ class FixedLagSmoother(eqx.Module):
 
             def one(xs, dat):
                 def f(e):
-                    return unary(self._plus(xs, e), dat)
+                    return unary(self._plus_linear(xs, e), dat)
 
                 z = jnp.zeros(d, dtype)
                 return f(z), jax.jacfwd(f)(z)
@@ -419,7 +423,8 @@ class FixedLagSmoother(eqx.Module):
         if self.exact_prior_jacobian:
 
             def chart(xs, xb):
-                return jax.jacfwd(lambda e: self._minus(self._plus(xs, e), xb))(jnp.zeros(d, dtype))
+                return jax.jacfwd(lambda e: self._minus(self._plus_linear(xs, e), xb))(
+                    jnp.zeros(d, dtype))
 
             jac = jax.vmap(chart)(x, self.prior_point)  # (K, d, d)
         else:

@@ -763,3 +763,31 @@ def test_small_matmul_equals_matmul_and_differentiates(shape):
     out32 = small_matmul(a32, jnp.asarray(b, jnp.float32))
     assert out32.dtype == jnp.float32
     np.testing.assert_allclose(out32, a @ b, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "group",
+    [SE3] + [pytest.param(g, marks=pytest.mark.slow) for g in (SO2, SE2, SO3, RxSO3, Sim3)],
+    ids=lambda g: g.__name__,
+)
+def test_retract_linear_gives_exact_jacobians_and_their_derivatives(group):
+    """``retract_linear`` matches ``retract`` in value and first derivative at δ = 0, so
+    Jacobians at δ = 0 agree, and so do their derivatives with respect to X (the storage)
+    and to the other argument; its closed-form E(δ) is the Taylor polynomial of Exp."""
+    kx, ky = jax.random.split(jax.random.PRNGKey(3))
+    x, y = group.random(kx, (), sigma=0.7), group.random(ky, (), sigma=0.7)
+    zero = jnp.zeros(group.tangent_dim)
+
+    def jac(retract, xdata, ydata):
+        f = lambda d: getattr(group(xdata), retract)(d).rminus(group(ydata))
+        return jax.jacfwd(f)(zero)
+
+    exact = jac("retract", x.data, y.data)
+    np.testing.assert_allclose(jac("retract_linear", x.data, y.data), exact, atol=1e-13)
+    for arg in (1, 2):  # derivatives of the Jacobian with respect to X and to Y
+        d_exact = jax.jacfwd(jac, argnums=arg)("retract", x.data, y.data)
+        d_linear = jax.jacfwd(jac, argnums=arg)("retract_linear", x.data, y.data)
+        np.testing.assert_allclose(d_linear, d_exact, atol=1e-12)
+    np.testing.assert_allclose(group._exp_linear(zero), group._exp(zero), atol=0)
+    np.testing.assert_allclose(jax.jacfwd(group._exp_linear)(zero),
+                               jax.jacfwd(group._exp)(zero), atol=1e-15)
