@@ -55,6 +55,13 @@ def _retract_linear(value: Any, delta: Array) -> Any:
     return value + delta
 
 
+def _retract_quadratic(value: Any, delta: Array) -> Any:
+    """:func:`_retract` to second order in δ (for gradients and Hessians at δ = 0)."""
+    if isinstance(value, LieGroup):
+        return value.retract_quadratic(delta)
+    return value + delta
+
+
 class FactorGraph(eqx.Module):
     """A nonlinear least-squares problem over stacked variables.
 
@@ -315,11 +322,13 @@ def free_flat(graph: FactorGraph, dtype: Any) -> Array:
     ).astype(dtype)
 
 
-def retract_all(graph: FactorGraph, variables: Variables, step: Array) -> Variables:
-    """Apply a flat tangent step to every variable type (fixed ones have zero steps)."""
+def retract_all(graph: FactorGraph, variables: Variables, step: Array,
+                retract: Any = _retract) -> Variables:
+    """Apply a flat tangent step to every variable type (fixed ones have zero steps);
+    ``retract`` may be :func:`_retract_quadratic` inside derivatives at a zero step."""
     blocks = split(graph, step)
     return {
-        name: _retract(
+        name: retract(
             variables[name], blocks[k] * graph.structure.free[k][:, None].astype(blocks[k].dtype)
         )
         for k, name in enumerate(graph.structure.names)

@@ -601,10 +601,25 @@ class LieGroup(_Element):
         broadcast_batch(self.shape, data.shape[:-1], what=name)
         return type(self)(self._compose(self.data, self._exp_linear(data)))
 
+    def retract_quadratic(self: G, delta: Any) -> G:
+        """``X · E₂(δ)`` with ``E₂`` the second-order Taylor polynomial of ``Exp`` at 0:
+        :meth:`retract_linear`'s contract one order higher (value, first and second
+        derivatives in δ at δ = 0 equal :meth:`retract`'s), for exact Hessians in the
+        tangent chart. Never for a step or third derivatives in δ."""
+        name = f"{type(self).__name__}.retract_quadratic(delta)"
+        data = _tangent_data(delta, self.algebra, name)
+        broadcast_batch(self.shape, data.shape[:-1], what=name)
+        return type(self)(self._compose(self.data, self._exp_quadratic(data)))
+
     @classmethod
     def _exp_linear(cls, delta: Array) -> Array:
         """First-order Taylor polynomial of ``_exp`` at 0 (storage layout); groups give
         it in closed form, this default is ``_exp`` itself (exact to every order)."""
+        return cls._exp(delta)
+
+    @classmethod
+    def _exp_quadratic(cls, delta: Array) -> Array:
+        """Second-order Taylor polynomial of ``_exp`` at 0 (as :meth:`_exp_linear`)."""
         return cls._exp(delta)
 
     def rminus(self, other: LieGroup) -> Array:

@@ -69,6 +69,12 @@ class RxSO3(LieGroup):
         return jnp.concatenate([0.5 * a[..., :3], one, one + a[..., 3:]], -1)
 
     @staticmethod
+    def _exp_quadratic(a: Array) -> Array:
+        phi, sigma = a[..., :3], a[..., 3:]
+        w = 1.0 - 0.125 * jnp.sum(phi * phi, -1, keepdims=True)
+        return jnp.concatenate([0.5 * phi, w, 1.0 + sigma + 0.5 * sigma * sigma], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         return jnp.concatenate([quat.log(x[..., :4]), jnp.log(x[..., 4:])], -1)
 

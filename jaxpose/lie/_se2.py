@@ -63,6 +63,12 @@ class SE2(LieGroup):
         return jnp.concatenate([xi[..., :2], jnp.ones_like(xi[..., 2:]), xi[..., 2:]], -1)
 
     @staticmethod
+    def _exp_quadratic(xi: Array) -> Array:
+        rx, ry, th = xi[..., :1], xi[..., 1:2], xi[..., 2:]
+        return jnp.concatenate(
+            [rx - 0.5 * th * ry, ry + 0.5 * th * rx, 1.0 - 0.5 * th * th, th], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         t, th = x[..., :2], angle(x[..., 2:])
         h = series.half_cot_half(th * th)[..., None]

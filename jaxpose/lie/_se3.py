@@ -68,6 +68,12 @@ class SE3(LieGroup):
         return jnp.concatenate([xi[..., :3], 0.5 * xi[..., 3:], jnp.ones_like(xi[..., :1])], -1)
 
     @staticmethod
+    def _exp_quadratic(xi: Array) -> Array:
+        rho, phi = _split(xi)
+        w = 1.0 - 0.125 * jnp.sum(phi * phi, -1, keepdims=True)
+        return jnp.concatenate([rho + 0.5 * jnp.cross(phi, rho), 0.5 * phi, w], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         t, q = x[..., :3], x[..., 3:]
         phi = quat.log(q)

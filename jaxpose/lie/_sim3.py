@@ -71,6 +71,13 @@ class Sim3(LieGroup):
         return jnp.concatenate([xi[..., :3], 0.5 * xi[..., 3:6], one, one + xi[..., 6:]], -1)
 
     @staticmethod
+    def _exp_quadratic(xi: Array) -> Array:
+        rho, phi, sigma = xi[..., :3], xi[..., 3:6], xi[..., 6:]
+        t = rho + 0.5 * (sigma * rho + jnp.cross(phi, rho))
+        w = 1.0 - 0.125 * jnp.sum(phi * phi, -1, keepdims=True)
+        return jnp.concatenate([t, 0.5 * phi, w, 1.0 + sigma + 0.5 * sigma * sigma], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         phi = quat.log(x[..., 3:7])
         sigma = jnp.log(x[..., 7])

@@ -74,6 +74,10 @@ class SO2(LieGroup):
         return jnp.concatenate([jnp.ones_like(a), a], -1)
 
     @staticmethod
+    def _exp_quadratic(a: Array) -> Array:
+        return jnp.concatenate([1.0 - 0.5 * a * a, a], -1)
+
+    @staticmethod
     def _log(x: Array) -> Array:
         return angle(x)[..., None]
 

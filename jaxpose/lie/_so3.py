@@ -42,6 +42,11 @@ class SO3(LieGroup):
     def _exp_linear(phi: Array) -> Array:
         return jnp.concatenate([0.5 * phi, jnp.ones_like(phi[..., :1])], -1)
 
+    @staticmethod
+    def _exp_quadratic(phi: Array) -> Array:
+        w = 1.0 - 0.125 * jnp.sum(phi * phi, -1, keepdims=True)
+        return jnp.concatenate([0.5 * phi, w], -1)
+
     _log = staticmethod(quat.log)
     _compose = staticmethod(quat.multiply)
     _inv = staticmethod(quat.conjugate)

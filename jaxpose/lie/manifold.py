@@ -85,6 +85,19 @@ def retract_linear(params: PyTree, delta: PyTree) -> PyTree:
     return _map(plus, params, delta)
 
 
+def retract_quadratic(params: PyTree, delta: PyTree) -> PyTree:
+    """:func:`retract` to second order in ``delta`` (``X·E₂(δ)``,
+    :meth:`~jaxpose.lie.LieGroup.retract_quadratic`): exact gradients and Hessians in δ
+    at δ = 0; never for a step or third derivatives in δ."""
+
+    def plus(x: Any, d: Any) -> Any:
+        if is_group(x):
+            return x.retract_quadratic(d)
+        return x + d
+
+    return _map(plus, params, delta)
+
+
 def rminus(a: PyTree, b: PyTree) -> PyTree:
     """``a ⊖ b``: Log(b⁻¹·a) on group leaves, a − b on array leaves."""
 

@@ -134,8 +134,8 @@ def _implicit_jvp(
     x_star = sol.params
     flat0, unravel = manifold.flat_tangent(x_star)
 
-    def lift(eps: jax.Array) -> PyTree:
-        return manifold.retract(x_star, unravel(eps))
+    def lift(eps: jax.Array) -> PyTree:  # differentiated at most twice in eps, at 0
+        return manifold.retract_quadratic(x_star, unravel(eps))
 
     def phi(eps: jax.Array, th: tuple[PyTree, Problem]) -> jax.Array:
         a, prob = th
