@@ -22,6 +22,7 @@ Conventions
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -85,6 +86,16 @@ def _block_dim(shape: tuple[int, ...]) -> tuple[int, tuple[int, ...]]:
     return int(shape[-1]), tuple(shape[:-1])
 
 
+class _Resolved:
+    """:meth:`Problem.jacobian_mode`'s answer kept by :meth:`Problem.resolve` (a static
+    field: hashed and compared by identity)."""
+
+    __slots__ = ("mode", "pattern")
+
+    def __init__(self, mode: str, pattern: Pattern | None):
+        self.mode, self.pattern = mode, pattern
+
+
 class Problem(eqx.Module):
     """A residual function plus everything that shapes its cost (see module docstring).
 
@@ -100,6 +111,8 @@ class Problem(eqx.Module):
     kernel: PyTree = None
     corrector: Corrector | None = None
     jacobian: str | Callable[..., Array] = eqx.field(default="auto")
+    # set by resolve(): the Jacobian mode for one set of shapes (identity-hashed)
+    _resolved: _Resolved | None = eqx.field(static=True, default=None, repr=False)
 
     def __check_init__(self) -> None:
         if not callable(self.residual_fn):
@@ -275,9 +288,18 @@ class Problem(eqx.Module):
             _PATTERNS[(key, shapes)] = make_pattern(jp, _block_of_row(leaves))
         return _PATTERNS[(key, shapes)]
 
+    def resolve(self, params: PyTree, args: PyTree) -> Problem:
+        """This problem with :meth:`jacobian_mode` decided once for the shapes of
+        ``params`` and ``args`` (the sparsity analysis traces the residual program;
+        a solve linearises many times at the same shapes). Use it only with those shapes."""
+        mode, pattern = self.jacobian_mode(params, args)
+        return dataclasses.replace(self, _resolved=_Resolved(mode, pattern))
+
     def jacobian_mode(self, params: PyTree, args: PyTree) -> tuple[str, Pattern | None]:
         """How :meth:`linearize` differentiates: ``("user" | "fwd" | "rev", None)`` or
         ``("sparse", pattern)``."""
+        if self._resolved is not None:
+            return self._resolved.mode, self._resolved.pattern
         if callable(self.jacobian):
             return "user", None
         if self.jacobian == "sparse":

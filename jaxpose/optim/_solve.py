@@ -167,6 +167,7 @@ def least_squares(
             f"{type(adjoint).__name__}"
         )
     problem.check(params, args)
+    problem = problem.resolve(params, args)
     unrolled = isinstance(adjoint, UnrolledAdjoint)
     run = _runner(solver, stopping, verbose=verbose, history=history, unrolled=unrolled)
     if unrolled:

@@ -291,3 +291,26 @@ def test_second_derivative_through_the_coloured_exact_hessian_equals_dense():
     hess = jax.jit(jax.hessian(f), static_argnums=1)
     np.testing.assert_allclose(hess(jnp.zeros(6), "sparse"), hess(jnp.zeros(6), "fwd"),
                                atol=1e-10)
+
+
+def test_a_solve_analyses_the_sparsity_pattern_once(monkeypatch):
+    """``least_squares`` resolves the Jacobian mode once (``Problem.resolve``): its
+    linearisations (initial, in the loop) reuse it instead of re-tracing the residual."""
+    import jaxpose.optim._problem as problem_module
+
+    calls = []
+
+    def counting(f, x):
+        calls.append(1)
+        return jacobian_pattern(f, x)
+
+    monkeypatch.setattr(problem_module, "jacobian_pattern", counting)
+    x0, a = _poses(10, 0), _poses(10, 1)  # 60 tangent coordinates: the coloured path
+    prob = jo.Problem(invnet)
+    assert prob.jacobian_mode(x0, a)[0] == "sparse" and len(calls) == 1
+    resolved = prob.resolve(x0, a)
+    assert resolved.jacobian_mode(x0, a)[0] == "sparse" and len(calls) == 2
+    calls.clear()
+    sol = jo.least_squares(lambda x, a: invnet(x, a), x0, a)
+    assert len(calls) == 1
+    np.testing.assert_allclose(sol.cost, 0.0, atol=1e-12)
