@@ -37,7 +37,7 @@ from ._problem import (
     FactorGraph,
     Variables,
     _gather,
-    _retract_quadratic,
+    _retract,
     _rho,
     assemble_blocks,
     cost,
@@ -60,7 +60,8 @@ def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
 
         def local_cost(deltas: tuple[Array, ...], point: tuple[Any, ...], data: Any,
                        sqrt: Any, f: Any = f) -> Array:
-            moved = [_retract_quadratic(p, d) for p, d in zip(point, deltas, strict=True)]
+            moved = [_retract(p, d, "retract_quadratic")
+                     for p, d in zip(point, deltas, strict=True)]
             r = f.residual(*moved, data)
             if sqrt is not None:
                 r = sqrt.astype(r.dtype) @ r
@@ -103,7 +104,7 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     free = free_flat(graph, dtype)
 
     def phi(delta: Array, g: FactorGraph) -> Array:
-        return cost(g, retract_all(g, xs, delta, _retract_quadratic))
+        return cost(g, retract_all(g, xs, delta, "retract_quadratic"))
 
     # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost) and
     # b = ∂(∇_δφ)/∂θ · θ̇
@@ -111,7 +112,7 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     st = graph.structure
     hess = exact_hessian_csr(graph, xs)
     eps_dot = -solve_sparse_spd(hess, st.csr_indices, st.csr_indptr, b * free)
-    x_dot = jax.jvp(lambda d: retract_all(graph, xs, d, _retract_quadratic), (zero,),
+    x_dot = jax.jvp(lambda d: retract_all(graph, xs, d, "retract_quadratic"), (zero,),
                     (eps_dot,))[1]
     _, dcost = jvp_where(lambda g: cost(g, xs), graph, t_graph)
     dcost = dcost + jnp.dot(grad0, eps_dot)

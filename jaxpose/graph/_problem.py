@@ -42,23 +42,11 @@ def _gather(value: Any, idx: Array) -> Any:
     return value[idx]
 
 
-def _retract(value: Any, delta: Array) -> Any:
+def _retract(value: Any, delta: Array, method: str = "retract") -> Any:
+    """``value ⊕ delta`` (a group's ``method``: ``retract``, or ``retract_linear`` /
+    ``retract_quadratic`` inside first / second derivatives at δ = 0); a + δ for arrays."""
     if isinstance(value, LieGroup):
-        return value.retract(delta)
-    return value + delta
-
-
-def _retract_linear(value: Any, delta: Array) -> Any:
-    """:func:`_retract` to first order in δ (for Jacobians at δ = 0 only)."""
-    if isinstance(value, LieGroup):
-        return value.retract_linear(delta)
-    return value + delta
-
-
-def _retract_quadratic(value: Any, delta: Array) -> Any:
-    """:func:`_retract` to second order in δ (for gradients and Hessians at δ = 0)."""
-    if isinstance(value, LieGroup):
-        return value.retract_quadratic(delta)
+        return getattr(value, method)(delta)
     return value + delta
 
 
@@ -187,7 +175,8 @@ def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
             zeros = tuple(jnp.zeros((tangent_dim(p),), _dtype(p)) for p in point)
 
             def res(deltas: tuple[Array, ...]) -> tuple[Array, Array]:
-                moved = [_retract_linear(p, d) for p, d in zip(point, deltas, strict=True)]
+                moved = [_retract(p, d, "retract_linear")
+                         for p, d in zip(point, deltas, strict=True)]
                 r = f.residual(*moved, data)
                 return r, r
 
@@ -323,13 +312,14 @@ def free_flat(graph: FactorGraph, dtype: Any) -> Array:
 
 
 def retract_all(graph: FactorGraph, variables: Variables, step: Array,
-                retract: Any = _retract) -> Variables:
+                method: str = "retract") -> Variables:
     """Apply a flat tangent step to every variable type (fixed ones have zero steps);
-    ``retract`` may be :func:`_retract_quadratic` inside derivatives at a zero step."""
+    ``method`` as in :func:`_retract`."""
     blocks = split(graph, step)
     return {
-        name: retract(
-            variables[name], blocks[k] * graph.structure.free[k][:, None].astype(blocks[k].dtype)
+        name: _retract(
+            variables[name], blocks[k] * graph.structure.free[k][:, None].astype(blocks[k].dtype),
+            method,
         )
         for k, name in enumerate(graph.structure.names)
     }

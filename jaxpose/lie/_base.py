@@ -584,10 +584,7 @@ class LieGroup(_Element):
 
     def retract(self: G, delta: Any) -> G:
         """Right retraction ``X ⊕ δ = X · Exp(δ)``."""
-        name = f"{type(self).__name__}.retract(delta)"
-        data = _tangent_data(delta, self.algebra, name)
-        broadcast_batch(self.shape, data.shape[:-1], what=name)
-        return type(self)(self._compose(self.data, self._exp(data)))
+        return self._times_exp(delta, self._exp, "retract")
 
     def retract_linear(self: G, delta: Any) -> G:
         """``X · E(δ)`` with ``E`` the first-order Taylor polynomial of ``Exp`` at 0: the
@@ -596,20 +593,21 @@ class LieGroup(_Element):
         anything else) is exact, from a much smaller program than ``Exp``'s. ``E(δ)``
         leaves the manifold for δ ≠ 0: use it only inside a first derivative in δ at
         δ = 0, never for a step or for second derivatives in δ."""
-        name = f"{type(self).__name__}.retract_linear(delta)"
-        data = _tangent_data(delta, self.algebra, name)
-        broadcast_batch(self.shape, data.shape[:-1], what=name)
-        return type(self)(self._compose(self.data, self._exp_linear(data)))
+        return self._times_exp(delta, self._exp_linear, "retract_linear")
 
     def retract_quadratic(self: G, delta: Any) -> G:
         """``X · E₂(δ)`` with ``E₂`` the second-order Taylor polynomial of ``Exp`` at 0:
         :meth:`retract_linear`'s contract one order higher (value, first and second
         derivatives in δ at δ = 0 equal :meth:`retract`'s), for exact Hessians in the
         tangent chart. Never for a step or third derivatives in δ."""
-        name = f"{type(self).__name__}.retract_quadratic(delta)"
+        return self._times_exp(delta, self._exp_quadratic, "retract_quadratic")
+
+    def _times_exp(self: G, delta: Any, exp: Any, method: str) -> G:
+        """``X · exp(δ)`` for the retractions (``method`` names the caller in errors)."""
+        name = f"{type(self).__name__}.{method}(delta)"
         data = _tangent_data(delta, self.algebra, name)
         broadcast_batch(self.shape, data.shape[:-1], what=name)
-        return type(self)(self._compose(self.data, self._exp_quadratic(data)))
+        return type(self)(self._compose(self.data, exp(data)))
 
     @classmethod
     def _exp_linear(cls, delta: Array) -> Array:

@@ -59,15 +59,20 @@ def flat_tangent(params: PyTree) -> tuple[jax.Array, Callable[[jax.Array], PyTre
     return ravel_pytree(zero_tangent(params))
 
 
-def retract(params: PyTree, delta: PyTree) -> PyTree:
-    """``params ⊕ delta``: X·Exp(δ) on group leaves, a + δ on array leaves."""
+def _retract_by(method: str, params: PyTree, delta: PyTree) -> PyTree:
+    """``params ⊕ delta`` with the group leaves' ``method``; a + δ on array leaves."""
 
     def plus(x: Any, d: Any) -> Any:
         if is_group(x):
-            return x.retract(d)
+            return getattr(x, method)(d)
         return x + d
 
     return _map(plus, params, delta)
+
+
+def retract(params: PyTree, delta: PyTree) -> PyTree:
+    """``params ⊕ delta``: X·Exp(δ) on group leaves, a + δ on array leaves."""
+    return _retract_by("retract", params, delta)
 
 
 def retract_linear(params: PyTree, delta: PyTree) -> PyTree:
@@ -76,26 +81,14 @@ def retract_linear(params: PyTree, delta: PyTree) -> PyTree:
     first derivative at δ = 0, so use it for Jacobians taken at δ = 0 (exact, and
     exactly differentiable in everything else) — never for a step or a second
     derivative in δ."""
-
-    def plus(x: Any, d: Any) -> Any:
-        if is_group(x):
-            return x.retract_linear(d)
-        return x + d
-
-    return _map(plus, params, delta)
+    return _retract_by("retract_linear", params, delta)
 
 
 def retract_quadratic(params: PyTree, delta: PyTree) -> PyTree:
     """:func:`retract` to second order in ``delta`` (``X·E₂(δ)``,
     :meth:`~jaxpose.lie.LieGroup.retract_quadratic`): exact gradients and Hessians in δ
     at δ = 0; never for a step or third derivatives in δ."""
-
-    def plus(x: Any, d: Any) -> Any:
-        if is_group(x):
-            return x.retract_quadratic(d)
-        return x + d
-
-    return _map(plus, params, delta)
+    return _retract_by("retract_quadratic", params, delta)
 
 
 def rminus(a: PyTree, b: PyTree) -> PyTree:
