@@ -27,7 +27,6 @@ branch-free.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from fractions import Fraction
@@ -154,26 +153,6 @@ def horner(coeffs: tuple[float, ...], t: Array) -> Array:
     return out
 
 
-@functools.cache
-def polynomial(coeffs: tuple[float, ...]) -> Callable[[Array], Array]:
-    """``t ↦ Σ coeffs[k] tᵏ`` (Horner) with a ``custom_jvp`` whose tangent is the
-    derivative polynomial times the tangent of t, itself a :func:`polynomial`: the
-    same numbers as differentiating Horner's rule, but every derivative order is one
-    polynomial evaluated once, however many tangent directions are batched."""
-
-    @jax.custom_jvp
-    def p(t: Array) -> Array:
-        return horner(coeffs, t)
-
-    @p.defjvp
-    def p_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
-        (t,), (dt,) = primals, tangents
-        derivative = tuple(k * c for k, c in enumerate(coeffs))[1:] or (0.0,)
-        return p(t), polynomial(derivative)(t) * dt
-
-    return p
-
-
 class Series:
     """Exact rational Taylor coefficients in t with per-dtype truncation at ``t0``."""
 
@@ -184,7 +163,7 @@ class Series:
 
     def __call__(self, t: Array) -> Array:
         """Σ cₖ tᵏ with the coefficients truncated for ``t``'s dtype (Horner's rule)."""
-        return polynomial(self.by_dtype[dtype_key(t)])(t)
+        return horner(self.by_dtype[dtype_key(t)], t)
 
 
 def _switched(
