@@ -771,9 +771,10 @@ def test_small_matmul_equals_matmul_and_differentiates(shape):
     ids=lambda g: g.__name__,
 )
 def test_retract_linear_gives_exact_jacobians_and_their_derivatives(group):
-    """``retract_linear`` (``retract_quadratic``) matches ``retract`` in value and first derivative at δ = 0, so
-    Jacobians at δ = 0 agree, and so do their derivatives with respect to X (the storage)
-    and to the other argument; its closed-form E(δ) is the Taylor polynomial of Exp."""
+    """``retract_linear`` (``retract_quadratic``) matches ``retract`` in value and first
+    (and second) derivative at δ = 0, so Jacobians (Hessians) at δ = 0 agree, and so do
+    their derivatives with respect to X (the storage) and to the other argument; the
+    closed-form E(δ) (E₂(δ)) is the Taylor polynomial of Exp."""
     kx, ky = jax.random.split(jax.random.PRNGKey(3))
     x, y = group.random(kx, (), sigma=0.7), group.random(ky, (), sigma=0.7)
     zero = jnp.zeros(group.tangent_dim)
