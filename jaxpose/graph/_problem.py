@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..lie import manifold
 from ..lie._base import LieGroup, small_matmul
 from ._analysis import (
     Structure,
@@ -43,11 +44,9 @@ def _gather(value: Any, idx: Array) -> Any:
 
 
 def _retract(value: Any, delta: Array, method: str = "retract") -> Any:
-    """``value ⊕ delta`` (a group's ``method``: ``retract``, or ``retract_linear`` /
-    ``retract_quadratic`` inside first / second derivatives at δ = 0); a + δ for arrays."""
-    if isinstance(value, LieGroup):
-        return getattr(value, method)(delta)
-    return value + delta
+    """``value ⊕ delta`` by :mod:`jaxpose.lie.manifold`'s ``method``: ``retract``, or
+    ``retract_linear`` / ``retract_quadratic`` inside first / second derivatives at δ = 0."""
+    return getattr(manifold, method)(value, delta)
 
 
 class FactorGraph(eqx.Module):

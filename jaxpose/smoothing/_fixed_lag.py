@@ -243,12 +243,10 @@ class FixedLagSmoother(eqx.Module):
     def _unravel(self) -> Callable[[Array], PyTree]:
         return manifold.flat_tangent(_take(self.states, 0))[1]
 
-    def _plus(self, x: PyTree, e: Array) -> PyTree:
-        return manifold.retract(x, self._unravel()(e))
-
-    def _plus_linear(self, x: PyTree, e: Array) -> PyTree:
-        """:meth:`_plus` to first order in e (for Jacobians at e = 0 only)."""
-        return manifold.retract_linear(x, self._unravel()(e))
+    def _plus(self, x: PyTree, e: Array, method: str = "retract") -> PyTree:
+        """``x ⊕ e`` by :mod:`jaxpose.lie.manifold`'s ``method`` (``retract_linear`` for
+        Jacobians at e = 0)."""
+        return getattr(manifold, method)(x, self._unravel()(e))
 
     def _minus(self, x: PyTree, y: PyTree) -> Array:
         return ravel_pytree(manifold.rminus(x, y))[0]
@@ -258,7 +256,8 @@ class FixedLagSmoother(eqx.Module):
 
         def one(a, b, dat):
             def f(e):
-                return fn(self._plus_linear(a, e[:d]), self._plus_linear(b, e[d:]), dat)
+                lin = "retract_linear"
+                return fn(self._plus(a, e[:d], lin), self._plus(b, e[d:], lin), dat)
 
             z = jnp.zeros(2 * d, self.prior_grad.dtype)
             r = f(z)
@@ -281,7 +280,7 @@ class FixedLagSmoother(eqx.Module):
 
         def one(xs, dat):
             def f(e):
-                return unary(self._plus_linear(xs, e), dat)
+                return unary(self._plus(xs, e, "retract_linear"), dat)
 
             z = jnp.zeros(d, self.prior_grad.dtype)
             return f(z), jax.jacfwd(f)(z)
@@ -293,7 +292,7 @@ class FixedLagSmoother(eqx.Module):
         d = self.tangent_dim
         delta = self._minus(y0, xb0)
         if self.exact_prior_jacobian:
-            jac = jax.jacfwd(lambda e: self._minus(self._plus_linear(y0, e), xb0))(
+            jac = jax.jacfwd(lambda e: self._minus(self._plus(y0, e, "retract_linear"), xb0))(
                 jnp.zeros(d, delta.dtype)
             )
         else:
@@ -393,7 +392,7 @@ class FixedLagSmoother(eqx.Module):
 
             def one(xs, dat):
                 def f(e):
-                    return unary(self._plus_linear(xs, e), dat)
+                    return unary(self._plus(xs, e, "retract_linear"), dat)
 
                 z = jnp.zeros(d, dtype)
                 return f(z), jax.jacfwd(f)(z)
@@ -423,7 +422,7 @@ class FixedLagSmoother(eqx.Module):
         if self.exact_prior_jacobian:
 
             def chart(xs, xb):
-                return jax.jacfwd(lambda e: self._minus(self._plus_linear(xs, e), xb))(
+                return jax.jacfwd(lambda e: self._minus(self._plus(xs, e, "retract_linear"), xb))(
                     jnp.zeros(d, dtype))
 
             jac = jax.vmap(chart)(x, self.prior_point)  # (K, d, d)
