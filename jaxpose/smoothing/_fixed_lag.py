@@ -18,10 +18,22 @@ Each :meth:`FixedLagSmoother.update`:
    ``M`` loop factors to older states still in the window; loop factors whose other end
    was marginalised are dropped, as in GTSAM, whose fixed-lag smoothers remove the
    factors of marginalised variables);
-3. solves the window by Gauss–Newton (Cholesky of the normal equations: block
-   tridiagonal, ``O(K·d³)``, without loop factors; dense, ``n = K·d``, with them; ``d``
-   the tangent size of one state) until the largest change of the estimate (tangent
-   components) is below ``tol``.
+3. solves the window by Gauss–Newton until the largest change of the estimate (tangent
+   components) is below ``tol``: without loop factors the system is block tridiagonal
+   and is eliminated oldest slot first in ``O(K·d³)`` (:meth:`_eliminate`, ``d`` the
+   tangent size of one state); with them it is dense (``n = K·d``, Cholesky).
+
+Incremental updates (``relinearize_threshold`` set; chains with first-estimate
+Jacobians only). The smoother keeps the oldest-first elimination of the window at its
+linearisation point ``lin``: the message into every slot (the information the older
+slots and the prior pass on) and the back-substitution ``Δ_s = a_s + M_s·Δ_{s+1}``.
+Eliminating slot 0 leaves exactly the message into slot 1, so marginalisation takes
+that message as the new prior, at no cost; a new state only needs its own factors
+linearised and the last two slots eliminated (``O(d³)``), then one back-substitution
+(``O(K·d²)``) gives the estimate ``lin ⊕ Δ``. When a non-frozen state's step ``Δ``
+exceeds the threshold (largest tangent component; or is not finite), the whole window
+is re-linearised at the estimate and eliminated again (one Gauss–Newton step, as
+iSAM2 re-linearises lazily). ``iterations`` is then 1, else 0.
 
 The prior's linearisation point ``x̄`` never moves while the prior exists. With
 ``first_estimate=True`` (default; GTSAM's ``BatchFixedLagSmoother``, whose
@@ -115,7 +127,10 @@ class FixedLagSmoother(eqx.Module):
     is solved with block-tridiagonal Cholesky in O(K·d³)), ``prior_point`` (K, ...)
     stacked linearisation point, ``frozen`` (K,) states in the prior,
     ``count`` () number of filled slots (≤ K), ``iterations`` () Gauss–Newton iterations of
-    the last update.
+    the last update (incremental mode: 1 if it re-linearised, else 0). Incremental mode
+    only (else None): ``lin`` (K, ...) the linearisation point, ``msg_info`` (K, d, d)
+    and ``msg_grad`` (K, d) the message into each slot, ``back_a`` (K, d) and ``back_m``
+    (K, d, d) the back-substitution (module docstring).
     """
 
     states: PyTree
@@ -129,6 +144,11 @@ class FixedLagSmoother(eqx.Module):
     frozen: Array
     count: Array
     iterations: Array
+    lin: PyTree
+    msg_info: Array | None
+    msg_grad: Array | None
+    back_a: Array | None
+    back_m: Array | None
     motion: Callable[..., Array] = eqx.field(static=True)
     unary: Callable[..., Array] | None = eqx.field(static=True)
     loop: Callable[..., Array] | None = eqx.field(static=True)
@@ -137,6 +157,7 @@ class FixedLagSmoother(eqx.Module):
     tol: float = eqx.field(static=True)
     exact_prior_jacobian: bool = eqx.field(static=True)
     first_estimate: bool = eqx.field(static=True)
+    relinearize_threshold: float | None = eqx.field(static=True)
     chain: bool = eqx.field(static=True)
 
     def __init__(
@@ -154,6 +175,7 @@ class FixedLagSmoother(eqx.Module):
         tol: float | None = None,
         exact_prior_jacobian: bool = True,
         first_estimate: bool = True,
+        relinearize_threshold: float | None = None,
     ):
         """Args:
         state: an example state (pytree of groups and arrays, no batch axis).
@@ -170,6 +192,11 @@ class FixedLagSmoother(eqx.Module):
             only used with ``first_estimate=False``).
         first_estimate: first-estimate Jacobians: every factor is linearised at the
             prior's linearisation point for the states in the prior (module docstring).
+        relinearize_threshold: None (default) for Gauss–Newton to convergence at every
+            update; a float ≥ 0 for incremental updates (module docstring, *Incremental
+            updates*): the window is re-linearised only when some state's step from its
+            linearisation point exceeds it (largest tangent component, iSAM2's
+            ``relinearizeThreshold``). Needs ``max_loops=0`` and ``first_estimate=True``.
         """
         if not callable(motion):
             raise TypeError("FixedLagSmoother(motion): expected a callable")
@@ -219,6 +246,26 @@ class FixedLagSmoother(eqx.Module):
         self.tol = float(tol) if tol is not None else (1e-8 if eps < 1e-10 else 1e-4)
         self.exact_prior_jacobian = bool(exact_prior_jacobian)
         self.first_estimate = bool(first_estimate)
+        if relinearize_threshold is not None:
+            if not self.chain or not self.first_estimate:
+                raise ValueError(
+                    "FixedLagSmoother(relinearize_threshold): incremental updates need "
+                    "max_loops=0 and first_estimate=True"
+                )
+            if not relinearize_threshold >= 0:
+                raise ValueError(
+                    "FixedLagSmoother(relinearize_threshold): expected a float >= 0 or None, "
+                    f"got {relinearize_threshold!r}"
+                )
+            relinearize_threshold = float(relinearize_threshold)
+            self.lin = _stack(state, k)
+            self.msg_info = jnp.zeros((k, d, d), dtype)
+            self.msg_grad = jnp.zeros((k, d), dtype)
+            self.back_a = jnp.zeros((k, d), dtype)
+            self.back_m = jnp.zeros((k, d, d), dtype)
+        else:
+            self.lin = self.msg_info = self.msg_grad = self.back_a = self.back_m = None
+        self.relinearize_threshold = relinearize_threshold
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -238,6 +285,8 @@ class FixedLagSmoother(eqx.Module):
     def linearization_point(self) -> PyTree:
         """(K, ...) where the factors are linearised: the prior's point for the states in
         the prior (with first-estimate Jacobians), the estimate elsewhere."""
+        if self.relinearize_threshold is not None:
+            return self.lin
         return _where(self.frozen, self.prior_point, self.states)
 
     def _unravel(self) -> Callable[[Array], PyTree]:
@@ -274,8 +323,9 @@ class FixedLagSmoother(eqx.Module):
         info = jnp.zeros((n, n), self.prior_info.dtype).at[:d, :d].set(self.prior_info)
         return info, jnp.zeros((n,), self.prior_grad.dtype).at[:d].set(self.prior_grad)
 
-    def _unary_terms(self, x: PyTree) -> tuple[Array, Array]:
-        """Residuals (m, r) and Jacobians (m, r, d) of the unary factors of stacked x."""
+    def _unary_terms(self, x: PyTree, slots: Array) -> tuple[Array, Array]:
+        """Residuals (m, r) and Jacobians (m, r, d) of the unary factors of stacked x, the
+        states of ``slots`` (m,)."""
         unary, d = self.unary, self.tangent_dim
 
         def one(xs, dat):
@@ -285,7 +335,7 @@ class FixedLagSmoother(eqx.Module):
             z = jnp.zeros(d, self.prior_grad.dtype)
             return f(z), jax.jacfwd(f)(z)
 
-        return jax.vmap(one)(x, _take(self.data, jnp.arange(jax.tree.leaves(x)[0].shape[0])))
+        return jax.vmap(one)(x, _take(self.data, slots))
 
     def _prior_terms(self, y0: PyTree, xb0: PyTree) -> tuple[Array, Array, Array]:
         """Chain prior at slot 0: (d, d) information, (d,) gradient and cost at y0."""
@@ -301,59 +351,147 @@ class FixedLagSmoother(eqx.Module):
         cost = gp @ delta + 0.5 * delta @ (p @ delta)
         return jac.T @ p @ jac, jac.T @ (p @ delta + gp), cost
 
-    def _chain_system(self, x: PyTree) -> tuple[Array, Array, Array]:
-        """Block-tridiagonal Gauss–Newton system at x: diagonal blocks (K, d, d), upper
-        blocks (K−1, d, d) (slot s, s+1) and gradient (K, d)."""
+    def _chain_terms(
+        self, y: PyTree, slots: Array, pairs: bool = True
+    ) -> tuple[Array, Array, tuple[Array, ...] | None]:
+        """Gauss–Newton blocks of the window ``y`` at ``slots`` (n,) (chain case, masked
+        by :attr:`valid`): the unary information (n, d, d) and gradient (n, d) of each
+        slot and, with ``pairs``, the blocks ``(AᵀA, AᵀB, BᵀB, Aᵀr, Bᵀr)`` (n, ...) of the
+        motion factor from each slot to the next (zero for the newest slot)."""
         k, d = self.window, self.tangent_dim
         valid = self.valid
-        slots = jnp.arange(k)
-        a, b = slots[:-1], slots[1:]
-        r, ja, jb = self._pair_terms(self.motion, _take(x, a), _take(x, b), _take(self.data, b), d)
-        mask = (valid[a] & valid[b])[:, None, None]
+        dtype = self.prior_grad.dtype
+        info = jnp.zeros((slots.shape[0], d, d), dtype)
+        grad = jnp.zeros((slots.shape[0], d), dtype)
+        if self.unary is not None:
+            ru, ju = self._unary_terms(_take(y, slots), slots)
+            ok = valid[slots]
+            ju = jnp.where(ok[:, None, None], ju, 0.0)
+            ru = jnp.where(ok[:, None], ru, 0.0)
+            info, grad = small_matmul(ju.mT, ju), jnp.einsum("mra,mr->ma", ju, ru)
+        if not pairs:
+            return info, grad, None
+        nxt = jnp.minimum(slots + 1, k - 1)
+        r, ja, jb = self._pair_terms(
+            self.motion, _take(y, slots), _take(y, nxt), _take(self.data, nxt), d
+        )
+        mask = (valid[slots] & valid[nxt] & (slots < k - 1))[:, None, None]
         ja, jb = jnp.where(mask, ja, 0.0), jnp.where(mask, jb, 0.0)
         r = jnp.where(mask[:, :, 0], r, 0.0)
-        diag = jnp.zeros((k, d, d), r.dtype)
-        diag = diag.at[:-1].add(small_matmul(ja.mT, ja))
-        diag = diag.at[1:].add(small_matmul(jb.mT, jb))
-        up = small_matmul(ja.mT, jb)
-        g = jnp.zeros((k, d), r.dtype)
-        g = g.at[:-1].add(jnp.einsum("mra,mr->ma", ja, r))
-        g = g.at[1:].add(jnp.einsum("mra,mr->ma", jb, r))
-        if self.unary is not None:
-            ru, ju = self._unary_terms(x)
-            ju = jnp.where(valid[:, None, None], ju, 0.0)
-            ru = jnp.where(valid[:, None], ru, 0.0)
-            diag = diag + small_matmul(ju.mT, ju)
-            g = g + jnp.einsum("mra,mr->ma", ju, ru)
-        hp, gp, _ = self._prior_terms(_take(x, 0), _take(self.prior_point, 0))
-        diag = diag.at[0].add(hp)
-        g = g.at[0].add(gp)
-        return diag, up, g
+        blocks = (
+            small_matmul(ja.mT, ja),
+            small_matmul(ja.mT, jb),
+            small_matmul(jb.mT, jb),
+            jnp.einsum("mra,mr->ma", ja, r),
+            jnp.einsum("mra,mr->ma", jb, r),
+        )
+        return info, grad, blocks
+
+    def _elimination_step(self, msg, unary, empty, pair):
+        """Eliminate one slot (see :meth:`_eliminate`): ``msg`` (info, grad) into it,
+        its ``unary`` (info, grad), ``empty`` (d, d) identity if the slot is empty, the
+        ``pair`` blocks of its motion factor to the next slot. Returns the message into
+        the next slot, ``a_s`` and ``M_s``."""
+        d = self.tangent_dim
+        aa, ab, bb, ar, br = pair
+        lam = msg[0] + unary[0] + aa + empty
+        rhs = jnp.concatenate([ab, (msg[1] + unary[1] + ar)[:, None]], axis=1)
+        sol = -jsl.cho_solve(jsl.cho_factor(lam), rhs)
+        m_s, a_s = sol[:, :d], sol[:, d]
+        return (bb + ab.T @ m_s, br + ab.T @ a_s), a_s, m_s
 
     @staticmethod
-    def _solve_chain(diag: Array, up: Array, rhs: Array) -> Array:
-        """Solve the SPD block-tridiagonal system (block Cholesky / Thomas), (K, d)."""
+    def _newest_step(msg, unary, empty) -> Array:
+        """``a`` of the newest slot of an elimination (no factor to a next slot)."""
+        lam = msg[0] + unary[0] + empty
+        return -jsl.cho_solve(jsl.cho_factor(lam), msg[1] + unary[1])
 
-        def fwd(carry, inp):
-            s_prev, y_prev = carry
-            d_i, b_prev, r_i = inp
-            cf = jsl.cho_factor(s_prev)
-            s_i = d_i - b_prev.T @ jsl.cho_solve(cf, b_prev)
-            y_i = r_i - b_prev.T @ jsl.cho_solve(cf, y_prev)
-            return (s_i, y_i), (s_i, y_i)
+    def _empty_blocks(self, slots: Array) -> Array:
+        """(n, d, d) identity for the empty slots among ``slots``, zero elsewhere."""
+        eye = jnp.eye(self.tangent_dim, dtype=self.prior_grad.dtype)
+        return (~self.valid[slots]).astype(eye.dtype)[:, None, None] * eye
 
-        _, (ss, ys) = jax.lax.scan(fwd, (diag[0], rhs[0]), (diag[1:], up, rhs[1:]))
-        ss = jnp.concatenate([diag[:1], ss])
-        ys = jnp.concatenate([rhs[:1], ys])
-        x_last = jsl.cho_solve(jsl.cho_factor(ss[-1]), ys[-1])
+    def _eliminate(
+        self, y: PyTree, lo: int, hi: int, msg_info: Array, msg_grad: Array
+    ) -> tuple[Array, Array, Array, Array]:
+        """Eliminate slots ``lo..hi−1`` of the chain window ``y``, oldest first, given the
+        message ``(msg_info (d, d), msg_grad (d,))`` into slot ``lo`` (the prior when
+        ``lo = 0``), ignoring the factors beyond ``hi``.
 
-        def back(x_next, inp):
-            s_i, y_i, b_i = inp
-            x_i = jsl.cho_solve(jsl.cho_factor(s_i), y_i - b_i @ x_next)
-            return x_i, x_i
+        Slot s holds ``Λ_s = msg_s + unary_s`` and the motion factor (s, s+1) with blocks
+        A, B and residual r. Eliminating s leaves the message into s+1,
+        ``msg_{s+1} = (BᵀB + BᵀA·M_s, Bᵀr + BᵀA·a_s)``, and the back-substitution
+        ``Δ_s = a_s + M_s·Δ_{s+1}`` with ``[M_s, a_s] = −(Λ_s + AᵀA)⁻¹[AᵀB, η_s + Aᵀr]``
+        (``M_{hi−1} = 0``). Empty slots get an identity block (their Δ is 0).
 
-        _, xs = jax.lax.scan(back, x_last, (ss[:-1], ys[:-1], up), reverse=True)
-        return jnp.concatenate([xs, x_last[None]])
+        Returns the messages (n, d, d), (n, d) into slots ``lo..hi−1`` (the first is the
+        input) and ``a`` (n, d), ``M`` (n, d, d), ``n = hi − lo``.
+        """
+        slots = jnp.arange(lo, hi)
+        info, grad, pairs = self._chain_terms(y, slots)
+        empty = self._empty_blocks(slots)
+
+        def step(msg, inp):
+            u_info, u_grad, empty_s, pair = inp
+            nxt, a_s, m_s = self._elimination_step(msg, (u_info, u_grad), empty_s, pair)
+            return nxt, (nxt, a_s, m_s)
+
+        head = jax.tree.map(lambda v: v[:-1], (info, grad, empty, pairs))
+        last, ((infos, grads), a, m) = jax.lax.scan(step, (msg_info, msg_grad), head)
+        a_last = self._newest_step(last, (info[-1], grad[-1]), empty[-1])
+        return (
+            jnp.concatenate([msg_info[None], infos]),
+            jnp.concatenate([msg_grad[None], grads]),
+            jnp.concatenate([a, a_last[None]]),
+            jnp.concatenate([m, jnp.zeros_like(empty[:1])]),
+        )
+
+    def _reeliminate(self, lo: Array) -> FixedLagSmoother:
+        """Incremental mode: eliminate slots ``lo..K−1`` (``lo`` traced) at ``lin`` again,
+        from the cached message into ``lo``, and update the cache; the slots before
+        ``lo`` keep theirs. Costs ``O((K − lo)·d³)``."""
+        k = self.window
+
+        def cond(c):
+            return c[0] < k - 1
+
+        def body(c):
+            s, info, grad, a, m = c
+            u_info, u_grad, pair = self._chain_terms(self.lin, s[None])
+            (ni, ng), a_s, m_s = self._elimination_step(
+                (info[s], grad[s]),
+                (u_info[0], u_grad[0]),
+                self._empty_blocks(s[None])[0],
+                jax.tree.map(lambda v: v[0], pair),
+            )
+            return s + 1, info.at[s + 1].set(ni), grad.at[s + 1].set(ng), a.at[s].set(a_s), m.at[
+                s
+            ].set(m_s)
+
+        cache = (self.msg_info, self.msg_grad, self.back_a, self.back_m)
+        _, info, grad, a, m = jax.lax.while_loop(cond, body, (jnp.asarray(lo), *cache))
+        newest = jnp.arange(k - 1, k)
+        u_info, u_grad, _ = self._chain_terms(self.lin, newest, pairs=False)
+        a_last = self._newest_step(
+            (info[-1], grad[-1]), (u_info[0], u_grad[0]), self._empty_blocks(newest)[0]
+        )
+        return eqx.tree_at(
+            lambda s: (s.msg_info, s.msg_grad, s.back_a, s.back_m),
+            self,
+            (info, grad, a.at[-1].set(a_last), m.at[-1].set(0.0)),
+        )
+
+    @staticmethod
+    def _back_substitute(a: Array, m: Array) -> Array:
+        """``Δ_s = a_s + M_s·Δ_{s+1}`` from the newest slot back, (K, d)."""
+
+        def step(nxt, inp):
+            a_s, m_s = inp
+            x = a_s + m_s @ nxt
+            return x, x
+
+        _, xs = jax.lax.scan(step, jnp.zeros_like(a[0]), (a, m), reverse=True)
+        return xs
 
     def _system(self, x: PyTree, touching_first: bool) -> tuple[Array, Array, Array]:
         """Gauss–Newton system (H (n, n), g (n,), cost) at ``x``; with
@@ -388,16 +526,7 @@ class FixedLagSmoother(eqx.Module):
         h, g, cost = add(h, g, cost, a, b, r, ja, jb, mask)
         # unary factors
         if self.unary is not None:
-            unary = self.unary
-
-            def one(xs, dat):
-                def f(e):
-                    return unary(self._plus(xs, e, "retract_linear"), dat)
-
-                z = jnp.zeros(d, dtype)
-                return f(z), jax.jacfwd(f)(z)
-
-            r, ju = jax.vmap(one)(x, self.data)
+            r, ju = self._unary_terms(x, slots)
             mask = valid if not touching_first else valid & (slots == 0)
             h, g, cost = add(h, g, cost, slots, slots, r, ju, jnp.zeros_like(ju), mask)
         # loop factors (s - lag, s)
@@ -453,10 +582,9 @@ class FixedLagSmoother(eqx.Module):
             x, it, _ = c
             y = _where(self.frozen, self.prior_point, x)
             if self.chain:
-                diag, up, g = self._chain_system(y)
-                empty = (~self.valid).astype(g.dtype)[:, None, None]
-                diag = diag + empty * jnp.eye(d, dtype=g.dtype)
-                step = self._solve_chain(diag, up, -g)
+                hp, gp, _ = self._prior_terms(_take(y, 0), _take(self.prior_point, 0))
+                _, _, a, m = self._eliminate(y, 0, k, hp, gp)
+                step = self._back_substitute(a, m)
             else:
                 h, g, _ = self._system(y, False)
                 cf = jsl.cho_factor(self._regularised(h))
@@ -493,28 +621,45 @@ class FixedLagSmoother(eqx.Module):
         return info, grad, coupled
 
     def _marginalize_chain(self) -> tuple[Array, Array, Array]:
-        """Chain case of :meth:`_marginalize_first`: the new prior lives on slot 1."""
-        d = self.tangent_dim
-        y = self.linearization_point()
-        pair = jnp.array([0, 1])
-        x01 = _take(y, pair)
-        r, ja, jb = self._pair_terms(
-            self.motion, _take(x01, pair[:1]), _take(x01, pair[1:]), _take(self.data, pair[1:]), d
-        )
-        r, ja, jb = r[0], ja[0], jb[0]
-        h00, g0, _ = self._prior_terms(_take(y, 0), _take(self.prior_point, 0))
-        h00 = h00 + ja.T @ ja
-        g0 = g0 + ja.T @ r
-        if self.unary is not None:
-            ru, ju = self._unary_terms(_take(y, pair[:1]))
-            h00 = h00 + ju[0].T @ ju[0]
-            g0 = g0 + ju[0].T @ ru[0]
-        h01, h11, g1 = ja.T @ jb, jb.T @ jb, jb.T @ r
-        cf = jsl.cho_factor(h00)
-        info = h11 - h01.T @ jsl.cho_solve(cf, h01)
-        grad = g1 - h01.T @ jsl.cho_solve(cf, g0)
+        """Chain case of :meth:`_marginalize_first`: the new prior lives on slot 1, the
+        message out of slot 0 (:meth:`_eliminate`) at the linearisation point."""
+        if self.relinearize_threshold is not None:  # cached elimination at `lin`
+            info, grad = self.msg_info, self.msg_grad
+        else:
+            y = self.linearization_point()
+            hp, gp, _ = self._prior_terms(_take(y, 0), _take(self.prior_point, 0))
+            info, grad, _, _ = self._eliminate(y, 0, 2, hp, gp)
         coupled = jnp.zeros((self.window,), bool).at[0].set(True)
-        return 0.5 * (info + info.T), grad, coupled
+        return 0.5 * (info[1] + info[1].T), grad[1], coupled
+
+    def _step_from_cache(self, relinearized: int) -> tuple[FixedLagSmoother, Array]:
+        """Incremental mode: back-substitute the cached elimination and move to
+        ``lin ⊕ Δ``; also return Δ (K, d), +inf where the step is not finite (then the
+        estimate stays at ``lin``)."""
+        delta = self._back_substitute(self.back_a, self.back_m)
+        ok = jnp.all(jnp.isfinite(delta))
+        states = jax.vmap(self._plus)(self.lin, jnp.where(ok, delta, 0.0))
+        new = eqx.tree_at(
+            lambda s: (s.states, s.iterations), self, (states, jnp.asarray(relinearized, jnp.int32))
+        )
+        return new, jnp.where(ok, delta, jnp.inf)
+
+    def _incremental(self) -> FixedLagSmoother:
+        """Incremental solve after the shift (module docstring): eliminate the last two
+        slots (the new motion and unary factors) from the cached message, back-substitute;
+        then re-linearise the non-frozen states whose step exceeds the threshold (or is
+        not finite) at their estimate and eliminate again from the oldest of them."""
+        k = self.window
+        new, delta = self._reeliminate(jnp.asarray(k - 2))._step_from_cache(0)
+        moving = new.valid & ~new.frozen
+        exceed = moving & ~(jnp.max(jnp.abs(delta), axis=1) <= self.relinearize_threshold)
+
+        def relinearize(s: FixedLagSmoother) -> FixedLagSmoother:
+            s = eqx.tree_at(lambda t: t.lin, s, _where(exceed, s.states, s.lin))
+            lo = jnp.maximum(jnp.argmax(exceed) - 1, 0)
+            return s._reeliminate(lo)._step_from_cache(1)[0]
+
+        return jax.lax.cond(jnp.any(exceed), relinearize, lambda s: s, new)
 
     # ------------------------------------------------------------------ public
     def update(
@@ -617,6 +762,17 @@ class FixedLagSmoother(eqx.Module):
                     _shift_in(self.loop_data, loop_data),
                 ),
             )
+        if self.relinearize_threshold is not None:
+            cache = (self.msg_info, self.msg_grad, self.back_a, self.back_m)
+            new = eqx.tree_at(
+                lambda s: (s.lin, s.msg_info, s.msg_grad, s.back_a, s.back_m),
+                new,
+                (
+                    _shift_in(self.lin, guess),
+                    *(_shift_in(v, jnp.zeros_like(v[0])) for v in cache),
+                ),
+            )
+            return new._incremental()
         return new._optimize()
 
     def information(self) -> Array:

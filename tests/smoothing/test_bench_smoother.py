@@ -9,5 +9,6 @@ smoother_bench = pytest.importorskip("bench.smoother")
 @pytest.mark.slow
 def test_bench_smoother_quick():
     text = smoother_bench.main(["--quick", "--threads", "0"])
-    assert "| window K |" in text and "\n| 4 |" in text
+    assert "| window K |" in text
+    assert "\n| 0 | 4 | gauss-newton |" in text and "\n| 0.5 | 4 | incremental |" in text
     assert "Result:" in text

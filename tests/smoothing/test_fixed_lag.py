@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxpose.graph._factor import between_residual
 from jaxpose.lie import SE2
 from jaxpose.smoothing import FixedLagSmoother
 from jaxpose.smoothing import examples as ex
@@ -87,12 +88,24 @@ def _run_linear(sm, data):
     return jax.lax.scan(body, sm, data)
 
 
-@pytest.mark.parametrize("dense", [False, True], ids=["chain", "dense"])
-def test_linear_chain_equals_batch_marginals(dense):
+MODES = {
+    "chain": {},
+    "dense": {"dense": True},
+    # linear factors: one solve at any linearisation point is exact, so the incremental
+    # mode must equal the batch solution whether or not it re-linearises
+    "incremental": {"relinearize_threshold": float("inf")},
+    "incremental-relinearizing": {"relinearize_threshold": 0.0},
+}
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_linear_chain_equals_batch_marginals(mode):
     t, k = 9, 4
     data = _linear_stream(t)
-    sm, (latest, cov) = _run_linear(_smoother(k, dense), data)
-    assert sm.chain != dense
+    sm, (latest, cov) = _run_linear(_smoother(k, **MODES[mode]), data)
+    assert sm.chain != (mode == "dense")
+    if mode.startswith("incremental"):
+        assert int(sm.iterations) == (mode == "incremental-relinearizing")
     for j in range(1, t + 1):
         h, mean = _batch(jax.tree.map(lambda a: a[:j], data), j)
         np.testing.assert_allclose(latest[j - 1], mean[-2:], atol=1e-9)
@@ -106,14 +119,16 @@ def test_linear_chain_equals_batch_marginals(dense):
     assert sm.count == k and bool(sm.frozen[0]) and not bool(sm.frozen[1:].any())
 
 
-def test_vmap_over_streams_equals_separate_runs():
+@pytest.mark.parametrize("threshold", [None, 0.1])
+def test_vmap_over_streams_equals_separate_runs(threshold):
     t, k = 7, 3
     datas = [_linear_stream(t, seed) for seed in (1, 2, 3)]
     stacked = jax.tree.map(lambda *a: jnp.stack(a), *datas)
-    sms = eqx.filter_vmap(lambda _: _smoother(k), axis_size=3)(jnp.arange(3))
+    kw = {"relinearize_threshold": threshold}
+    sms = eqx.filter_vmap(lambda _: _smoother(k, **kw), axis_size=3)(jnp.arange(3))
     out, (latest, _) = jax.vmap(_run_linear.__wrapped__)(sms, stacked)
     for i, data in enumerate(datas):
-        _, (ref, _) = _run_linear(_smoother(k), data)
+        _, (ref, _) = _run_linear(_smoother(k, **kw), data)
         np.testing.assert_allclose(latest[i], ref, atol=1e-12)
 
 
@@ -129,6 +144,11 @@ def test_bad_input():
         sm.update({"p": jnp.zeros(3)}, {"z": jnp.zeros(2), "w": jnp.zeros(())})
     with pytest.raises(Exception, match="non-finite"):
         sm.update({"p": jnp.array([jnp.nan, 0.0])}, {"z": jnp.zeros(2), "w": jnp.zeros(())})
+    for kw in ({"dense": True}, {"first_estimate": False}):
+        with pytest.raises(ValueError, match="relinearize_threshold.*max_loops=0"):
+            _smoother(3, relinearize_threshold=0.1, **kw)
+    with pytest.raises(ValueError, match="relinearize_threshold.*>= 0"):
+        _smoother(3, relinearize_threshold=-1.0)
 
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data", "g2o")
@@ -160,3 +180,82 @@ def test_pose_graph_replay_window_covering_the_graph_equals_batch():
     got = np.asarray(res.trajectory["pose"].data)
     np.testing.assert_allclose(got, ref_poses, atol=1e-5)
     assert isinstance(res.latest["pose"], SE2)
+
+
+# ---------------------------------------------------------------- incremental updates
+def _se2_motion(xp, x, d):
+    return between_residual(xp["pose"], x["pose"], SE2(d["z"])) / 0.05
+
+
+def _se2_unary(x, d):
+    """A position fix (σ 0.5) and, on the first pose only (w = 1), a prior at identity."""
+    fix = (x["pose"].translation() - d["gps"]) / 0.5
+    return jnp.concatenate([fix, d["w"] * x["pose"].log().data / 0.01])
+
+
+def _se2_stream(t, seed=0):
+    """Noisy odometry and position fixes of a curving SE2 trajectory (float64)."""
+    rng = np.random.default_rng(seed)
+    u = np.stack([np.ones(t), np.zeros(t), 0.3 * np.sin(np.arange(t) / 3)], 1)
+    true = SE2.exp(jnp.asarray(u)).data  # per-step motions
+    pos = [np.zeros(2)]
+    pose = SE2.identity()
+    for k in range(1, t):
+        pose = pose @ SE2(true[k])
+        pos.append(np.asarray(pose.translation()))
+    z = SE2.exp(jnp.asarray(u + rng.normal(size=u.shape) * 0.05)).data
+    gps = np.stack(pos) + rng.normal(size=(t, 2)) * 0.5
+    w = np.zeros(t)
+    w[0] = 1.0
+    return {"z": jnp.asarray(z), "gps": jnp.asarray(gps), "w": jnp.asarray(w)}
+
+
+def test_incremental_step_solves_the_window_system_at_its_linearization_point():
+    """After every incremental update (relinearised or not) the estimate is
+    ``lin ⊕ Δ`` with Δ the Gauss–Newton step of the window system at ``lin`` (prior
+    included), built independently by the dense system assembly: the cached
+    elimination, the shift and the marginalisation by message are exact."""
+    t, k = 14, 5
+    data = _se2_stream(t)
+    d0 = jax.tree.map(lambda a: a[0], data)
+    sm = FixedLagSmoother(
+        {"pose": SE2.identity()}, d0, window=k, motion=_se2_motion, unary=_se2_unary,
+        relinearize_threshold=0.05,
+    )
+
+    @jax.jit
+    def step(sm, dj):
+        sm = sm.update({"pose": sm.latest()["pose"] @ SE2(dj["z"])}, dj)
+        lin = sm.linearization_point()
+        h, g, _ = sm._system(lin, False)
+        delta = jnp.linalg.solve(sm._regularised(h), -g)
+        return sm, jax.vmap(sm._minus)(sm.states, lin).reshape(-1), delta
+
+    relinearised = 0
+    for j in range(t):
+        sm, got, delta = step(sm, jax.tree.map(lambda a: a[j], data))
+        relinearised += int(sm.iterations)
+        np.testing.assert_allclose(got, delta, atol=1e-9, rtol=0)
+    assert 0 < relinearised < t  # both paths: cached elimination and re-linearisation
+
+
+def test_incremental_relinearising_tracks_gauss_newton():
+    """With a small threshold the incremental smoother re-linearises and stays close to
+    Gauss–Newton to convergence; never re-linearising (threshold ∞) is further off."""
+    t, k = 30, 6
+    data = _se2_stream(t, seed=1)
+    first = {"pose": SE2.identity()}
+    steps = ex.Steps(data, first, None, lambda x, d: {"pose": x["pose"] @ SE2(d["z"])})
+
+    def make(**kw):
+        d0 = jax.tree.map(lambda a: a[0], data)
+        return FixedLagSmoother(
+            first, d0, window=k, motion=_se2_motion, unary=_se2_unary, **kw
+        )
+
+    ref = np.asarray(ex.run(make(max_iterations=50), steps).trajectory["pose"].log().data)
+    err = {}
+    for th in (float("inf"), 0.01):
+        res = ex.run(make(relinearize_threshold=th), steps)
+        err[th] = np.abs(np.asarray(res.trajectory["pose"].log().data) - ref).max()
+    assert err[0.01] < 0.1 * err[float("inf")] and err[0.01] < 5e-3, err
