@@ -9,7 +9,8 @@ a whole stream runs inside `lax.scan` and independent streams batch with `vmap`.
 This tutorial runs it on GTSAM's IMU + GPS example stream (preintegrated IMU factors,
 bias random walk, GPS fixes with simulated noise), plots the newest estimate with its
 ±3σ band against the fixes, compares the smoother's final trajectory with the full batch
-solution, replays the Intel pose graph with loop closures inside the window, and runs
+solution, runs the same stream with incremental (iSAM2-style) updates, replays the Intel
+pose graph with loop closures inside the window, and runs
 several streams at once. Conventions: ``docs/smoothing.md``.
 
 Run ``python notebooks/_examples/fixed_lag_smoother.py`` (``JAXPOSE_NOTEBOOK_SMOKE=1`` for
@@ -137,6 +138,24 @@ diff = traj - np.asarray(batch.pose.data[:, 0:3])
 print(
     f"final trajectory vs batch: RMS {np.sqrt(np.mean(diff**2)):.2e} m, "
     f"max {np.abs(diff).max():.2e} m (newest state: {np.abs(diff[-1]).max():.2e} m)"
+)
+
+# %% [markdown]
+# ## Incremental updates
+#
+# With `relinearize_threshold` the smoother works as iSAM2 does: it keeps the window's
+# elimination, takes the cached message out of the oldest state as the new prior, solves
+# a new state at the cost of its own factors, and re-linearises only the states whose
+# step exceeds the threshold. One step per update instead of Gauss–Newton to
+# convergence: the trajectory stays within millimetres of the Gauss–Newton smoother's.
+
+# %%
+inc = ex.run(ex.imu_gps_smoother(steps, WINDOW, relinearize_threshold=0.1), steps)
+traj_inc = np.asarray(inc.trajectory["pose"].data[:, 0:3])
+print(
+    f"re-linearised in {int(np.sum(inc.iterations))} of {len(inc.iterations)} updates; "
+    f"final trajectory vs Gauss-Newton smoother: max {np.abs(traj_inc - traj).max():.2e} m, "
+    f"vs batch: RMS {np.sqrt(np.mean((traj_inc - np.asarray(batch.pose.data[:, 0:3])) ** 2)):.2e} m"
 )
 
 # %% [markdown]
