@@ -148,10 +148,28 @@ def factor_residuals(factor: Factor, variables: Variables) -> Array:
 
 def cost(graph: FactorGraph, variables: Variables) -> Array:
     """0.5 · Σ ρ(rᵀΩr) over all factors."""
+    return residual_cost(graph, [factor_residuals(f, variables) for f in graph.factors])
+
+
+def residual_cost(graph: FactorGraph, residuals: Any) -> Array:
+    """0.5 · Σ ρ(|r|²) of per-factor whitened residuals (m, r) (:func:`factor_residuals`)."""
     total = 0.0
-    for f in graph.factors:
-        total = total + 0.5 * jnp.sum(_rho(f.kernel, factor_residuals(f, variables)))
+    for f, r in zip(graph.factors, residuals, strict=True):
+        total = total + 0.5 * jnp.sum(_rho(f.kernel, r))
     return jnp.asarray(total)
+
+
+def zero_linearization(graph: FactorGraph, residuals: Any) -> GraphLinearization:
+    """Zeros in the layout of :func:`linearize`, from the per-factor residuals (m, r)
+    (a loop carry's placeholder, without tracing the Jacobians)."""
+    st = graph.structure
+    dims = dict(zip(st.names, st.dims, strict=True))
+    jac = tuple(
+        tuple(jnp.zeros((*r.shape, dims[s]), r.dtype) for s in f.slots)
+        for f, r in zip(graph.factors, residuals, strict=True)
+    )
+    res = tuple(jnp.zeros_like(r) for r in residuals)
+    return GraphLinearization(res, jac, jnp.zeros((), residuals[0].dtype))
 
 
 def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:

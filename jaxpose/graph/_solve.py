@@ -44,13 +44,16 @@ from ._problem import (
     Variables,
     block_diagonal,
     csr_values,
+    factor_residuals,
     free_flat,
     gradient,
     hessian_diagonal,
     hessian_vector,
     linearize,
+    residual_cost,
     retract_all,
     split,
+    zero_linearization,
 )
 from ._schur import schur_step
 
@@ -213,7 +216,7 @@ class _GraphPath:
     carried linearisation is ``(GraphLinearization, g)``, H a block-sparse operator."""
 
     def __init__(self, graph: FactorGraph, method: str, dense_max: int, damping: Damping,
-                 cg: PCG, free: Array, g0_norm: Array):
+                 cg: PCG, free: Array, g0_norm: Array | None):
         self.graph, self.method, self.dense_max, self.damping = graph, method, dense_max, damping
         self.cg, self.free, self.g0_norm = cg, free, g0_norm
 
@@ -339,26 +342,27 @@ def _run(
 ) -> GraphSolution:
     """The Levenberg–Marquardt loop of :func:`solve` (options already checked)."""
     method = linear_solver.resolve(graph)
-    lin0 = linearize(graph, x0)
-    dtype = lin0.cost.dtype
+    res0 = [factor_residuals(f, x0) for f in graph.factors]
+    cost0 = residual_cost(graph, res0)
+    dtype = cost0.dtype
     stopping = default_stopping(dtype=dtype) if stopping is None else stopping
     free = free_flat(graph, dtype)
-    lin0 = eqx.error_if(
-        lin0,
-        ~jnp.isfinite(lin0.cost),
+    cost0 = eqx.error_if(
+        cost0,
+        ~jnp.isfinite(cost0),
         "solve: the cost is not finite at the initial variables (check measurements, "
         "information matrices and initial values)",
     )
-    g0 = gradient(graph, lin0)
     rule = LevenbergMarquardt(strategy=strategy)
-    path = _GraphPath(graph, method, linear_solver.dense_max, damping, cg, free,
-                      jnp.linalg.norm(g0))
-    # a Jacobian that is not finite at the start: no step can be computed (as in
-    # jaxpose.optim.least_squares, a status rather than an exception)
-    status0 = _iterate.start_status(jnp.all(jnp.isfinite(g0)),
-                                    jnp.max(jnp.abs(g0), initial=0.0), stopping)
-    state = _iterate.init(rule, x0, (lin0, g0), lin0.cost, stopping, history=True,
-                          status=status0)
+    g0_norm = None
+    if method == "pcg" and cg.rtol == "inexact":  # its forcing term: relative to ‖g(x0)‖
+        g0_norm = jnp.linalg.norm(gradient(graph, linearize(graph, x0)))
+    path = _GraphPath(graph, method, linear_solver.dense_max, damping, cg, free, g0_norm)
+    # the loop's first trial linearises at x0 (the Jacobians are traced once, in the
+    # body; compilation time scales with the traced program); until then the carried
+    # system is a zero placeholder of its layout
+    system0 = (zero_linearization(graph, res0), jnp.zeros((graph.structure.size,), dtype))
+    state = _iterate.init(rule, x0, system0, cost0, stopping, history=True)
     out = jax.lax.while_loop(
         lambda s: ~s.done,
         lambda s: _iterate.trial(rule, path, s, stopping, verbose=verbose, label="graph.solve"),

@@ -170,7 +170,15 @@ def trial(rule: Rule, path: Path, state: SolverState, stopping: Stopping, *,
     (``state.linearized`` False) only linearises at ``state.params``."""
     fresh = ~state.linearized
     normal = path.normal(state.system)
-    delta, its = path.propose(rule, state.strategy_state, state.system, normal)
+
+    def propose() -> tuple[Array, Array]:
+        step, its = path.propose(rule, state.strategy_state, state.system, normal)
+        return step, jnp.asarray(its, jnp.int32)
+
+    # the first trial of a fresh state only linearises: no linear solve on the placeholder
+    delta, its = jax.lax.cond(
+        fresh, lambda: (jnp.zeros_like(normal.grad), jnp.zeros((), jnp.int32)), propose
+    )
     step_ok = fresh | jnp.all(jnp.isfinite(delta))
     delta = jnp.where(step_ok & ~fresh, delta, 0.0)
     trial_params = path.retract(state.params, delta)
