@@ -9,10 +9,10 @@ read) is printed too.
 
 * jaxpose, as ``jaxpose pgo FILE`` runs it: ``initial_poses(graph, "auto")`` (chordal
   relaxation on the host unless the file's poses cost less), then ``pose_graph_problem`` +
-  ``solve`` under ``jax.jit``. Reported: initialisation time, compile time (lower + XLA
-  compile), steady-state solve time (all iterations, best of ``--repeats`` after a warm-up
-  run), total = initialisation + solve (compilation reported separately), time per
-  iteration = solve / iterations.
+  ``solve`` under ``jax.jit``. Reported: initialisation time, compile time (trace, lower
+  and XLA compile with the CLI's compiler options), steady-state solve time (all
+  iterations, best of ``--repeats`` after a warm-up run), total = initialisation +
+  solve (compilation reported separately), time per iteration = solve / iterations.
   The time per iteration is split into the host sparse Cholesky (CHOLMOD numeric
   factorisation + solve, timed inside the callback) and the rest (linearisation, CSR
   assembly, device↔host transfer, retraction, bookkeeping), as measured in the best run.
@@ -82,6 +82,7 @@ README_COST = {
 BAR_RATIO_FILES = ("parking-garage", "sphere2500")
 BAR_ITER_RATIO, BAR_COST_RTOL = 1.0, 1e-6
 BAR_COMPILE_S, BAR_GARAGE_RSS = 30.0, 3 * 2**30
+BAR_GARAGE_COMPILE_S = 3.0  # issue 17: the CLI's cold start on parking-garage
 
 
 def _path(name: str) -> Path:
@@ -110,6 +111,7 @@ def run_jaxpose(path: Path, solver: str, float32: bool, repeats: int, max_steps:
     import jax.numpy as jnp
 
     from jaxpose import read_g2o
+    from jaxpose.cli import _compile
     from jaxpose.graph import _linear as linear
     from jaxpose.graph import _pgo as pgo
     from jaxpose.graph import initial_poses, solve
@@ -143,7 +145,7 @@ def run_jaxpose(path: Path, solver: str, float32: bool, repeats: int, max_steps:
                         xtol=0.0)
     fn = jax.jit(lambda p: solve(p, linear_solver=solver, stopping=stopping))
     t0 = time.perf_counter()
-    compiled = fn.lower(problem).compile()
+    compiled = _compile(fn.lower(problem))  # with the CLI's compiler options
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     sol = jax.block_until_ready(compiled(problem))  # first run (warm-up)
@@ -323,8 +325,9 @@ def _checks(name: str, jp: dict, gt: dict) -> list[str]:
             it = _per_iter(jp) / _per_iter(gt)
             checks.append(f"per iteration {it:.2f}x GTSAM (≤ {BAR_ITER_RATIO:.0f}x): "
                           + ("pass" if it <= BAR_ITER_RATIO else "FAIL"))
-    checks.append(f"compile {jp['compile_s']:.1f} s (< {BAR_COMPILE_S:.0f} s): "
-                  + ("pass" if jp["compile_s"] < BAR_COMPILE_S else "FAIL"))
+    bar_compile = BAR_GARAGE_COMPILE_S if name == "parking-garage" else BAR_COMPILE_S
+    checks.append(f"compile {jp['compile_s']:.2f} s (≤ {bar_compile:.0f} s): "
+                  + ("pass" if jp["compile_s"] <= bar_compile else "FAIL"))
     if name == "parking-garage":
         checks.append(f"peak RSS {_gib(jp['peak_rss'])} (< 3 GiB): "
                       + ("pass" if jp["peak_rss"] < BAR_GARAGE_RSS else "FAIL"))
