@@ -239,6 +239,7 @@ def test_incremental_step_solves_the_window_system_at_its_linearization_point():
     assert 0 < relinearised < t  # both paths: cached elimination and re-linearisation
 
 
+@pytest.mark.slow
 def test_incremental_relinearising_tracks_gauss_newton():
     """With a small threshold the incremental smoother re-linearises and stays close to
     Gauss–Newton to convergence; never re-linearising (threshold ∞) is further off."""
