@@ -24,14 +24,17 @@ derivatives; the starting values get zero; counters, status and history have non
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..lie import LieGroup
 from ..optim._implicit import jvp_where
 from ._analysis import tangent_dim
+from ._factor import between_residual
 from ._linear import solve_sparse_spd
 from ._problem import (
     FactorGraph,
@@ -72,7 +75,10 @@ def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
             zeros = tuple(jnp.zeros((tangent_dim(p),), p.dtype) for p in point)
             return jax.hessian(local_cost)(zeros, point, data, sqrt)
 
-        hess = jax.vmap(one)(tuple(vals), f.data, f.sqrt_info)
+        if _is_between(f, vals):
+            hess = jax.vmap(partial(_between_hessian, f.kernel))(*vals, f.data, f.sqrt_info)
+        else:
+            hess = jax.vmap(one)(tuple(vals), f.data, f.sqrt_info)
         masks = [st.free[type_of[s]][i] for s, i in zip(f.slots, f.indices, strict=True)]
         per_factor.append((hess, masks))
 
@@ -84,6 +90,53 @@ def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
     dtype = jax.tree.leaves(variables)[0].dtype
     values = st.pattern.csr(assemble_blocks(graph, block, dtype))
     return values.at[st.diag_pos].add(1.0 - free_flat(graph, dtype))
+
+
+def _is_between(f: Any, vals: list[Any]) -> bool:
+    """A :func:`~jaxpose.graph.between_residual` factor between two poses of one group."""
+    return (f.residual is between_residual and len(vals) == 2
+            and type(vals[0]) is type(vals[1]) and isinstance(vals[0], LieGroup))
+
+
+def _between_hessian(kernel: Any, xi: LieGroup, xj: LieGroup, z: LieGroup,
+                     sqrt: Any) -> tuple[tuple[Array, Array], tuple[Array, Array]]:
+    """Exact Hessian blocks of ``½ρ(|S·Log(Z⁻¹(Xi·Exp δi)⁻¹(Xj·Exp δj))|²)`` at δ = 0,
+    from a Hessian in the 6 (3) dimensions of the relative motion instead of the 12 (6)
+    of the two poses.
+
+    With T = Xi⁻¹Xj, (Xi·Exp δi)⁻¹(Xj·Exp δj) = T·Exp(a)·Exp(b), a = −Ad(T⁻¹)·δi = A·δi,
+    b = δj, and by Baker–Campbell–Hausdorff Exp(a)·Exp(b) = Exp(u),
+    u = a + b + ½[a, b] + O(3). The cost is h(u) = ½ρ(|S·Log(Z⁻¹·T·Exp u)|²), so with
+    g = ∇h(0), G = ∇²h(0) and M_pq = gᵀ[e_p, e_q]: H_ii = AᵀGA, H_ij = AᵀG + ½AᵀM,
+    H_jj = G. Exact at every (X, θ), hence differentiable again like the generic rule.
+    """
+    group = type(xi)
+    rel = xi.inv().compose(xj)
+    base = z.inv().compose(rel)
+    dim = group.tangent_dim
+
+    def h(u: Array) -> Array:
+        r = base.retract_quadratic(u).log().data
+        if sqrt is not None:
+            r = sqrt.astype(r.dtype) @ r
+        return 0.5 * _rho(kernel, r)
+
+    zero = jnp.zeros((dim,), rel.dtype)
+    eye = jnp.eye(dim, dtype=rel.dtype)
+    g, hh = jax.vmap(lambda e: jax.jvp(jax.grad(h), (zero,), (e,)), out_axes=(None, 0))(eye)
+    hh = 0.5 * (hh + hh.T)
+    a = -rel.inv().adj_matrix()
+    m = jnp.einsum("k,kqp->pq", g, _structure_constants(group, rel.dtype))
+    hij = a.T @ hh + 0.5 * a.T @ m
+    return ((a.T @ hh @ a, hij), (hij.T, hh))
+
+
+def _structure_constants(group: type, dtype: Any) -> Array:
+    """(d, d, d) ``c[k, q, p] = [e_p, e_q]_k`` of the group's Lie algebra, from
+    ``ad(e_p) = d/ds Ad(Exp(s·e_p))`` at s = 0 (a constant)."""
+    with jax.ensure_compile_time_eval():
+        zero = jnp.zeros((group.tangent_dim,), dtype)
+        return jax.jacfwd(lambda a: group.exp(a).adj_matrix())(zero)
 
 
 @eqx.filter_custom_jvp
