@@ -149,8 +149,8 @@ def test_kernel_parameter_is_traced_and_differentiable():
 
 @pytest.mark.parametrize("derivative", [False, pytest.param(True, marks=pytest.mark.slow)],
                          ids=["value", "derivative"])  # derivative: third order, ~70 s
-# SE2 in the slow tier: the default tier's finite-difference tests above differentiate
-# SE2 graphs through this Hessian already
+# SE2 in the slow tier: in the default tier the solution Jacobian of the SE2 loop graph is
+# already checked against the dense least_squares rule (generic Hessian) above
 @pytest.mark.parametrize("group", [pytest.param("SE2", marks=pytest.mark.slow), "SE3"])
 def test_between_hessian_equals_the_generic_hessian_and_its_derivative(group, derivative):
     """The between factor's exact Hessian from the relative motion (Baker–Campbell–
