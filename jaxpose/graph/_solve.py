@@ -222,7 +222,9 @@ class _GraphPath:
 
     def linearize(self, variables: Variables) -> tuple[Any, Array, Array]:
         lin = linearize(self.graph, variables)
-        return (lin, gradient(self.graph, lin)), lin.cost, jnp.isfinite(lin.cost)
+        g = gradient(self.graph, lin)
+        # finite: the cost and the gradient (a non-finite Jacobian makes g non-finite)
+        return (lin, g), lin.cost, jnp.isfinite(lin.cost) & jnp.all(jnp.isfinite(g))
 
     def normal(self, system: Any) -> NormalEquations:
         lin, g = system
