@@ -32,6 +32,7 @@ Usage::
 
 from __future__ import annotations
 
+import functools
 import os
 import statistics
 import sys
@@ -129,14 +130,10 @@ def run_jaxpose(window: int, threshold, gps, gyro, acc, init, kf, dr):
     return statistics.median(times), first, last, relinearised
 
 
-_JITTED = {}
-
-
+@functools.cache
 def _jitted_update(cls):
     """One jitted ``update`` per process (the second pass reuses its compilations)."""
-    if "update" not in _JITTED:
-        _JITTED["update"] = jax.jit(cls.update)
-    return _JITTED["update"]
+    return jax.jit(cls.update)
 
 
 def run_gtsam(gtsam, window: int, gps, gyro, acc, init, kf, dr) -> tuple[float, np.ndarray]:

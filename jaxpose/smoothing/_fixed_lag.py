@@ -30,10 +30,11 @@ slots and the prior pass on) and the back-substitution ``Δ_s = a_s + M_s·Δ_{s
 Eliminating slot 0 leaves exactly the message into slot 1, so marginalisation takes
 that message as the new prior, at no cost; a new state only needs its own factors
 linearised and the last two slots eliminated (``O(d³)``), then one back-substitution
-(``O(K·d²)``) gives the estimate ``lin ⊕ Δ``. When a non-frozen state's step ``Δ``
-exceeds the threshold (largest tangent component; or is not finite), the whole window
-is re-linearised at the estimate and eliminated again (one Gauss–Newton step, as
-iSAM2 re-linearises lazily). ``iterations`` is then 1, else 0.
+(``O(K·d²)``) gives the estimate ``lin ⊕ Δ``. The non-frozen states whose step ``Δ``
+exceeds the threshold (largest tangent component; or is not finite) are re-linearised
+at their estimate and the window is eliminated again from the oldest of them
+(``O((K − j)·d³)``; iSAM2 re-linearises lazily the same way). ``iterations`` is then 1,
+else 0.
 
 The prior's linearisation point ``x̄`` never moves while the prior exists. With
 ``first_estimate=True`` (default; GTSAM's ``BatchFixedLagSmoother``, whose
@@ -194,7 +195,7 @@ class FixedLagSmoother(eqx.Module):
             prior's linearisation point for the states in the prior (module docstring).
         relinearize_threshold: None (default) for Gauss–Newton to convergence at every
             update; a float ≥ 0 for incremental updates (module docstring, *Incremental
-            updates*): the window is re-linearised only when some state's step from its
+            updates*): a state is re-linearised only when its step from its
             linearisation point exceeds it (largest tangent component, iSAM2's
             ``relinearizeThreshold``). Needs ``max_loops=0`` and ``first_estimate=True``.
         """
@@ -464,9 +465,8 @@ class FixedLagSmoother(eqx.Module):
                 self._empty_blocks(s[None])[0],
                 jax.tree.map(lambda v: v[0], pair),
             )
-            return s + 1, info.at[s + 1].set(ni), grad.at[s + 1].set(ng), a.at[s].set(a_s), m.at[
-                s
-            ].set(m_s)
+            info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
+            return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s)
 
         cache = (self.msg_info, self.msg_grad, self.back_a, self.back_m)
         _, info, grad, a, m = jax.lax.while_loop(cond, body, (jnp.asarray(lo), *cache))
