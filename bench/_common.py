@@ -112,6 +112,53 @@ def set_threads(threads: int, *, pin: bool = False) -> None:
     torch.set_num_threads(threads)
 
 
+def torch_device() -> str:
+    """Where the torch peers (PyPose) run: ``JAXPOSE_BENCH_TORCH_DEVICE`` when set, else
+    ``cuda`` when torch sees a GPU (jaxpose then runs on it too: peers side by side on
+    the same kind of device), else ``cpu``."""
+    dev = os.environ.get("JAXPOSE_BENCH_TORCH_DEVICE")
+    if dev:
+        return dev
+    try:
+        import torch
+    except ImportError:
+        return "cpu"
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def set_torch_device() -> str:
+    """Make :func:`torch_device` torch's default device (factory calls inside PyPose
+    included) and return it."""
+    import torch
+
+    dev = torch_device()
+    torch.set_default_device(dev)
+    return dev
+
+
+def to_torch(a: Any) -> Any:
+    """A copy of a numpy array as a torch tensor on :func:`torch_device` (same dtype; a
+    copy, so in-place updates, e.g. of an optimiser's parameters, never reach ``a``)."""
+    import numpy as np
+    import torch
+
+    return torch.tensor(np.ascontiguousarray(a), device=torch_device())
+
+
+def to_numpy(t: Any) -> Any:
+    """A torch tensor (any device) as a numpy array."""
+    return t.detach().cpu().numpy()
+
+
+def _torch_sync(out: Any) -> Any:
+    """Wait for queued CUDA work when torch runs on a GPU (eager torch calls return
+    before their kernels finish)."""
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+    return out
+
+
 def apply_common(args: argparse.Namespace, *, pin: bool = False) -> None:
     """Apply the common options of :func:`parser`: threads and the timing clock."""
     if hasattr(args, "threads"):
@@ -257,8 +304,9 @@ def time_callable(
     max_time: float = 10.0,
     sync: Callable[[Any], Any] | None = None,
 ) -> tuple[Timing, Any]:
-    """Time an eager callable (e.g. torch); ``sync`` waits for its result if needed."""
-    sync = sync or (lambda x: x)
+    """Time an eager callable (e.g. torch); ``sync`` waits for its result if needed (by
+    default: queued CUDA work when torch runs on a GPU)."""
+    sync = sync or _torch_sync
     call = lambda: sync(fn())
     out, _ = _timed(call)  # warm-up (allocator, thread pool)
     _, first_s = _timed(call)
@@ -306,17 +354,22 @@ def import_peer(name: str, dist: str | None = None) -> Peer:
         ver = version(dist or name)
     except Exception:  # noqa: BLE001 - version is informative only
         ver = getattr(mod, "__version__", "?")
+    if name == "pypose":  # a torch peer: on torch_device(), factory calls included
+        ver = f"{ver} on {set_torch_device()}"
     return Peer(name, mod, ver)
 
 
 def environment() -> str:
-    """One line describing the machine and library versions."""
+    """One line describing the machine and library versions (and the accelerator, when
+    jax runs on one)."""
     import jax
 
+    backend = jax.default_backend()
+    if backend != "cpu":
+        backend += f": {jax.devices()[0].device_kind}"
     return (
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
-        f"Python {platform.python_version()}, jax {jax.__version__} "
-        f"({jax.default_backend()})"
+        f"Python {platform.python_version()}, jax {jax.__version__} ({backend})"
     )
 
 

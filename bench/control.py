@@ -60,6 +60,8 @@ from bench._common import (  # noqa: E402
     parser,
     time_callable,
     time_jax,
+    to_numpy,
+    to_torch,
 )
 
 BAR = 5.0  # required jaxpose / PyPose speed ratio on every configuration (issue 5)
@@ -137,7 +139,7 @@ def run_pypose(pp: Any, prob: dict[str, Any], timing_kw: dict[str, Any]) -> Resu
     import torch
 
     T, n, m, nb = prob["T"], prob["n"], prob["m"], prob["batch"]
-    t = lambda k: torch.from_numpy(np.ascontiguousarray(prob[k]))
+    t = lambda k: to_torch(prob[k])
     dtype = t("Q").dtype
     Q = torch.tile(t("Q"), (nb, T, 1, 1))
     p = torch.tile(t("p"), (nb, T, 1))
@@ -173,9 +175,9 @@ def run_pypose(pp: Any, prob: dict[str, Any], timing_kw: dict[str, Any]) -> Resu
     res.bwd = _time_backward(forward, A, B, timing_kw)
     res.both, _ = time_callable(both, **timing_kw)
     both()
-    res.grad_A = A.grad.detach().numpy().copy()
+    res.grad_A = to_numpy(A.grad).copy()
     with torch.no_grad():
-        res.u = mpc(1, x0)[1].numpy()
+        res.u = to_numpy(mpc(1, x0)[1])
     return res
 
 

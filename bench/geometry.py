@@ -75,6 +75,8 @@ from bench._common import (  # noqa: E402
     markdown_table,
     parser,
     time_callable,
+    to_numpy,
+    to_torch,
 )
 from jaxpose.geometry import epnp, icp, knn  # noqa: E402
 from jaxpose.geometry._knn import resolve_method  # noqa: E402
@@ -289,7 +291,7 @@ def pypose_knn(pp: Any, prob: dict[str, np.ndarray], timing_kw: dict[str, Any],
                chunk_sample: int) -> Cell:
     import torch
 
-    q, p = torch.from_numpy(prob["query"]), torch.from_numpy(prob["target"])
+    q, p = to_torch(prob["query"]), to_torch(prob["target"])
     n, m = q.shape[0], p.shape[0]
     need = _pypose_knn_bytes(n, m)
     avail = _available_bytes()
@@ -297,7 +299,7 @@ def pypose_knn(pp: Any, prob: dict[str, np.ndarray], timing_kw: dict[str, Any],
     if avail is None or need < 0.5 * avail:
         with torch.no_grad():
             timing, out = time_callable(lambda: pp.knn(q, p, k=1), **timing_kw)
-        idx = out.indices[:, 0].numpy()
+        idx = to_numpy(out.indices[:, 0])
         return Cell(timing, _sample_check(prob["query"], prob["target"], idx), memory=mem,
                     extra={"indices": idx})
     # as written it cannot run; time a caller-side chunked loop on a sample of queries
@@ -322,7 +324,7 @@ def pypose_icp(pp: Any, prob: dict[str, np.ndarray], timing_kw: dict[str, Any],
                knn_cell: Cell) -> Cell:
     import torch
 
-    s, t = torch.from_numpy(prob["source"]), torch.from_numpy(prob["target"])
+    s, t = to_torch(prob["source"]), to_torch(prob["target"])
     n, m = s.shape[0], t.shape[0]
     need = _pypose_knn_bytes(n, m)
     avail = _available_bytes()
@@ -345,7 +347,7 @@ def pypose_icp(pp: Any, prob: dict[str, np.ndarray], timing_kw: dict[str, Any],
 
     timing, out = time_callable(solve, **{**timing_kw, "repeats": min(3, timing_kw.get(
         "repeats", 3))})
-    rot, tr = pose_errors(out.matrix().numpy(), prob["truth"])
+    rot, tr = pose_errors(to_numpy(out.matrix()), prob["truth"])
     return Cell(timing, f"rot {rot:.1e}°, trans {tr:.1e}", str(steps[-1]), mem)
 
 
@@ -353,15 +355,15 @@ def pypose_epnp(pp: Any, prob: dict[str, np.ndarray], refine: bool,
                 timing_kw: dict[str, Any]) -> Cell:
     import torch
 
-    pw, uv = torch.from_numpy(prob["points"]), torch.from_numpy(prob["pixels"])
-    solver = pp.module.EPnP(torch.from_numpy(K), refine=refine)
+    pw, uv = to_torch(prob["points"]), to_torch(prob["pixels"])
+    solver = pp.module.EPnP(to_torch(K), refine=refine)
 
     def solve() -> Any:  # the refinement needs autograd (its Jacobians)
         with contextlib.nullcontext() if refine else torch.no_grad():
             return solver(pw, uv)
 
     timing, out = time_callable(solve, **timing_kw)
-    m = out.detach().matrix().numpy()
+    m = to_numpy(out.matrix())
     rot, tr = pose_errors(m, prob["truth"])
     h = np.einsum("ij,bnj->bni", K, np.einsum("bij,bnj->bni", m[:, :3, :3], prob["points"])
                   + m[:, None, :3, 3])

@@ -70,6 +70,9 @@ from bench._common import (  # noqa: E402
     parser,
     time_callable,
     time_jax,
+    to_numpy,
+    to_torch,
+    torch_device,
 )
 
 BAR = 10.0  # jaxpose / PyPose speed ratio required on 1000 × 200 values + covariance
@@ -126,8 +129,9 @@ def pypose_task(pp: Any, kind: str, gyro: np.ndarray, acc: np.ndarray, dtype: st
     tdtype = getattr(torch, dtype)
     b, n, _ = gyro.shape
     integ = pp.module.IMUPreintegrator(gravity=0.0, gyro_cov=SIGMA_G**2, acc_cov=SIGMA_A**2,
-                                       prop_cov=(kind == "cov"), reset=True).to(tdtype)
-    g, a = torch.from_numpy(gyro), torch.from_numpy(acc)
+                                       prop_cov=(kind == "cov"), reset=True)
+    integ = integ.to(torch_device(), tdtype)
+    g, a = to_torch(gyro), to_torch(acc)
     d = torch.full((b, n, 1), DT, dtype=tdtype)
 
     def call() -> Any:
@@ -156,8 +160,8 @@ def agreement(pp_peer: Peer, gtsam_peer: Peer, n: int) -> dict[str, float | None
     pp_cov = None
     if pp_peer.available:
         r = pypose_task(pp_peer.module, "cov", gyro, acc, "float64")()
-        res["dp_pypose"] = float(np.abs(r["pos"][0, -1].numpy() - ours["pos"]).max())
-        pp_cov = r["cov"][0].numpy()
+        res["dp_pypose"] = float(np.abs(to_numpy(r["pos"][0, -1]) - ours["pos"]).max())
+        pp_cov = to_numpy(r["cov"][0])
     if gtsam_peer.available:
         gt = gtsam_peer.module
         p = gt.PreintegrationParams.MakeSharedU(0.0)

@@ -52,6 +52,8 @@ from bench._common import (
     parser,
     time_callable,
     time_jax,
+    to_numpy,
+    to_torch,
 )
 
 FUNCS = ("f1", "f2", "f3")
@@ -153,8 +155,8 @@ class PyPoseContestant:
     def run(self, fname: str, kind: str, inputs: dict[str, Any], cfg: Config):
         torch = self.torch
         f = self._f(fname)
-        x = torch.from_numpy(inputs["x"])
-        rest = [torch.from_numpy(inputs[a])] if (a := second_arg(fname)) else []
+        x = to_torch(inputs["x"])
+        rest = [to_torch(inputs[a])] if (a := second_arg(fname)) else []
         if kind == "value":
             def call() -> Any:
                 with torch.no_grad():
@@ -176,7 +178,7 @@ class PyPoseContestant:
                 return torch.stack(rows, -2)  # (B, 3 outputs, 3 inputs)
 
         timing, out = time_callable(call, **cfg.timing_kw)
-        return timing, out.detach().numpy()
+        return timing, to_numpy(out)
 
 
 # ----------------------------------------------------------------------------------

@@ -83,6 +83,8 @@ from bench._common import (  # noqa: E402
     markdown_table,
     parser,
     time_jax,
+    to_numpy,
+    to_torch,
 )
 from jaxpose.lie import SE3, manifold  # noqa: E402
 
@@ -255,14 +257,14 @@ def pypose_lm(pp: Any, probs: Sequence[dict[str, np.ndarray]],
             return (self.pose @ inp).Log().tensor()
 
     def solve(prob: dict[str, np.ndarray]) -> tuple[Any, int, float]:
-        net = PoseInv(torch.from_numpy(prob["x0"].copy()))
-        inp = pp.SE3(torch.from_numpy(prob["input"].copy()))
+        net = PoseInv(to_torch(prob["x0"]))
+        inp = pp.SE3(to_torch(prob["input"]))
         opt = pp.optim.LM(net)
         sch = pp.optim.scheduler.StopOnPlateau(opt, steps=10, patience=3, decreasing=1e-3)
         sch.optimize(input=inp)
         with torch.no_grad():
             own = float(net(inp).square().sum())
-        return net.pose.detach().tensor().numpy(), sch.steps, own
+        return to_numpy(net.pose.tensor()), sch.steps, own
 
     # one-off torch/PyPose start-up costs (excluded, like jaxpose's compile): a tiny solve
     solve(make_problem(2, str(probs[0]["x0"].dtype)))

@@ -19,10 +19,14 @@ Usage::
 
     python -m bench [--quick] [--only lie_ops,optim] [--skip pgo] [--out bench/RESULTS.md]
                     [--merge] [--readme README.md] [--timeout 3600] [--list]
+                    [--set "lie_ops=--batches 1000,1000000"]
 
 ``--merge`` re-runs only the selected workloads and keeps every other section (and its
 summary row, with the date it was measured) of the existing report, so one benchmark can
 be refreshed without re-running all of them.
+
+``--set NAME=ARGS`` runs one script with other arguments than the registry's (an
+accelerator run's sizes, say); the summary's *command* column shows what ran.
 
 ``--readme FILE`` also rewrites the block between ``<!-- bench-results:start -->`` and
 ``<!-- bench-results:end -->`` in FILE with the summary table (the README's results
@@ -35,6 +39,7 @@ import argparse
 import datetime as _dt
 import os
 import re
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -119,10 +124,14 @@ def _help(name: str) -> str:
     return proc.stdout
 
 
-def command(name: str, quick: bool, out: Path) -> list[str]:
-    """The subprocess command for ``name``: its settings plus ``--out`` where offered."""
+def command(name: str, quick: bool, out: Path, args: Sequence[str] | None = None
+            ) -> list[str]:
+    """The subprocess command for ``name``: its settings (``args`` in place of the
+    registry's, when given) plus ``--out`` where offered."""
     spec = WORKLOADS.get(name)
-    if spec is not None:
+    if args is not None:
+        args, has_out = list(args), True
+    elif spec is not None:
         args, has_out = list(spec.quick if quick else spec.full), True
     else:  # a script this runner does not know yet: ask its --help
         text = _help(name)
@@ -133,11 +142,12 @@ def command(name: str, quick: bool, out: Path) -> list[str]:
     )
 
 
-def run_one(name: str, quick: bool, timeout: float, log=None) -> Outcome:
+def run_one(name: str, quick: bool, timeout: float, log=None,
+            args: Sequence[str] | None = None) -> Outcome:
     """Run one script in a subprocess and collect its markdown report."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / f"{name}.md"
-        cmd = command(name, quick, out)
+        cmd = command(name, quick, out, args)
         if log:
             log(f"[{time.strftime('%H:%M:%S')}] {name}: {' '.join(cmd[1:])}")
         t0 = time.perf_counter()
@@ -293,8 +303,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="keep the other sections of the existing --out report")
     ap.add_argument("--list", action="store_true",
                     help="list the workloads (name, title, command) and exit")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=ARGS",
+                    help="run NAME with ARGS (one string) instead of its registry settings; "
+                    "repeatable (e.g. an accelerator run's sizes)")
     args = ap.parse_args(argv)
     names = discover()
+    overrides = {}
+    for item in args.set:
+        name, sep, rest = item.partition("=")
+        if not sep or name not in names:
+            raise SystemExit(f"--set: expected NAME=ARGS with NAME one of {names}, got {item!r}")
+        overrides[name] = shlex.split(rest)
     only = [n for n in args.only.split(",") if n]
     unknown = set(only) - set(names)
     if unknown:
@@ -303,7 +322,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.list:
         for n in names:
             title = WORKLOADS[n].title if n in WORKLOADS else "(not in the registry)"
-            cmd = command(n, args.quick, Path(f"{n}.md"))[1:]
+            cmd = command(n, args.quick, Path(f"{n}.md"), overrides.get(n))[1:]
             print(f"{n:<15} {title}\n{'':15} python {os.path.relpath(cmd[0], ROOT)} "
                   + " ".join(cmd[1:]))
         return 0
@@ -312,17 +331,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out)
     kept = (previous_sections(out.read_text(encoding="utf-8"))
             if args.merge and out.is_file() else {})
-    fresh = {}
+    fresh: dict[str, Outcome] = {}
+    outcomes: list[Outcome] = []
+    order = discover() + [n for n in kept if n not in discover()]
     for n in names:
-        o = run_one(n, args.quick, args.timeout, log)
+        o = run_one(n, args.quick, args.timeout, log, overrides.get(n))
         o.measured = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
         log(f"    -> {o.status} in {o.seconds:.0f} s")
         fresh[n] = o
-    order = discover() + [n for n in kept if n not in discover()]
-    outcomes = [fresh[n] if n in fresh else
-                Outcome(n, [], "kept", 0.0, kept_row=kept[n][0], kept_section=kept[n][1])
-                for n in order if n in fresh or n in kept]
-    out.write_text(render(outcomes, args.quick, (load0, os.getloadavg()[0])), encoding="utf-8")
+        # written after every script, so a run stopped from outside keeps what it measured
+        outcomes = [fresh[k] if k in fresh else
+                    Outcome(k, [], "kept", 0.0, kept_row=kept[k][0], kept_section=kept[k][1])
+                    for k in order if k in fresh or k in kept]
+        out.write_text(render(outcomes, args.quick, (load0, os.getloadavg()[0])),
+                       encoding="utf-8")
     log(f"wrote {out}")
     if args.readme and not update_readme(Path(args.readme), outcomes, out, args.quick):
         log(f"{args.readme}: no {README_START} / {README_END} markers; not updated")
