@@ -338,6 +338,18 @@ class Peer:
         return f"{self.name}: skipped: {self.reason}"
 
 
+def package_version(dist: str) -> str:
+    """An installed distribution's version, else (a source checkout on ``PYTHONPATH``) its
+    module's ``__version__``, else ``?``."""
+    try:
+        from importlib.metadata import version
+
+        return version(dist)
+    except Exception:  # noqa: BLE001 - informative only
+        mod = sys.modules.get(dist.replace("-", "_"))
+        return str(getattr(mod, "__version__", "?"))
+
+
 def import_peer(name: str, dist: str | None = None) -> Peer:
     """Import a peer library; a missing one is reported as skipped, never faked."""
     if os.environ.get("JAXPOSE_BENCH_SKIP", "") and name in os.environ[

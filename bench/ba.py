@@ -53,6 +53,7 @@ from bench._common import (
     fmt_seconds,
     import_peer,
     markdown_table,
+    package_version,
     parser,
     spawn_worker,
     worker_result,
@@ -330,7 +331,6 @@ def main(argv: Sequence[str] | None = None) -> str:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from importlib.metadata import version
 
     load0 = os.getloadavg()
     results = []
@@ -344,7 +344,7 @@ def main(argv: Sequence[str] | None = None) -> str:
             print(f"[{name}] " + ", ".join(
                 f"{k} {fmt_seconds(r['steady_s'])}" for k, r in res["rows"].items()
                 if "steady_s" in r), file=sys.stderr, flush=True)
-    text = report(results, args, (load0, os.getloadavg()), version("jaxpose"))
+    text = report(results, args, (load0, os.getloadavg()), package_version("jaxpose"))
     if args.out:
         Path(args.out).write_text(text + "\n", encoding="utf-8")
     return text

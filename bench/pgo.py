@@ -61,6 +61,7 @@ from bench._common import (
     fmt_seconds,
     import_peer,
     markdown_table,
+    package_version,
     parser,
     spawn_worker,
     worker_result,
@@ -166,7 +167,7 @@ def run_jaxpose(path: Path, solver: str, float32: bool, repeats: int, max_steps:
         times=times, iterations=int(sol.iterations), status=sol.status_name,
         initial_cost=float(sol.initial_cost), cost=float(sol.cost),
         linear_iterations=int(sol.linear_iterations), baseline_rss=baseline,
-        peak_rss=_peak_rss(), version=_version("jaxpose"), jax=jax.__version__,
+        peak_rss=_peak_rss(), version=package_version("jaxpose"), jax=jax.__version__,
         backend=jax.default_backend(), blas=_cholmod_blas(),
     )
 
@@ -204,7 +205,8 @@ def run_gtsam(path: Path, repeats: int, max_steps: int) -> dict:
         own_name, own_init = "lago", lambda: gtsam.lago.initialize(full)
     out: dict[str, Any] = dict(
         poses=int(initial.size()), edges=int(graph.size()),
-        initial_cost=float(graph.error(initial)), version=_version("gtsam"), own_name=own_name,
+        initial_cost=float(graph.error(initial)), version=package_version("gtsam"),
+        own_name=own_name,
     )
     # path 1: LM from the file's values
     times, result, iterations = [], None, 0
@@ -236,15 +238,6 @@ def _cholmod_blas() -> str:
     from jaxpose.graph import _cholmod
 
     return _cholmod.blas() if _cholmod.available() else "—"
-
-
-def _version(dist: str) -> str:
-    try:
-        from importlib.metadata import version
-
-        return version(dist)
-    except Exception:  # noqa: BLE001 - informative only
-        return "?"
 
 
 def _worker(args: argparse.Namespace) -> int:

@@ -116,10 +116,11 @@ def test_pypose_round_trip_and_peer_operations(group, alg):
     La, LX, LY = interop.to_pypose(a), interop.to_pypose(X), interop.to_pypose(Y)
     assert La.ltype == getattr(pp, f"{alg.__name__}_type")
     assert LX.ltype == getattr(pp, f"{group.__name__}_type") and LX.dtype == torch.float64
-    # PyPose's own Exp / compose / Log on the converted tensors match jaxpose's.
-    np.testing.assert_allclose(La.Exp().tensor().numpy(), X.data, atol=1e-12)
-    np.testing.assert_allclose((LX * LY).tensor().numpy(), XY.data, atol=1e-12)
-    np.testing.assert_allclose(LX.Log().tensor().numpy(), a.data, atol=1e-10)
+    # PyPose's own Exp / compose / Log on the converted tensors match jaxpose's (on an
+    # accelerator the tensors share the device's memory: .cpu() before numpy).
+    np.testing.assert_allclose(La.Exp().tensor().cpu().numpy(), X.data, atol=1e-12)
+    np.testing.assert_allclose((LX * LY).tensor().cpu().numpy(), XY.data, atol=1e-12)
+    np.testing.assert_allclose(LX.Log().tensor().cpu().numpy(), a.data, atol=1e-10)
     for src in (X, a):
         back = interop.from_pypose(interop.to_pypose(src))
         assert type(back) is type(src)
@@ -135,10 +136,10 @@ def test_torch_arrays_and_bad_input():
     x32 = jnp.arange(6.0, dtype=jnp.float32).reshape(2, 3)
     t = interop.to_torch(x32)
     assert isinstance(t, torch.Tensor) and t.dtype == torch.float32 and t.shape == (2, 3)
-    np.testing.assert_array_equal(t.numpy(), x32)
+    np.testing.assert_array_equal(t.cpu().numpy(), x32)
     np.testing.assert_array_equal(interop.from_torch(t * 2), 2 * x32)
     X = jp.SE3.random(KEY, (3,))
-    np.testing.assert_array_equal(interop.to_torch(X).numpy(), X.data)
+    np.testing.assert_array_equal(interop.to_torch(X).cpu().numpy(), X.data)
     with pytest.raises(TypeError, match=r"to_pypose\(x\).*SE2"):
         interop.to_pypose(jp.SE2.identity())
     with pytest.raises(TypeError, match=r"from_pypose\(x\): expected a pypose.LieTensor"):

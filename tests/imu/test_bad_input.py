@@ -76,8 +76,9 @@ def test_runtime_value_errors_under_jit_and_vmap(bad, match):
         d[1] = np.inf
     else:
         d[5] = np.nan
-    with pytest.raises(Exception, match=match):  # eagerly
-        preintegrate(g, a, d)
+    # eagerly (blocking: on an accelerator the check's error arrives with the result)
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(preintegrate(g, a, d))
     with pytest.raises(Exception, match=match):
         jax.block_until_ready(_checked(g, a, d))
     with pytest.raises(Exception, match=match):  # a bad window inside a batch
@@ -215,7 +216,8 @@ def test_extreme_magnitudes_raise_instead_of_silent_nan(scheme, what):
     else:
         d[:] = 1e200
     with pytest.raises(Exception, match="preintegrate: the result overflows"):
-        preintegrate(g, a, d, gyro_noise=1e-3, acc_noise=1e-2, scheme=scheme)
+        jax.block_until_ready(
+            preintegrate(g, a, d, gyro_noise=1e-3, acc_noise=1e-2, scheme=scheme))
     out = preintegrate(g, a, d, gyro_noise=1e-3, acc_noise=1e-2, scheme=scheme, check=False)
     leaves = [out.rot.data, out.vel, out.pos, out.cov, out.jac]
     assert not all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
@@ -223,6 +225,6 @@ def test_extreme_magnitudes_raise_instead_of_silent_nan(scheme, what):
 
 def test_non_finite_noise_and_bias_raise():
     with pytest.raises(Exception, match=r"preintegrate\(gyro_noise\): contains NaN or inf"):
-        preintegrate(G, A, DT, gyro_noise=np.nan, acc_noise=1e-2)
+        jax.block_until_ready(preintegrate(G, A, DT, gyro_noise=np.nan, acc_noise=1e-2))
     with pytest.raises(Exception, match=r"preintegrate\(acc_bias\): contains NaN or inf"):
-        preintegrate(G, A, DT, acc_bias=[0.0, np.inf, 0.0])
+        jax.block_until_ready(preintegrate(G, A, DT, acc_bias=[0.0, np.inf, 0.0]))

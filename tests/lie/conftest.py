@@ -422,14 +422,15 @@ def central_diff(f: Any, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
 # ------------------------------------------------------------------------------------
 # jitted wrappers around the public methods (shared compilation cache)
 # ------------------------------------------------------------------------------------
-# XLA's default CPU pipeline makes compilation dominate this suite's run time; these options
-# cut it about threefold and change results only by rounding (no fast-math). Scoped to the
-# test's own jits (a global XLA_FLAGS would leak into the whole session).
+# XLA's default CPU pipeline makes compilation dominate this suite's run time (nested
+# derivatives above all); these options cut it three- to fivefold and change results only by
+# rounding (no fast-math). Scoped to the tests' own jits (a global XLA_FLAGS would leak into
+# the whole session). CPU options only: other backends reject them, and compile as they ship.
 FAST_COMPILE = {
     "xla_backend_optimization_level": 0,
     "xla_cpu_use_fusion_emitters": False,
     "xla_llvm_disable_expensive_passes": True,
-}
+} if jax.default_backend() == "cpu" else {}
 
 
 def fast_jit(fun: Any = None, **kw: Any) -> Any:

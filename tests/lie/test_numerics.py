@@ -47,20 +47,14 @@ import pytest  # noqa: E402
 
 from jaxpose.lie import SE2, SE3, SO2, SO3, RxSO3, Sim3  # noqa: E402
 
+from .conftest import FAST_COMPILE  # noqa: E402
+
 GROUPS = (SO3, SE3, Sim3, RxSO3, SO2, SE2)
 DTYPES = (np.float64, np.float32)
 DPS = 60
 TOL = {np.float64: 1e-14, np.float32: 2e-6}
 JAC_OPS = ("jr", "jl", "jr_inv", "jl_inv")
 
-# Nested derivatives make large XLA graphs whose default CPU compilation dominates the run
-# time (tens of seconds for a third derivative); these options cut it about fivefold and do
-# not change results beyond rounding.
-FAST_COMPILE = {
-    "xla_backend_optimization_level": 0,
-    "xla_cpu_use_fusion_emitters": False,
-    "xla_llvm_disable_expensive_passes": True,
-}
 
 
 def fast_jit(f):

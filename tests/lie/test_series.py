@@ -31,6 +31,8 @@ import pytest  # noqa: E402
 
 from jaxpose.lie import series  # noqa: E402
 
+from .conftest import FAST_COMPILE  # noqa: E402
+
 DPS = 60  # base working precision of every reference (decimal digits)
 
 # ------------------------------------------------------------------------------------
@@ -242,13 +244,6 @@ def test_cauchy_coefficients_match_mpmath_taylor():
 # ------------------------------------------------------------------------------------
 # derivatives across the switch
 # ------------------------------------------------------------------------------------
-# nested derivatives compile slowly with XLA's default CPU pipeline; these options cut the
-# compile time several-fold and change results by rounding only
-FAST_COMPILE = {
-    "xla_backend_optimization_level": 0,
-    "xla_cpu_use_fusion_emitters": False,
-    "xla_llvm_disable_expensive_passes": True,
-}
 
 
 @functools.cache

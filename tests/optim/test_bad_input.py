@@ -31,7 +31,7 @@ def test_nan_residual_at_start_raises_naming_residual_fn():
         return jnp.log(x - 1.0)  # NaN at x = 0
 
     with pytest.raises(Exception, match="residual_fn"):
-        jo.least_squares(bad, jnp.zeros(2))
+        jax.block_until_ready(jo.least_squares(bad, jnp.zeros(2)))
     with pytest.raises(Exception, match="residual_fn"):
         jax.jit(lambda x: jo.least_squares(bad, x).params)(jnp.zeros(2))
 
@@ -91,7 +91,7 @@ def test_mismatched_weights_raise_naming_weights():
         jo.least_squares(res, x0, weights={"a": jnp.eye(2)})
     # a non-positive-definite information matrix is caught at run time
     with pytest.raises(Exception, match="weights"):
-        jo.least_squares(res, x0, weights=-jnp.eye(2))
+        jax.block_until_ready(jo.least_squares(res, x0, weights=-jnp.eye(2)))
 
 
 def test_bad_options_raise_clear_errors():

@@ -143,7 +143,8 @@ def test_bad_input():
     with pytest.raises(ValueError, match="guess"):
         sm.update({"p": jnp.zeros(3)}, {"z": jnp.zeros(2), "w": jnp.zeros(())})
     with pytest.raises(Exception, match="non-finite"):
-        sm.update({"p": jnp.array([jnp.nan, 0.0])}, {"z": jnp.zeros(2), "w": jnp.zeros(())})
+        jax.block_until_ready(sm.update({"p": jnp.array([jnp.nan, 0.0])},
+                                        {"z": jnp.zeros(2), "w": jnp.zeros(())}))
     for kw in ({"dense": True}, {"first_estimate": False}):
         with pytest.raises(ValueError, match="relinearize_threshold.*max_loops=0"):
             _smoother(3, relinearize_threshold=0.1, **kw)
