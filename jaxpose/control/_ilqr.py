@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._precision import full_precision
 from ..dynamics._checks import as_array, is_concrete
 from ..dynamics._system import LTI, LTV, System
 from ..results import Results
@@ -153,6 +154,7 @@ def ilqr(
 
 
 @eqx.filter_jit
+@full_precision
 def _ilqr(
     system: System,
     cost: Cost,

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
+from .._precision import full_precision
 from ..dynamics._checks import as_array, check_horizon
 from ..dynamics._system import LTI, LTV, System
 from ..results import Results
@@ -177,6 +178,7 @@ class LQRSolution(eqx.Module):
 
 
 @eqx.filter_jit
+@full_precision
 def lqr_solve(
     F: Array,
     f: Array,
@@ -257,6 +259,7 @@ def lq_problem(
 
 
 @eqx.filter_jit
+@full_precision
 def lqr(system: System, cost: QuadraticCost, x0: Any, horizon: int) -> LQRSolution:
     """LQR for an :class:`LTI`/:class:`LTV` system and a :class:`QuadraticCost` over
     ``horizon`` steps. ``x0`` (n,) or batched (..., n) (vmapped; the Riccati recursion

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._precision import full_precision
 from ..dynamics._checks import as_array, check_horizon
 from ..dynamics._system import LTI, LTV, System
 from ..optim._implicit import jvp_where as _jvp_where
@@ -124,6 +125,7 @@ def _solve_implicit(
 
 
 @_solve_implicit.def_jvp
+@full_precision  # traced when differentiated, outside the entry point
 def _solve_implicit_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...], *, cfg: _Config):
     params, u_init, bounds = primals
     t_params, _, t_bounds = tangents
@@ -318,6 +320,7 @@ class MPC(eqx.Module):
 
 
 @eqx.filter_jit
+@full_precision
 def _mpc_solve(mpc: MPC, x0: Array, u_init: Array, bounds: Any, cfg: _Config) -> MPCSolution:
     """The compiled part of :meth:`MPC.__call__` (arguments already checked)."""
     n, (T, m) = x0.shape[-1], u_init.shape[-2:]
@@ -335,6 +338,7 @@ def _mpc_solve(mpc: MPC, x0: Array, u_init: Array, bounds: Any, cfg: _Config) ->
 
 
 @eqx.filter_jit
+@full_precision
 def closed_loop(
     mpc: MPC, plant: System, x0: Any, steps: int, u_init: Any = None
 ) -> tuple[Array, Array, Array]:

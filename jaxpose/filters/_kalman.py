@@ -11,6 +11,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..dynamics._system import System
 from ..dynamics._tangent import TangentSpace, tangent_space
 from ._common import (
@@ -117,12 +118,14 @@ class KalmanFilter(NoisyModelFilter):
 
 
 @eqx.filter_jit
+@full_precision
 def _compiled_step(filt: KalmanFilter, x: Any, P: Array, y: Any, u: Array,
                    t: Array) -> tuple[Any, Array]:
     return filt._step(x, P, y, u, t)[:2]
 
 
 @eqx.filter_jit
+@full_precision
 def _compiled_run(filt: KalmanFilter, x0: Any, P0: Any, ys: Any, us: Array,
                   t0: Array) -> FilterResult:
     return filt._run(x0, P0, ys, us, t0)

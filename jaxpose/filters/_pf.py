@@ -23,6 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_space
 from ._common import (
@@ -211,12 +212,14 @@ class ParticleFilter(NoisyModelFilter):
 
 
 @eqx.filter_jit
+@full_precision
 def _compiled_step(filt: ParticleFilter, key: Array, state: ParticleState, y: Any, u: Array,
                    t: Array) -> tuple[ParticleState, tuple[Any, Array, Array]]:
     return filt._step(key, state, y, u, t, *filt._factors())[:2]
 
 
 @eqx.filter_jit
+@full_precision
 def _compiled_run(filt: ParticleFilter, key: Array, x0: Any, P0: Any, ys: Any, us: Array,
                   t0: Array) -> tuple[FilterResult, Array]:
     return filt._run(key, x0, P0, ys, us, t0)

@@ -22,6 +22,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..lie import SE3, SO3
 from ..lie._base import as_float_array, check_last_dim
 from ._util import Array, batch_shape, check_group, matrix_array, points_array, safe_norm
@@ -107,6 +108,7 @@ def point2pixel(
 
 
 @jax.jit
+@full_precision
 def _project(p: Array, k: Array, ext: Array | None, dist: Array | None) -> Array:
     if ext is not None:
         p = SE3(ext[..., None, :]).act(p)
@@ -141,6 +143,7 @@ def pixel2point(
 
 
 @jax.jit
+@full_precision
 def _backproject(px: Array, z: Array, k: Array, ext: Array | None) -> Array:
     rays = jnp.einsum("...ij,...nj->...ni", jnp.linalg.inv(k), cart2homo(px))
     # K's last row is [0, 0, 1], so rays[..., 2] == 1 and depth is the Z coordinate
@@ -196,6 +199,7 @@ def bal_project(points: Any, cameras: Any) -> Array:
 
 
 @jax.jit
+@full_precision
 def _bal(x: Array, c: Array) -> Array:
     pc = SO3.exp(c[..., :3]).act(x) + c[..., 3:6]
     p = -homo2cart(pc)

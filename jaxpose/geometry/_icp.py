@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._precision import full_precision
 from ..lie import SE3
 from ..results import Results
 from ._kdtree import build_kdtree, query_kdtree
@@ -239,6 +240,7 @@ def _icp_single(
     return ICPResult(SE3(t_out), s.it, status, rmse, fitness)
 
 
+@full_precision
 def icp(
     source: Any,
     target: Any,

@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ._kdtree import build_kdtree, query_kdtree
 from ._util import Array, batch_shape, flatten_batch, points_array, safe_norm
 
@@ -146,6 +147,7 @@ def resolve_method(method: str, n: int, m: int) -> str:
     return "kdtree" if cpu and n * m >= AUTO_KDTREE_PAIRS else "brute"
 
 
+@full_precision
 def knn(
     query: Any,
     points: Any,

@@ -45,6 +45,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..lie import SE3
 from ..lie._base import skew
 from ..results import Results
@@ -355,6 +356,7 @@ def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps:
     return jax.vmap(single)(pw, uv, k)
 
 
+@full_precision
 def epnp(
     points: Any,
     pixels: Any,

@@ -26,6 +26,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..lie import SE3, SO3, Sim3
 from ..lie._base import as_float_array, skew, vee
 from ._util import Array, batch_shape, points_array, safe_div, same_count
@@ -110,6 +111,7 @@ def _prepare(source: Any, target: Any, weights: Any, fn: str):
     return s.astype(dtype), t.astype(dtype), w
 
 
+@full_precision
 def svdtf(source: Any, target: Any, weights: Any = None) -> SE3:
     """Rigid transform T (SE3, batch (...)) minimising Σ wᵢ |targetᵢ − T·sourceᵢ|².
 
@@ -120,6 +122,7 @@ def svdtf(source: Any, target: Any, weights: Any = None) -> SE3:
 
 
 @jax.jit
+@full_precision
 def _kabsch(s: Array, t: Array, w: Array | None) -> Array:
     cs, ct, h, _ = _moments(s, t, w)
     r = optimal_rotation(h)
@@ -128,6 +131,7 @@ def _kabsch(s: Array, t: Array, w: Array | None) -> Array:
     return jnp.concatenate([trans, q], -1)
 
 
+@full_precision
 def umeyama(source: Any, target: Any, with_scale: bool = True, weights: Any = None) -> Sim3:
     """Similarity T (Sim3, batch (...)) minimising Σ wᵢ |targetᵢ − (s R sourceᵢ + t)|²
     (Umeyama 1991). ``with_scale=False`` fixes s = 1 (then equal to :func:`svdtf`).
@@ -150,6 +154,7 @@ def _umeyama(s: Array, t: Array, w: Array | None, with_scale: bool) -> Array:
     return jnp.concatenate([trans, q, c[..., None]], -1)
 
 
+@full_precision
 def svdstf(source: Any, target: Any, with_scale: bool = True) -> Sim3:
     """PyPose's name for :func:`umeyama`."""
     return umeyama(source, target, with_scale=with_scale)

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._precision import full_precision
 from ..lie import SE3
 from ..lie._base import as_float_array
 from ._util import Array, batch_shape, check_group, points_array
@@ -65,6 +66,7 @@ def bspline_se3(control: SE3, t: Any) -> SE3:
 
 
 @jax.jit
+@full_precision
 def _bspline_eval(cdata: Array, tt: Array) -> Array:
     n = cdata.shape[-2]
     batch = tuple(np.broadcast_shapes(cdata.shape[:-2], tt.shape[:-1]))

@@ -31,6 +31,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..lie import LieGroup
 from ..optim._implicit import jvp_where
 from ._analysis import tangent_dim
@@ -146,6 +147,7 @@ def _differentiable(graph: FactorGraph, x0: Variables, *, run: Callable[..., Any
 
 
 @_differentiable.def_jvp
+@full_precision  # traced when differentiated, outside the entry point
 def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
                         run: Callable[..., Any], options: dict[str, Any]) -> Any:
     graph, x0 = primals

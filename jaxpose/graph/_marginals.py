@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._precision import full_precision
 from . import _linear as linear
 from . import _selinv as selinv
 from ._problem import FactorGraph, block_diagonal, csr_values, hessian_vector, linearize, split
@@ -309,6 +310,7 @@ class _Plan:
 
 
 @eqx.filter_jit
+@full_precision
 def _entries(graph: FactorGraph, values: Any, plan: _Plan) -> list[Array]:
     """The requested entries of H⁻¹ at ``values``, one array per request (compiled: a
     repeated call with new values of the same structure reuses the program)."""

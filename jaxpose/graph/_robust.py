@@ -51,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._precision import full_precision
 from ..optim._solve import least_squares
 from ..results import Results
 from ._problem import FactorGraph, factor_residuals
@@ -382,6 +383,7 @@ def _robust_cost(surrogate: str, s: Array, barc_sq: Array) -> Array:
 
 
 @eqx.filter_jit
+@full_precision
 def _run(
     graph: FactorGraph,
     x0: Any,

@@ -32,6 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..optim import _iterate
 from ..optim._solver import LevenbergMarquardt
 from ..optim._stopping import Stopping
@@ -271,6 +272,7 @@ def _option(value: Any, cls: type, name: str) -> Any:
 
 
 @eqx.filter_jit
+@full_precision
 def solve(
     graph: FactorGraph,
     variables: Variables | None = None,

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._precision import full_precision
 from ..graph import Factor, FactorGraph, GraphSolution, solve
 from ..graph._factor import vector_prior_residual
 from ..lie import SE3
@@ -46,6 +47,7 @@ class FusionResult(NamedTuple):
     graph: FactorGraph
 
 
+@full_precision
 def preintegrate_windows(
     gyro: Any, acc: Any, dt: Any, bounds: Any, **kwargs: Any
 ) -> Preintegrated:

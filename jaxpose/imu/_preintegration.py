@@ -42,6 +42,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..lie import SO3
 from ..lie import _quaternion as quat
 from . import _core, _tangent
@@ -207,6 +208,7 @@ def _vmap_n(fn: Any, n: int) -> Any:
 # ----------------------------------------------------------------------------------
 # Preintegration
 # ----------------------------------------------------------------------------------
+@full_precision
 def preintegrate(
     gyro: Any,
     acc: Any,
@@ -332,6 +334,7 @@ def predict(
     return NavState(rot, vel, pos)
 
 
+@full_precision
 def dead_reckon(
     gyro: Any,
     acc: Any,

@@ -136,6 +136,9 @@ def _check_same_type(x: Any, y: Any, what: str) -> None:
         )
 
 
+# full float32 products on every backend (accelerators default to TF32/bfloat16 passes)
+FULL = jax.lax.Precision.HIGHEST
+
 def skew(v: Array) -> Array:
     """[v]× of shape (..., 3, 3) from v of shape (..., 3): [v]× p = v × p."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
@@ -152,7 +155,7 @@ def vee(m: Array) -> Array:
 
 def matvec(m: Array, v: Array) -> Array:
     """Batched matrix-vector product (..., n, m) @ (..., m) → (..., n)."""
-    return jnp.einsum("...ij,...j->...i", m, v)
+    return jnp.einsum("...ij,...j->...i", m, v, precision=FULL)
 
 
 def small_matmul(a: Array, b: Array) -> Array:
@@ -160,10 +163,11 @@ def small_matmul(a: Array, b: Array) -> Array:
     as a sum of k outer products: XLA fuses it into one elementwise loop, where XLA:CPU's
     batched dot runs per matrix (measured: 6275 products of 6×6 matrices in 0.19 ms
     against 1.7 ms, 12-column Gram matrices JᵀJ 0.33 ms against 2.4 ms). Inner sizes
-    k > 16 use ``jnp.matmul`` (the unrolled sum would grow the program)."""
+    k > 16 use ``jnp.matmul`` (the unrolled sum would grow the program), at full float32
+    precision on every backend (:mod:`jaxpose._precision`)."""
     k = a.shape[-1]
     if k > 16:
-        return jnp.matmul(a, b)
+        return jnp.matmul(a, b, precision=FULL)
     return sum(a[..., :, i, None] * b[..., None, i, :] for i in range(k))
 
 
@@ -672,7 +676,7 @@ class LieGroup(_Element):
         u = jnp.asarray(GL_NODES, a.dtype)
         w = jnp.asarray(GL_WEIGHTS, a.dtype)
         ad = cls._adj_matrix(cls._exp(a[..., None, :] * u[:, None]))  # (..., N, d, d)
-        return jnp.einsum("...nij,n->...ij", ad, w)
+        return jnp.einsum("...nij,n->...ij", ad, w, precision=FULL)
 
     @classmethod
     def _jl_inv(cls, a: Array) -> Array:

@@ -11,7 +11,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 
 from . import series
-from ._base import Array, LieAlgebra, LieGroup
+from ._base import Array, LieAlgebra, LieGroup, matvec
 from ._so2 import SO2, angle, conj2, mul2, normalize2, rot2, rotate2
 
 
@@ -128,7 +128,7 @@ class SE2(LieGroup):
         jl = SE2._jl(xi)
         h = series.half_cot_half(th * th)
         vinv = jnp.stack([jnp.stack([h, 0.5 * th], -1), jnp.stack([-0.5 * th, h], -1)], -2)
-        col = -jnp.einsum("...ij,...j->...i", vinv, jl[..., :2, 2])
+        col = -matvec(vinv, jl[..., :2, 2])
         top = jnp.concatenate([vinv, col[..., None]], -1)
         return jnp.concatenate([top, jl[..., 2:, :]], -2)
 

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 
 from . import _quaternion as quat
 from . import series
-from ._base import Array, LieAlgebra, LieGroup, skew
+from ._base import Array, LieAlgebra, LieGroup, skew, small_matmul
 from ._so3 import SO3
 
 
@@ -33,13 +33,13 @@ def q_block(rho: Array, phi: Array) -> Array:
     c2 = series.se3_q_c2(t)[..., None, None]
     c3 = series.se3_q_c3(t)[..., None, None]
     P, R = skew(phi), skew(rho)
-    PR, RP = P @ R, R @ P
-    PRP = PR @ P
+    PR, RP = small_matmul(P, R), small_matmul(R, P)
+    PRP = small_matmul(PR, P)
     return (
         0.5 * R
         + c1 * (PR + RP + PRP)
-        + c2 * (P @ PR + RP @ P - 3.0 * PRP)
-        + c3 * (PRP @ P + P @ PRP)
+        + c2 * (small_matmul(P, PR) + small_matmul(RP, P) - 3.0 * PRP)
+        + c3 * (small_matmul(PRP, P) + small_matmul(P, PRP))
     )
 
 
@@ -109,7 +109,8 @@ class SE3(LieGroup):
         r = quat.to_matrix(x[..., 3:])
         z = jnp.zeros_like(r)
         return jnp.concatenate(
-            [jnp.concatenate([r, skew(x[..., :3]) @ r], -1), jnp.concatenate([z, r], -1)], -2
+            [jnp.concatenate([r, small_matmul(skew(x[..., :3]), r)], -1),
+             jnp.concatenate([z, r], -1)], -2
         )
 
     @staticmethod
@@ -129,7 +130,8 @@ class SE3(LieGroup):
         q = q_block(rho, phi)
         z = jnp.zeros_like(ji)
         return jnp.concatenate(
-            [jnp.concatenate([ji, -ji @ q @ ji], -1), jnp.concatenate([z, ji], -1)], -2
+            [jnp.concatenate([ji, -small_matmul(small_matmul(ji, q), ji)], -1),
+             jnp.concatenate([z, ji], -1)], -2
         )
 
     @staticmethod

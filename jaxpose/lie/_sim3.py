@@ -16,7 +16,16 @@ import jax.numpy as jnp
 
 from . import _quaternion as quat
 from . import series
-from ._base import GL_NODES, GL_WEIGHTS, Array, LieAlgebra, LieGroup, matvec, skew
+from ._base import (
+    GL_NODES,
+    GL_WEIGHTS,
+    Array,
+    LieAlgebra,
+    LieGroup,
+    matvec,
+    skew,
+    small_matmul,
+)
 from ._rxso3 import RxSO3, cbrt_det
 from ._so3 import SO3
 
@@ -40,7 +49,8 @@ def w_matrix(phi: Array, sigma: Array) -> Array:
     a = series.expm1c(sigma)
     P = skew(phi)
     eye = jnp.eye(3, dtype=phi.dtype)
-    return a[..., None, None] * eye + b[..., None, None] * P + c[..., None, None] * (P @ P)
+    return (a[..., None, None] * eye + b[..., None, None] * P
+            + c[..., None, None] * small_matmul(P, P))
 
 
 class Sim3(LieGroup):
@@ -121,7 +131,7 @@ class Sim3(LieGroup):
         s = x[..., 7:, None]
         z3 = jnp.zeros_like(r)
         z31 = jnp.zeros((*x.shape[:-1], 3, 1), x.dtype)
-        row0 = jnp.concatenate([s * r, skew(t) @ r, -t[..., None]], -1)
+        row0 = jnp.concatenate([s * r, small_matmul(skew(t), r), -t[..., None]], -1)
         row1 = jnp.concatenate([z3, r, z31], -1)
         row2 = jnp.concatenate(
             [jnp.zeros((*x.shape[:-1], 1, 6), x.dtype), jnp.ones((*x.shape[:-1], 1, 1), x.dtype)],

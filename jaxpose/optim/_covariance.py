@@ -24,6 +24,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..lie import manifold
 from ._correctors import Corrector
 from ._problem import Problem, as_problem
@@ -35,6 +36,7 @@ METHODS = ("cholesky", "svd")
 
 
 @eqx.filter_jit
+@full_precision
 def covariance(
     residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem,
     params: PyTree | Solution,

@@ -37,6 +37,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..lie import manifold
 from ._colouring import compressed_hessian, normal_equations
 from ._linear import SVD, LinearSolver
@@ -121,6 +122,7 @@ def _implicit(
 
 
 @_implicit.def_jvp
+@full_precision  # traced when differentiated, outside the entry point
 def _implicit_jvp(
     primals: tuple[Any, Any],
     tangents: tuple[Any, Any],

@@ -10,6 +10,7 @@ import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ._correctors import Corrector
 from ._implicit import ImplicitAdjoint, UnrolledAdjoint, implicit_solve
 from ._problem import Problem, as_problem
@@ -72,6 +73,7 @@ def _inexact(params: PyTree) -> PyTree:
 
 
 @eqx.filter_jit
+@full_precision
 def least_squares(
     residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem,
     params: PyTree,

@@ -65,6 +65,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jax.flatten_util import ravel_pytree
 
+from .._precision import full_precision
 from ..lie import manifold
 from ..lie._base import small_matmul
 
@@ -662,6 +663,7 @@ class FixedLagSmoother(eqx.Module):
         return jax.lax.cond(jnp.any(exceed), relinearize, lambda s: s, new)
 
     # ------------------------------------------------------------------ public
+    @full_precision
     def update(
         self,
         guess: PyTree,
