@@ -110,7 +110,7 @@ def test_merge_keeps_other_sections(tmp_path, monkeypatch):
     assert set(kept) == {"optim", "pgo"}
     assert "## pgo" in kept["pgo"][1] and "body" in kept["pgo"][1]
 
-    def fake_run_one(name, quick, timeout, log=None):
+    def fake_run_one(name, quick, timeout, log=None, args=None):
         return run.Outcome(name, ["py", f"bench/{name}.py"], "ok", 1.0, "Result: new optim 9x")
 
     monkeypatch.setattr(run, "run_one", fake_run_one)
@@ -120,3 +120,30 @@ def test_merge_keeps_other_sections(tmp_path, monkeypatch):
     assert "pgo 1.5x" in text and "body" in text  # kept verbatim
     assert text.index('<a id="optim">') < text.index('<a id="pgo">')  # registry order
     assert "--merge" in text
+
+
+def test_set_overrides_arguments_and_the_report_is_written_after_each_script(tmp_path,
+                                                                             monkeypatch):
+    """``--set NAME=ARGS`` reaches that script alone; a run stopped from outside after the
+    first script keeps its section (the report is rewritten after every script)."""
+    from bench import run
+
+    seen = {}
+
+    def fake_run_one(name, quick, timeout, log=None, args=None):
+        seen[name] = args
+        if name == "pgo":
+            raise KeyboardInterrupt  # stopped from outside during the second script
+        return run.Outcome(name, run.command(name, quick, tmp_path / "x.md", args), "ok", 1.0,
+                           "Result: optim ran")
+
+    monkeypatch.setattr(run, "run_one", fake_run_one)
+    report = tmp_path / "RESULTS.md"
+    with pytest.raises(KeyboardInterrupt):
+        run.main(["--only", "optim,pgo", "--set", "optim=--quick --batches 100,1000",
+                  "--out", str(report)])
+    assert seen == {"optim": ["--quick", "--batches", "100,1000"], "pgo": None}
+    text = report.read_text(encoding="utf-8")
+    assert "optim ran" in text and "--batches 100,1000" in text and '<a id="pgo">' not in text
+    with pytest.raises(SystemExit, match="--set: expected NAME=ARGS"):
+        run.main(["--set", "nosuchbench=--quick", "--out", str(report)])

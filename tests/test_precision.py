@@ -85,7 +85,7 @@ def test_least_squares_and_covariance_values_and_derivatives():
     assert _assert_full(jax.grad(lambda a: jnp.trace(covariance(_linear, x0, a))), args) > 0
 
 
-@pytest.mark.parametrize("linear_solver", ["dense", "pcg"])
+@pytest.mark.parametrize("linear_solver", ["dense", pytest.param("pcg", marks=pytest.mark.slow)])
 def test_graph_solve_marginals_and_the_implicit_gradient(linear_solver):
     pg, _ = synthetic_pose_graph("SE2", n_poses=6, noise=(0.02, 0.1), seed=0)
     graph = pose_graph_problem(pg, dtype=F32)
