@@ -167,6 +167,8 @@ class _Analysis:
                 return [self._reduce(eqn, ins[0])]
             elif name == "dot_general":
                 return [self._dot(eqn, ins)]
+            elif name == "optimization_barrier":  # identity on each operand
+                return list(ins)
             elif name == "cond":
                 return self._cond(eqn, ins, ivals)
             else:

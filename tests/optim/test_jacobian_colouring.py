@@ -135,6 +135,20 @@ def test_trap_structural_zero_at_the_point_is_kept():
         np.testing.assert_array_equal(np.asarray(got), _dense_jac(prob, point, None))
 
 
+def test_optimization_barriers_keep_the_exact_pattern():
+    """The Lie core materialises exp/log results through optimization barriers; the
+    analysis sees through them (an unmodelled primitive would make the pattern dense)."""
+    x = jnp.linspace(0.5, 2.0, 12)
+    f = lambda x: jax.lax.optimization_barrier((x * 2.0, jnp.sin(x)))[0] * x
+    _, pat = jacobian_pattern(f, x)
+    np.testing.assert_array_equal(pat.toarray(), np.eye(12, dtype=bool))
+    y = jnp.asarray(np.random.default_rng(3).normal(size=(5, 3)))
+    _, pat = jacobian_pattern(lambda v: jax.vmap(lambda r: SE3.exp(
+        jnp.concatenate([r, r])).log().data)(v.reshape(5, 3)).reshape(-1), y.reshape(-1))
+    expected = np.kron(np.eye(5, dtype=bool), np.ones((6, 3), bool))
+    assert not np.any(pat.toarray() & ~expected)  # one pose's outputs, its own inputs
+
+
 def test_traced_indices_fall_back_to_a_conservative_pattern():
     def res(x, args):
         idx, y = args
