@@ -20,7 +20,8 @@ import jax
 
 F = TypeVar("F", bound=Callable[..., Any])
 
-MATMUL_PRECISION = "float32"
+MATMUL_PRECISION = "float32"  # the context's name for it
+FULL = jax.lax.Precision.HIGHEST  # the same, for a product's own ``precision=``
 
 
 def full_precision(fn: F) -> F:

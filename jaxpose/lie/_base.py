@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array as _as_float_array
+from .._precision import FULL
 
 Array = jax.Array
 G = TypeVar("G", bound="LieGroup")
@@ -135,9 +136,6 @@ def _check_same_type(x: Any, y: Any, what: str) -> None:
             f"{type(x).__name__} and {type(y).__name__}"
         )
 
-
-# full float32 products on every backend (accelerators default to TF32/bfloat16 passes)
-FULL = jax.lax.Precision.HIGHEST
 
 def skew(v: Array) -> Array:
     """[v]× of shape (..., 3, 3) from v of shape (..., 3): [v]× p = v × p."""
