@@ -46,6 +46,14 @@ def multiply(q1: Array, q2: Array) -> Array:
     ])
 
 
+def cross(a: Array, b: Array) -> Array:
+    """a × b for (..., 3) vectors, by components (``jnp.cross`` is a jitted call with
+    reshapes and gathers that every derivative order copies)."""
+    ax, ay, az = _parts(a)
+    bx, by, bz = _parts(b)
+    return _stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx])
+
+
 def conjugate(q: Array) -> Array:
     """Inverse of a unit quaternion."""
     return q * jnp.asarray([-1.0, -1.0, -1.0, 1.0], q.dtype)
@@ -248,13 +256,15 @@ def jl_apply(phi: Array, v: Array) -> Array:
     t = series.safe_norm_sq(phi)
     a = series.one_minus_cos_over_t(t)[..., None]
     b = series.theta_minus_sin_over_theta3(t)[..., None]
-    pv = jnp.cross(phi, v)
-    return v + a * pv + b * jnp.cross(phi, pv)
+    pv = cross(phi, v)
+    return v + a * pv + b * cross(phi, pv)
 
 
-def jl_inv_apply(phi: Array, v: Array) -> Array:
-    """Jl⁻¹(φ) v without forming the matrix."""
+def jl_inv_apply(phi: Array, v: Array, *, principal: bool = False) -> Array:
+    """Jl⁻¹(φ) v without forming the matrix. ``principal=True`` promises |φ| ≤ π (φ from
+    :func:`log`) and evaluates the coefficient as one polynomial (smaller programs)."""
     t = series.safe_norm_sq(phi)
-    c = series.jinv_coeff(t)[..., None]
-    pv = jnp.cross(phi, v)
-    return v - 0.5 * pv + c * jnp.cross(phi, pv)
+    coeff = series.jinv_coeff_principal if principal else series.jinv_coeff
+    c = coeff(t)[..., None]
+    pv = cross(phi, v)
+    return v - 0.5 * pv + c * cross(phi, pv)

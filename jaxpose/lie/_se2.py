@@ -71,7 +71,7 @@ class SE2(LieGroup):
     @staticmethod
     def _log(x: Array) -> Array:
         t, th = x[..., :2], angle(x[..., 2:])
-        h = series.half_cot_half(th * th)[..., None]
+        h = series.half_cot_half_principal(th * th)[..., None]  # |θ| ≤ π
         half = 0.5 * th[..., None]
         rho = jnp.concatenate(
             [h * t[..., :1] + half * t[..., 1:], -half * t[..., :1] + h * t[..., 1:]], -1

@@ -71,13 +71,13 @@ class SE3(LieGroup):
     def _exp_quadratic(xi: Array) -> Array:
         rho, phi = _split(xi)
         w = 1.0 - 0.125 * jnp.sum(phi * phi, -1, keepdims=True)
-        return jnp.concatenate([rho + 0.5 * jnp.cross(phi, rho), 0.5 * phi, w], -1)
+        return jnp.concatenate([rho + 0.5 * quat.cross(phi, rho), 0.5 * phi, w], -1)
 
     @staticmethod
     def _log(x: Array) -> Array:
         t, q = x[..., :3], x[..., 3:]
         phi = quat.log(q)
-        return jnp.concatenate([quat.jl_inv_apply(phi, t), phi], -1)
+        return jnp.concatenate([quat.jl_inv_apply(phi, t, principal=True), phi], -1)
 
     @staticmethod
     def _compose(a: Array, b: Array) -> Array:

@@ -83,7 +83,7 @@ class Sim3(LieGroup):
     @staticmethod
     def _exp_quadratic(xi: Array) -> Array:
         rho, phi, sigma = xi[..., :3], xi[..., 3:6], xi[..., 6:]
-        t = rho + 0.5 * (sigma * rho + jnp.cross(phi, rho))
+        t = rho + 0.5 * (sigma * rho + quat.cross(phi, rho))
         w = 1.0 - 0.125 * jnp.sum(phi * phi, -1, keepdims=True)
         return jnp.concatenate([t, 0.5 * phi, w, 1.0 + sigma + 0.5 * sigma * sigma], -1)
 

@@ -37,7 +37,8 @@ import jax.numpy as jnp
 
 Array = jnp.ndarray
 
-_ORDER = 48  # number of power-series coefficients (in θ) kept while deriving
+_ORDER = 64  # number of power-series coefficients (in θ) kept while deriving
+_LONG = 120  # for the polynomial forms on θ ≤ π (and their derivatives), which need more
 
 
 # ----------------------------------------------------------------------------------
@@ -50,22 +51,22 @@ def _factorial(n: int) -> int:
     return out
 
 
-def _sin_series() -> list[Fraction]:
+def _sin_series(order: int = _ORDER) -> list[Fraction]:
     return [
         Fraction((-1) ** (k // 2), _factorial(k)) if k % 2 == 1 else Fraction(0)
-        for k in range(_ORDER)
+        for k in range(order)
     ]
 
 
-def _cos_series() -> list[Fraction]:
+def _cos_series(order: int = _ORDER) -> list[Fraction]:
     return [
         Fraction((-1) ** (k // 2), _factorial(k)) if k % 2 == 0 else Fraction(0)
-        for k in range(_ORDER)
+        for k in range(order)
     ]
 
 
-def _mono(power: int, coeff: Fraction | int = 1) -> list[Fraction]:
-    out = [Fraction(0)] * _ORDER
+def _mono(power: int, coeff: Fraction | int = 1, order: int = _ORDER) -> list[Fraction]:
+    out = [Fraction(0)] * order
     out[power] = Fraction(coeff)
     return out
 
@@ -79,19 +80,20 @@ def _scale(a: list[Fraction], c: Fraction | int) -> list[Fraction]:
 
 
 def _mul(a: list[Fraction], b: list[Fraction]) -> list[Fraction]:
-    out = [Fraction(0)] * _ORDER
+    out = [Fraction(0)] * len(a)
     for i, x in enumerate(a):
         if x:
-            for j in range(_ORDER - i):
+            for j in range(len(a) - i):
                 out[i + j] += x * b[j]
     return out
 
 
 def _div(a: list[Fraction], b: list[Fraction]) -> list[Fraction]:
     """Power-series quotient a / b (b[0] must be non-zero)."""
-    out = [Fraction(0)] * _ORDER
-    for k in range(_ORDER):
-        acc = a[k] - sum((out[j] * b[k - j] for j in range(k)), Fraction(0))
+    nonzero = [(i, c) for i, c in enumerate(b) if i and c]
+    out = [Fraction(0)] * len(a)
+    for k in range(len(a)):
+        acc = a[k] - sum((c * out[k - i] for i, c in nonzero if i <= k), Fraction(0))
         out[k] = acc / b[0]
     return out
 
@@ -133,7 +135,7 @@ def _truncate(coeffs: list[Fraction], t0: float, rel: float = 1e-18) -> tuple[fl
         else:
             quiet = 0
     else:  # pragma: no cover - guards the derivation itself
-        raise ArithmeticError("series did not converge within _ORDER terms at t0")
+        raise ArithmeticError("series did not converge within the terms derived at t0")
     return tuple(kept)
 
 
@@ -182,20 +184,57 @@ def _switched(
 
 
 class _Fn:
-    """An even scalar function f(θ) evaluated from t = θ² with a series switch."""
+    """An even scalar function f(θ) evaluated from t = θ² with a series switch (or, with
+    ``direct=None``, the series alone: a polynomial for t ≤ t0, the caller's promise).
 
-    def __init__(self, name: str, series_theta: list[Fraction], t0: float,
-                 direct: Callable[[Array], Array], doc: str):
+    Its derivative in t is another :class:`_Fn` (a ``custom_jvp``): the exact rational
+    series differentiated term by term, and the autodiff derivative of the closed form.
+    Autodiff through the switched Horner polynomial would instead multiply its size by
+    about three per derivative order (a Hessian through ``SE3.log`` nests up to five),
+    which is what the compiler then has to chew through; the chain f, f′, f″, … grows
+    linearly with the order and is created on first use."""
+
+    def __init__(self, name: str, coeffs_t: list[Fraction], t0: float,
+                 direct: Callable[[Array], Array] | None, doc: str):
         self.name = name
         self.t0 = t0
-        self.exact_coeffs = _even_in_t(series_theta)
-        self.series = Series(self.exact_coeffs, t0)
+        self.exact_coeffs = coeffs_t
+        self.series = Series(coeffs_t, t0)
         self.coeffs = self.series.by_dtype["float64"]
-        self._f = _switched(self.series, direct)
+        self.direct = direct
+        self._derivative: _Fn | None = None
+        switched = self.series if direct is None else _switched(self.series, direct)
+        self._f = jax.custom_jvp(lambda t: jax.lax.optimization_barrier(switched(t)))
+        self._f.defjvp(self._jvp)
         self.__doc__ = doc
 
+    @classmethod
+    def even(cls, name: str, series_theta: list[Fraction], t0: float,
+             direct: Callable[[Array], Array], doc: str) -> _Fn:
+        """From the power series in θ of an even function."""
+        return cls(name, _even_in_t(series_theta), t0, direct, doc)
+
+    @property
+    def derivative(self) -> _Fn:
+        """d f / d t as an :class:`_Fn` (same switch point)."""
+        if self._derivative is None:
+            coeffs = [c * (k + 1) for k, c in enumerate(self.exact_coeffs[1:])]
+            direct = self.direct
+
+            def direct_dt(t: Array) -> Array:
+                return jax.jvp(direct, (t,), (jnp.ones_like(t),))[1]
+
+            self._derivative = _Fn(self.name + "'", coeffs, self.t0,
+                                   None if direct is None else direct_dt,
+                                   f"d/dt of {self.name}")
+        return self._derivative
+
+    def _jvp(self, primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
+        (t,), (dt,) = primals, tangents
+        return self._f(t), self.derivative(t) * dt
+
     def __call__(self, t: Array) -> Array:
-        return self._f(t)
+        return self._f(jnp.asarray(t))
 
     def __repr__(self) -> str:
         return f"series.{self.name}"
@@ -267,48 +306,67 @@ def _sqrt(t: Array) -> Array:
     return jnp.sqrt(t)
 
 
-sinc = _Fn(
+sinc = _Fn.even(
     "sinc", _shift(_SIN, 1), 1.0,
     lambda t: _sin(_sqrt(t)) / _sqrt(t),
     "sin θ / θ, from t = θ².",
 )
-cos = _Fn(
+cos = _Fn.even(
     "cos", _COS, 1.0,
     lambda t: _cos(_sqrt(t)),
     "cos θ, from t = θ² (smooth in t at 0, unlike cos(sqrt(t)) under autodiff).",
 )
-one_minus_cos_over_t = _Fn(
+one_minus_cos_over_t = _Fn.even(
     "one_minus_cos_over_t", _shift(_add(_ONE, _scale(_COS, -1)), 2), 1.0,
     lambda t: 2.0 * _sin(0.5 * _sqrt(t)) ** 2 / t,
     "(1 − cos θ) / θ²: the first coefficient of the SO(3) Jacobians.",
 )
-theta_minus_sin_over_theta3 = _Fn(
+theta_minus_sin_over_theta3 = _Fn.even(
     "theta_minus_sin_over_theta3", _shift(_add(_THETA, _scale(_SIN, -1)), 3), 1.0,
     lambda t: (_sqrt(t) - _sin(_sqrt(t))) / (t * _sqrt(t)),
     "(θ − sin θ) / θ³: the second coefficient of the SO(3) Jacobians.",
 )
-# (θ/2)·cot(θ/2) = cos(θ/2) / sinc(θ/2)
-_HALF_COT = _div(_substitute_half(_COS), _substitute_half(_shift(_SIN, 1)))
-jinv_coeff = _Fn(
+
+
+def _half_cot(order: int) -> list[Fraction]:
+    """(θ/2)·cot(θ/2) = cos(θ/2) / sinc(θ/2)."""
+    return _div(_substitute_half(_cos_series(order)),
+                _substitute_half(_shift(_sin_series(order), 1)))
+
+
+_HALF_COT, _HALF_COT_LONG = _half_cot(_ORDER), _half_cot(_LONG)
+jinv_coeff = _Fn.even(
     "jinv_coeff", _shift(_add(_ONE, _scale(_HALF_COT, -1)), 2), 2.25,
     lambda t: 1.0 / t
     - _cos(0.5 * _sqrt(t)) / (2.0 * _sqrt(t) * _sin(0.5 * _sqrt(t))),
     "(1 − (θ/2)cot(θ/2)) / θ²: the quadratic coefficient of J⁻¹ on SO(3) "
     "(singular only at θ = 2π).",
 )
-half_cot_half = _Fn(
+jinv_coeff_principal = _Fn.even(
+    "jinv_coeff_principal",
+    _shift(_add(_mono(0, 1, _LONG), _scale(_HALF_COT_LONG, -1)), 2),
+    math.pi**2 * 1.001,
+    None,
+    "jinv_coeff for θ ≤ π (the range of the logarithm) as one polynomial in t: no closed "
+    "form, no switch (the series converges up to θ = 2π; about 31 terms in float64).",
+)
+half_cot_half = _Fn.even(
     "half_cot_half", _HALF_COT, 1.0,
     lambda t: 0.5 * _sqrt(t) * _cos(0.5 * _sqrt(t)) / _sin(0.5 * _sqrt(t)),
     "(θ/2)·cot(θ/2): the diagonal of the inverse SE(2) V-matrix.",
 )
-se3_q_c2 = _Fn(
+half_cot_half_principal = _Fn.even(
+    "half_cot_half_principal", _HALF_COT_LONG, math.pi**2 * 1.001, None,
+    "half_cot_half for |θ| ≤ π (the range of the SE(2) logarithm) as one polynomial in t.",
+)
+se3_q_c2 = _Fn.even(
     "se3_q_c2",
     _scale(_shift(_add(_mono(2), _scale(_COS, 2), _mono(0, -2)), 4), Fraction(1, 2)),
     2.25,
     lambda t: (t + 2.0 * _cos(_sqrt(t)) - 2.0) / (2.0 * t * t),
     "(θ² + 2cos θ − 2) / (2θ⁴): a coefficient of the SE(3) Jacobian's Q block.",
 )
-se3_q_c3 = _Fn(
+se3_q_c3 = _Fn.even(
     "se3_q_c3",
     _scale(
         _shift(_add(_mono(1, 2), _scale(_SIN, -3), _mul(_THETA, _COS)), 5), Fraction(1, 2)
@@ -387,3 +445,5 @@ ALL = (
     sinc, cos, one_minus_cos_over_t, theta_minus_sin_over_theta3, jinv_coeff,
     half_cot_half, se3_q_c2, se3_q_c3,
 )
+# the same functions as polynomials on the logarithms' range θ ≤ π
+PRINCIPAL = {jinv_coeff: jinv_coeff_principal, half_cot_half: half_cot_half_principal}
