@@ -401,15 +401,39 @@ def atanc(s: Array) -> Array:
     return _atanc_halved(jnp.asarray(s), 3)
 
 
+@jax.custom_jvp
 def quat_log_coeff(n2: Array, w: Array) -> Array:
     """2·atan2(n, w) / n from n² = |v|² and w ≥ 0: the factor that maps the vector part
     v of a quaternion (v, w) to its rotation vector. Exact at n = 0 (value 2/w) and at
     w = 0 (π/n), with finite derivatives of any order wherever n² + w² > 0.
 
     With d = √(n² + w²) + w (no cancellation for w ≥ 0), atan2(n, w) = 2·atan(n/d) and
-    n/d ≤ 1, so two more half-angle steps reach the series range."""
+    n/d ≤ 1, so two more half-angle steps reach the series range. Its partial derivatives
+    are closed forms (``custom_jvp``, see :func:`_quat_log_coeff_jvp`), so higher orders
+    differentiate those instead of the half-angle chain."""
     d = jnp.sqrt(n2 + w * w) + w
     return 4.0 / d * _atanc_halved(n2 / (d * d), 2)
+
+
+# K(s) = (atan(√s)/√s − 1/(1+s)) / s = Σ_j (−1)^j (2j+2)/(2j+3) s^j, kept to s < 0.04
+_LOG_DN2 = Series([Fraction((-1) ** j * (2 * j + 2), 2 * j + 3) for j in range(60)], _ATAN_T0)
+
+
+@quat_log_coeff.defjvp
+def _quat_log_coeff_jvp(primals: tuple[Array, Array],
+                        tangents: tuple[Array, Array]) -> tuple[Array, Array]:
+    """f = 2·atan2(n, w)/n: ∂f/∂w = −2/r² (r² = n² + w²) and ∂f/∂n² = −(f/2 − w/r²)/n²,
+    which is −K(n²/w²)/w³ by a series where n² < 0.04·w² (the closed form cancels there)."""
+    (n2, w), (dn2, dw) = primals, tangents
+    f = quat_log_coeff(n2, w)
+    r2 = n2 + w * w
+    small = n2 < _ATAN_T0 * w * w  # implies w ≠ 0
+    n2_direct = jnp.where(small, jnp.ones_like(n2), n2)
+    w_series = jnp.where(small, w, jnp.ones_like(w))
+    s = jnp.where(small, n2 / (w_series * w_series), jnp.zeros_like(n2))
+    d_n2 = jnp.where(small, -_LOG_DN2(s) / (w_series * w_series * w_series),
+                     -(0.5 * f - w / r2) / n2_direct)
+    return f, d_n2 * dn2 - 2.0 / r2 * dw
 
 
 _EXPM1C = Series([Fraction(1, _factorial(k + 1)) for k in range(40)], 1.0)

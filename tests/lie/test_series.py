@@ -320,3 +320,37 @@ def test_derivatives_finite_at_zero_and_switch(name, dtype):
         want = [1.0 / (k + 1) for k in range(4)]  # d^k/dx^k (eˣ−1)/x at 0 = k!/(k+1)!
     rtol = 1e-14 if dtype == np.float64 else 1e-6
     np.testing.assert_allclose(out[0], want, rtol=rtol, atol=0, err_msg=name)
+
+
+# (n², w) on both sides of the derivative's series switch (n² = 0.04·w²), at θ = π (w = 0)
+# and for quaternions off the unit sphere
+_LOG_POINTS = [(1e-4, 0.99), (0.0399 * 0.25, 0.5), (0.0401 * 0.25, 0.5), (0.3, 0.8),
+               (0.9, 0.1), (1.0, 0.0), (0.5, 0.5), (2.0, 3.0)]
+
+
+def test_quat_log_coeff_derivatives_against_mpmath():
+    """The closed-form partial derivatives of 2·atan2(n, w)/n (its ``custom_jvp``), and the
+    second derivatives obtained by differentiating them, against mpmath."""
+
+    def ref(n2, w):
+        n = mp.sqrt(n2)
+        return 2 * mp.atan2(n, w) / n
+
+    grad = jax.jit(jax.grad(series.quat_log_coeff, argnums=(0, 1)))
+    hess = jax.jit(jax.hessian(series.quat_log_coeff, argnums=(0, 1)))
+    for n2, w in _LOG_POINTS:
+        a, b = jnp.float64(n2), jnp.float64(w)
+        g = np.array([float(v) for v in grad(a, b)])
+        h = np.array([[float(hess(a, b)[i][j]) for j in range(2)] for i in range(2)])
+        with mp.workdps(50):
+            x, y = mp.mpf(n2), mp.mpf(w)
+            g_ref = np.array([float(mp.diff(ref, (x, y), (1, 0))),
+                              float(mp.diff(ref, (x, y), (0, 1)))])
+            h_ref = np.array([[float(mp.diff(ref, (x, y), (2, 0))),
+                               float(mp.diff(ref, (x, y), (1, 1)))],
+                              [float(mp.diff(ref, (x, y), (1, 1))),
+                               float(mp.diff(ref, (x, y), (0, 2)))]])
+        assert np.abs(g - g_ref).max() <= 1e-13 * np.abs(g_ref).max(), (n2, w, g, g_ref)
+        assert np.abs(h - h_ref).max() <= 1e-11 * np.abs(h_ref).max(), (n2, w, h, h_ref)
+    # at n = 0 the derivative in n² is the series' leading term −2/(3w³)
+    np.testing.assert_allclose(float(grad(0.0, 0.5)[0]), -2.0 / (3 * 0.125), rtol=1e-15)
