@@ -37,7 +37,7 @@ import jax.numpy as jnp
 
 Array = jnp.ndarray
 
-_ORDER = 64  # number of power-series coefficients (in θ) kept while deriving
+_ORDER = 64  # power-series coefficients (in θ) kept while deriving: enough for 8 derivatives
 _LONG = 120  # for the polynomial forms on θ ≤ π (and their derivatives), which need more
 
 
@@ -334,7 +334,8 @@ def _half_cot(order: int) -> list[Fraction]:
                 _substitute_half(_shift(_sin_series(order), 1)))
 
 
-_HALF_COT, _HALF_COT_LONG = _half_cot(_ORDER), _half_cot(_LONG)
+_HALF_COT_LONG = _half_cot(_LONG)
+_HALF_COT = _HALF_COT_LONG[:_ORDER]  # a quotient's leading terms do not depend on its length
 jinv_coeff = _Fn.even(
     "jinv_coeff", _shift(_add(_ONE, _scale(_HALF_COT, -1)), 2), 2.25,
     lambda t: 1.0 / t
