@@ -34,7 +34,9 @@ linearised and the last two slots eliminated (``O(d³)``), then one back-substit
 exceeds the threshold (largest tangent component; or is not finite) are re-linearised
 at their estimate and the window is eliminated again from the oldest of them
 (``O((K − j)·d³)``; iSAM2 re-linearises lazily the same way). ``iterations`` is then 1,
-else 0.
+else 0. With ``relinearize_skip = n > 1`` the threshold is checked only at every n-th
+update (iSAM2's ``relinearizeSkip``, default 10 there); a step that is not finite
+re-linearises at any update.
 
 The prior's linearisation point ``x̄`` never moves while the prior exists. With
 ``first_estimate=True`` (default; GTSAM's ``BatchFixedLagSmoother``, whose
@@ -132,7 +134,8 @@ class FixedLagSmoother(eqx.Module):
     the last update (incremental mode: 1 if it re-linearised, else 0). Incremental mode
     only (else None): ``lin`` (K, ...) the linearisation point, ``msg_info`` (K, d, d)
     and ``msg_grad`` (K, d) the message into each slot, ``back_a`` (K, d) and ``back_m``
-    (K, d, d) the back-substitution (module docstring).
+    (K, d, d) the back-substitution (module docstring), ``phase`` () the number of
+    updates modulo ``relinearize_skip`` (the threshold is checked when it returns to 0).
     """
 
     states: PyTree
@@ -151,6 +154,7 @@ class FixedLagSmoother(eqx.Module):
     msg_grad: Array | None
     back_a: Array | None
     back_m: Array | None
+    phase: Array | None
     motion: Callable[..., Array] = eqx.field(static=True)
     unary: Callable[..., Array] | None = eqx.field(static=True)
     loop: Callable[..., Array] | None = eqx.field(static=True)
@@ -160,6 +164,7 @@ class FixedLagSmoother(eqx.Module):
     exact_prior_jacobian: bool = eqx.field(static=True)
     first_estimate: bool = eqx.field(static=True)
     relinearize_threshold: float | None = eqx.field(static=True)
+    relinearize_skip: int = eqx.field(static=True)
     chain: bool = eqx.field(static=True)
 
     def __init__(
@@ -178,6 +183,7 @@ class FixedLagSmoother(eqx.Module):
         exact_prior_jacobian: bool = True,
         first_estimate: bool = True,
         relinearize_threshold: float | None = None,
+        relinearize_skip: int = 1,
     ):
         """Args:
         state: an example state (pytree of groups and arrays, no batch axis).
@@ -199,6 +205,9 @@ class FixedLagSmoother(eqx.Module):
             updates*): a state is re-linearised only when its step from its
             linearisation point exceeds it (largest tangent component, iSAM2's
             ``relinearizeThreshold``). Needs ``max_loops=0`` and ``first_estimate=True``.
+        relinearize_skip: incremental mode: check the threshold at every n-th update
+            only (iSAM2's ``relinearizeSkip``; default 1, every update); non-finite steps
+            re-linearise at once.
         """
         if not callable(motion):
             raise TypeError("FixedLagSmoother(motion): expected a callable")
@@ -248,6 +257,16 @@ class FixedLagSmoother(eqx.Module):
         self.tol = float(tol) if tol is not None else (1e-8 if eps < 1e-10 else 1e-4)
         self.exact_prior_jacobian = bool(exact_prior_jacobian)
         self.first_estimate = bool(first_estimate)
+        if not isinstance(relinearize_skip, int) or relinearize_skip < 1:
+            raise ValueError(
+                f"FixedLagSmoother(relinearize_skip): expected an int >= 1, got "
+                f"{relinearize_skip!r}"
+            )
+        if relinearize_skip != 1 and relinearize_threshold is None:
+            raise ValueError(
+                "FixedLagSmoother(relinearize_skip): only used by incremental updates; set "
+                "relinearize_threshold too"
+            )
         if relinearize_threshold is not None:
             if not self.chain or not self.first_estimate:
                 raise ValueError(
@@ -265,9 +284,12 @@ class FixedLagSmoother(eqx.Module):
             self.msg_grad = jnp.zeros((k, d), dtype)
             self.back_a = jnp.zeros((k, d), dtype)
             self.back_m = jnp.zeros((k, d, d), dtype)
+            self.phase = jnp.zeros((), jnp.int32)
         else:
             self.lin = self.msg_info = self.msg_grad = self.back_a = self.back_m = None
+            self.phase = None
         self.relinearize_threshold = relinearize_threshold
+        self.relinearize_skip = relinearize_skip
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -448,34 +470,50 @@ class FixedLagSmoother(eqx.Module):
             jnp.concatenate([m, jnp.zeros_like(empty[:1])]),
         )
 
-    def _reeliminate(self, lo: Array) -> FixedLagSmoother:
-        """Incremental mode: eliminate slots ``lo..K−1`` (``lo`` traced) at ``lin`` again,
-        from the cached message into ``lo``, and update the cache; the slots before
-        ``lo`` keep theirs. Costs ``O((K − lo)·d³)``."""
+    def _reeliminate(self, lo: Array | int) -> FixedLagSmoother:
+        """Incremental mode: eliminate slots ``lo..K−1`` at ``lin`` again, from the cached
+        message into ``lo``, and update the cache; the slots before ``lo`` keep theirs.
+        Costs ``O((K − lo)·d³)``. A traced ``lo`` runs a ``while_loop``; a Python int
+        (the last two slots of every update) is unrolled, its factors linearised in one
+        vmapped call (fewer, larger XLA operations: what a small window's latency is)."""
         k = self.window
+        info, grad = self.msg_info, self.msg_grad
+        a, m = self.back_a, self.back_m
+        if isinstance(lo, int):
+            slots = jnp.arange(lo, k)
+            u_info, u_grad, pairs = self._chain_terms(self.lin, slots)
+            empty = self._empty_blocks(slots)
+            for j, s in enumerate(range(lo, k - 1)):
+                (ni, ng), a_s, m_s = self._elimination_step(
+                    (info[s], grad[s]), (u_info[j], u_grad[j]), empty[j],
+                    jax.tree.map(lambda v, j=j: v[j], pairs),
+                )
+                info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
+                a, m = a.at[s].set(a_s), m.at[s].set(m_s)
+            newest = (u_info[-1], u_grad[-1]), empty[-1]
+        else:
 
-        def cond(c):
-            return c[0] < k - 1
+            def cond(c):
+                return c[0] < k - 1
 
-        def body(c):
-            s, info, grad, a, m = c
-            u_info, u_grad, pair = self._chain_terms(self.lin, s[None])
-            (ni, ng), a_s, m_s = self._elimination_step(
-                (info[s], grad[s]),
-                (u_info[0], u_grad[0]),
-                self._empty_blocks(s[None])[0],
-                jax.tree.map(lambda v: v[0], pair),
-            )
-            info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
-            return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s)
+            def body(c):
+                s, info, grad, a, m = c
+                u_info, u_grad, pair = self._chain_terms(self.lin, s[None])
+                (ni, ng), a_s, m_s = self._elimination_step(
+                    (info[s], grad[s]),
+                    (u_info[0], u_grad[0]),
+                    self._empty_blocks(s[None])[0],
+                    jax.tree.map(lambda v: v[0], pair),
+                )
+                info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
+                return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s)
 
-        cache = (self.msg_info, self.msg_grad, self.back_a, self.back_m)
-        _, info, grad, a, m = jax.lax.while_loop(cond, body, (jnp.asarray(lo), *cache))
-        newest = jnp.arange(k - 1, k)
-        u_info, u_grad, _ = self._chain_terms(self.lin, newest, pairs=False)
-        a_last = self._newest_step(
-            (info[-1], grad[-1]), (u_info[0], u_grad[0]), self._empty_blocks(newest)[0]
-        )
+            _, info, grad, a, m = jax.lax.while_loop(cond, body, (jnp.asarray(lo), info, grad,
+                                                                  a, m))
+            last = jnp.arange(k - 1, k)
+            u_info, u_grad, _ = self._chain_terms(self.lin, last, pairs=False)
+            newest = (u_info[0], u_grad[0]), self._empty_blocks(last)[0]
+        a_last = self._newest_step((info[-1], grad[-1]), *newest)
         return eqx.tree_at(
             lambda s: (s.msg_info, s.msg_grad, s.back_a, s.back_m),
             self,
@@ -648,12 +686,15 @@ class FixedLagSmoother(eqx.Module):
     def _incremental(self) -> FixedLagSmoother:
         """Incremental solve after the shift (module docstring): eliminate the last two
         slots (the new motion and unary factors) from the cached message, back-substitute;
-        then re-linearise the non-frozen states whose step exceeds the threshold (or is
-        not finite) at their estimate and eliminate again from the oldest of them."""
+        then re-linearise the non-frozen states whose step exceeds the threshold (checked
+        when ``phase`` is 0; a step that is not finite, at once) at their estimate and
+        eliminate again from the oldest of them."""
         k = self.window
-        new, delta = self._reeliminate(jnp.asarray(k - 2))._step_from_cache(0)
+        new, delta = self._reeliminate(k - 2)._step_from_cache(0)
         moving = new.valid & ~new.frozen
-        exceed = moving & ~(jnp.max(jnp.abs(delta), axis=1) <= self.relinearize_threshold)
+        largest = jnp.max(jnp.abs(delta), axis=1)  # +inf where the step is not finite
+        check = (self.phase == 0) | ~jnp.isfinite(largest)
+        exceed = moving & check & ~(largest <= self.relinearize_threshold)
 
         def relinearize(s: FixedLagSmoother) -> FixedLagSmoother:
             s = eqx.tree_at(lambda t: t.lin, s, _where(exceed, s.states, s.lin))
@@ -767,11 +808,12 @@ class FixedLagSmoother(eqx.Module):
         if self.relinearize_threshold is not None:
             cache = (self.msg_info, self.msg_grad, self.back_a, self.back_m)
             new = eqx.tree_at(
-                lambda s: (s.lin, s.msg_info, s.msg_grad, s.back_a, s.back_m),
+                lambda s: (s.lin, s.msg_info, s.msg_grad, s.back_a, s.back_m, s.phase),
                 new,
                 (
                     _shift_in(self.lin, guess),
                     *(_shift_in(v, jnp.zeros_like(v[0])) for v in cache),
+                    (self.phase + 1) % self.relinearize_skip,
                 ),
             )
             return new._incremental()

@@ -150,6 +150,10 @@ def test_bad_input():
             _smoother(3, relinearize_threshold=0.1, **kw)
     with pytest.raises(ValueError, match="relinearize_threshold.*>= 0"):
         _smoother(3, relinearize_threshold=-1.0)
+    with pytest.raises(ValueError, match=r"relinearize_skip\): expected an int >= 1"):
+        _smoother(3, relinearize_threshold=0.1, relinearize_skip=0)
+    with pytest.raises(ValueError, match="relinearize_skip.*relinearize_threshold"):
+        _smoother(3, relinearize_skip=2)
 
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "data", "g2o")
@@ -239,6 +243,23 @@ def test_incremental_step_solves_the_window_system_at_its_linearization_point():
         np.testing.assert_allclose(got, delta, atol=1e-9, rtol=0)
     assert 0 < relinearised < t  # both paths: cached elimination and re-linearisation
 
+
+
+def test_relinearize_skip_checks_the_threshold_every_nth_update():
+    """Threshold 0 and guesses off the solution: every check re-linearises, so
+    ``iterations`` is 1 exactly at updates n, 2n, ... (iSAM2's relinearizeSkip); linear
+    factors make the estimate exact at any linearisation point (the batch solution)."""
+    t, k, n = 8, 4, 3
+    data = _linear_stream(t)
+    step = jax.jit(lambda s, d: s.update({"p": s.latest()["p"] + 1.0}, d))
+    sm = _smoother(k, relinearize_threshold=0.0, relinearize_skip=n)
+    its = []
+    for j in range(t):
+        sm = step(sm, jax.tree.map(lambda a, j=j: a[j], data))
+        its.append(int(sm.iterations))
+    assert its == [int((j + 1) % n == 0) for j in range(t)]
+    _, mean = _batch(data, t)
+    np.testing.assert_allclose(sm.states["p"], mean.reshape(t, 2)[-k:], atol=1e-9)
 
 @pytest.mark.slow
 def test_incremental_relinearising_tracks_gauss_newton():

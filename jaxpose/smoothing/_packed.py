@@ -1,0 +1,77 @@
+"""A fixed-lag smoother kept in one flat buffer between updates, for low-latency streams.
+
+A jitted call pays a fixed host-side cost per array it returns (about 4 µs each on a
+2-core CPU, measured: 35 outputs 0.16 ms, one output 0.015 ms). A
+:class:`~jaxpose.smoothing.FixedLagSmoother` has ~35 arrays, so for small windows that
+cost is most of an update. :class:`PackedSmoother` holds the same smoother as one array
+(every leaf raveled and cast to the smoother's floating dtype, concatenated in pytree
+order) plus a static layout (tree structure, shapes, dtypes), so an update returns one
+array; with ``donate_argnums=0`` it is also written in place::
+
+    packed = PackedSmoother(smoother)
+    step = jax.jit(PackedSmoother.update, donate_argnums=0)
+    for guess, data in stream:
+        packed = step(packed, guess, data)
+    smoother = packed.unpack()
+
+The round trip is exact: the integer leaves are counters and lags bounded by the window
+and the iteration limit, and booleans are 0/1, all exactly representable in float32 and
+float64. Packed smoothers of one configuration share a layout (the jit cache is hit);
+they vmap (the buffer gains the batch axis) and differentiate like the smoother.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._fixed_lag import FixedLagSmoother
+
+Array = jax.Array
+PyTree = Any
+
+
+class PackedSmoother(eqx.Module):
+    """A :class:`FixedLagSmoother` as one flat array ``buffer`` (module docstring).
+
+    ``buffer``: (N,) in the smoother's floating dtype, N the total size of its arrays
+    (``(B, N)`` under ``vmap``). ``PackedSmoother(smoother)`` packs; :meth:`unpack` reads
+    it back."""
+
+    buffer: Array
+    layout: tuple = eqx.field(static=True)  # (treedef, ((shape, dtype), ...))
+
+    def __init__(self, smoother: FixedLagSmoother):
+        if not isinstance(smoother, FixedLagSmoother):
+            raise TypeError(
+                f"PackedSmoother(smoother): expected a FixedLagSmoother, got "
+                f"{type(smoother).__name__}"
+            )
+        leaves, treedef = jax.tree.flatten(smoother)
+        dtype = smoother.prior_grad.dtype
+        self.layout = (treedef, tuple((tuple(jnp.shape(x)), jnp.dtype(x.dtype))
+                                      for x in leaves))
+        self.buffer = jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])
+
+    def unpack(self) -> FixedLagSmoother:
+        """The smoother (exact: see the module docstring)."""
+        treedef, specs = self.layout
+        sizes = [int(np.prod(shape, dtype=np.int64)) for shape, _ in specs]
+        offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int).tolist()
+        leaves = [
+            self.buffer[start:start + size].reshape(shape).astype(dtype)
+            for start, size, (shape, dtype) in zip(offsets, sizes, specs, strict=True)
+        ]
+        return jax.tree.unflatten(treedef, leaves)
+
+    def update(self, guess: PyTree, data: PyTree, loop_lag: Any = None,
+               loop_valid: Any = None, loop_data: PyTree = None) -> PackedSmoother:
+        """:meth:`FixedLagSmoother.update` on the packed smoother (same arguments)."""
+        return PackedSmoother(self.unpack().update(guess, data, loop_lag, loop_valid, loop_data))
+
+
+__all__ = ["PackedSmoother"]
