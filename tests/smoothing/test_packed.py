@@ -13,14 +13,18 @@ from jaxpose.smoothing import FixedLagSmoother, PackedSmoother
 from .test_fixed_lag import _batch, _linear_stream, _smoother
 
 
-def _filled(k=3, t=5, **kw):
-    sm = _smoother(k, **kw)
-    data = _linear_stream(t)
-    for j in range(t):
-        d = jax.tree.map(lambda a, j=j: a[j], data)
-        loops = () if sm.chain else (jnp.ones(1, int), jnp.array([j % 2 == 1]),
+def _filled(k=3, t=4, **kw):
+    """A smoother after ``t`` updates (a full window, marginalised states, loops)."""
+
+    @jax.jit
+    def step(sm, d, valid):
+        loops = () if sm.chain else (jnp.ones(1, int), valid[None],
                                      jax.tree.map(lambda a: a[None], d))
-        sm = sm.update({"p": sm.latest()["p"]}, d, *loops)
+        return sm.update({"p": sm.latest()["p"]}, d, *loops)
+
+    sm, data = _smoother(k, **kw), _linear_stream(t)
+    for j in range(t):
+        sm = step(sm, jax.tree.map(lambda a, j=j: a[j], data), jnp.asarray(j % 2 == 1))
     return sm
 
 
@@ -43,8 +47,9 @@ def test_round_trip_float32():
                                                "w": jnp.zeros((), jnp.float32)}
     sm = FixedLagSmoother(x0, d0, window=3, motion=lambda xp, x, d: x["p"] - xp["p"],
                           unary=lambda x, d: x["p"] - d["z"])
-    sm = sm.update({"p": jnp.ones(2, jnp.float32)}, {"z": jnp.ones(2, jnp.float32),
-                                                     "w": jnp.ones((), jnp.float32)})
+    sm = jax.jit(FixedLagSmoother.update)(sm, {"p": jnp.ones(2, jnp.float32)},
+                                          {"z": jnp.ones(2, jnp.float32),
+                                           "w": jnp.ones((), jnp.float32)})
     packed = PackedSmoother(sm)
     assert packed.buffer.dtype == jnp.float32
     for a, b in zip(jax.tree.leaves(packed.unpack()), jax.tree.leaves(sm), strict=True):
@@ -104,9 +109,9 @@ def test_derivative_of_the_newest_estimate_matches_the_batch_solution():
     batch solve, exact for a linear map)."""
     t, k = 5, 3
     data = _linear_stream(t)
-    packed = PackedSmoother(_smoother(k))
+    packed, step = PackedSmoother(_smoother(k)), jax.jit(PackedSmoother.update)
     for j in range(t - 1):
-        packed = packed.update({"p": jnp.zeros(2)}, jax.tree.map(lambda a, j=j: a[j], data))
+        packed = step(packed, {"p": jnp.zeros(2)}, jax.tree.map(lambda a, j=j: a[j], data))
 
     def newest(z):
         d = {"z": z, "w": data["w"][t - 1]}
