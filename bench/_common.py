@@ -402,12 +402,14 @@ def fmt_batch(n: int) -> str:
 
 
 def fmt_ratio(a: float | None, b: float | None) -> str:
-    """``a / b`` as ``12.3x`` (``0.05x`` below 0.1); '—' if either is missing."""
+    """``a / b`` as ``12.3x`` (``0.05x`` below 0.1, ``0.97x`` near 1); '—' if either is
+    missing."""
     if a is None or b is None or b == 0:
         return "—"
     r = a / b
-    if r < 0.1:
-        return f"{r:.2f}x"  # two decimals, so a ratio never prints as 0.0x
+    if r < 0.1 or 0.9 <= r < 1.1:
+        # two decimals: a ratio never prints as 0.0x, and one near a 1x bar shows its side
+        return f"{r:.2f}x"
     return f"{r:.1f}x" if r < 100 else f"{r:.0f}x"
 
 

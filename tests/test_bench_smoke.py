@@ -35,7 +35,7 @@ def test_bars_and_formatting():
 
     assert fmt_batch(1_000_000) == "1e6" and fmt_batch(16) == "16"
     assert fmt_rate(1.3e6) == "1.30e6" and fmt_ratio(3.0, 1.5) == "2.0x"
-    assert fmt_ratio(1.0, None) == "—"
+    assert fmt_ratio(1.0, None) == "—" and fmt_ratio(0.97, 1.0) == "0.97x"
     table = markdown_table(["a", "b"], [["x", "1.0x"]])
     assert table.splitlines()[1] == "|---|---:|"
 
