@@ -107,6 +107,11 @@ class _Library:
                        data.ctypes.data, None, 1, _INT_INDEX, _REAL, _DOUBLE, 1, 1)
 
     def _symbolic(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray) -> int:
+        if self.cache:  # LM factorises one pattern over and over: compare with the last
+            last_ptr, last_ind, factor = next(reversed(self.cache.values()))
+            if (last_ptr.shape == indptr.shape and last_ind.shape == indices.shape
+                    and np.array_equal(last_ptr, indptr) and np.array_equal(last_ind, indices)):
+                return factor  # no checksums: on parking-garage 0.56 ms of a 7.5 ms call
         key = (indptr.shape[0], indices.shape[0], zlib.crc32(indptr), zlib.crc32(indices))
         hit = self.cache.get(key)
         if hit is not None and np.array_equal(hit[0], indptr) and np.array_equal(hit[1], indices):

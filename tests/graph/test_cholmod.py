@@ -48,6 +48,31 @@ def test_supernodal_solve_with_dense_blocks_matches_dense_cholesky():
     np.testing.assert_allclose(x, expected, rtol=1e-10, atol=1e-12)
 
 
+def test_symbolic_analysis_is_reused_only_for_its_own_pattern():
+    """Patterns of the same size and nonzero count, alternated (the cache's fast path
+    compares with the last pattern, the checksum path with the others), and new values on
+    a cached pattern: every solve equals the dense one."""
+    _require_cholmod()
+    rng = np.random.default_rng(5)
+    n = 40
+
+    def spd(offsets):
+        a = 4.0 * np.eye(n)
+        for k in offsets:
+            v = rng.uniform(0.1, 0.5, n - k)
+            a += np.diag(v, k) + np.diag(v, -k)
+        return a
+
+    mats = [spd((1, 4)), spd((2, 3)), spd((1, 4)), spd((4, 7)), spd((2, 3))]
+    assert len({scipy.sparse.csr_matrix(m).nnz for m in mats[:2]}) == 1  # same nnz
+    for a in mats + mats[::-1]:
+        h = scipy.sparse.csr_matrix(a)
+        h.sort_indices()
+        b = rng.normal(size=n)
+        np.testing.assert_allclose(cholmod.solve(h.data, h.indices, h.indptr, b),
+                                   np.linalg.solve(a, b), rtol=1e-12, atol=1e-12)
+
+
 _PROBE = (
     "import warnings, numpy as np\n"
     "from jaxpose.graph import _cholmod as c\n"
