@@ -332,12 +332,22 @@ INIT_METHODS = ("auto", "chordal", "odometry")
 def pose_graph_cost(graph: Any, poses: Any = None) -> float:
     """``0.5·Σ rᵀΩr`` with ``r = Log(Z⁻¹·Xi⁻¹·Xj)`` at ``poses`` (default ``graph.poses``),
     in NumPy float64 on the host (no compilation; used to choose an initialisation)."""
-    poses = np.asarray(graph.poses if poses is None else getattr(poses, "data", poses), np.float64)
+    return _pose_graph_costs(graph, [graph.poses if poses is None else poses])[0]
+
+
+def _pose_graph_costs(graph: Any, pose_sets: list[Any]) -> list[float]:
+    """:func:`pose_graph_cost` of each pose set, in one pass: the sets are stacked as one
+    graph of ``len(pose_sets)`` disconnected copies (half the NumPy calls for two)."""
+    sets = [np.asarray(getattr(p, "data", p), np.float64) for p in pose_sets]
     edges = np.asarray(graph.edges, np.int64).reshape(-1, 2)
-    if edges.shape[0] == 0:
-        return 0.0
-    z = np.asarray(graph.measurements, np.float64)
-    info = np.asarray(graph.information, np.float64)
+    m, k = edges.shape[0], len(sets)
+    if m == 0:
+        return [0.0] * k
+    n = sets[0].shape[0]
+    poses = np.concatenate(sets)
+    edges = np.concatenate([edges + c * n for c in range(k)])
+    z = np.tile(np.asarray(graph.measurements, np.float64), (k, 1))
+    info = np.tile(np.asarray(graph.information, np.float64), (k, 1, 1))
     i, j = edges[:, 0], edges[:, 1]
     if graph.kind == "SE3":
         ri, rj, zr = (quat_to_matrix(q) for q in (poses[i, 3:], poses[j, 3:], z[:, 3:]))
@@ -357,7 +367,8 @@ def pose_graph_cost(graph: Any, poses: Any = None) -> float:
         u = np.stack([cz * lx + sz * ly, -sz * lx + cz * ly], 1)
         phi = np.angle(np.exp(1j * (th(poses[j]) - th(poses[i]) - th(z))))
         r = np.concatenate([np.einsum("mij,mj->mi", _v2_inverse(phi), u), phi[:, None]], 1)
-    return float(0.5 * np.einsum("mi,mij,mj->", r, info, r))
+    per_edge = np.einsum("mi,mij,mj->m", r, info, r).reshape(k, m)
+    return [float(0.5 * c) for c in per_edge.sum(1)]
 
 
 def initial_poses(graph: Any, init: str = "auto", *, fix: str = "first") -> tuple[np.ndarray, str]:
@@ -379,7 +390,7 @@ def initial_poses(graph: Any, init: str = "auto", *, fix: str = "first") -> tupl
     chordal = chordal_initialization(graph, fix=fix)
     if init == "chordal":
         return chordal, "chordal"
-    c_file, c_chordal = pose_graph_cost(graph, file_poses), pose_graph_cost(graph, chordal)
+    c_file, c_chordal = _pose_graph_costs(graph, [file_poses, chordal])
     if np.isfinite(c_chordal) and not c_file < c_chordal:
         return chordal, "chordal"
     return file_poses, "odometry"
