@@ -470,50 +470,34 @@ class FixedLagSmoother(eqx.Module):
             jnp.concatenate([m, jnp.zeros_like(empty[:1])]),
         )
 
-    def _reeliminate(self, lo: Array | int) -> FixedLagSmoother:
-        """Incremental mode: eliminate slots ``lo..K−1`` at ``lin`` again, from the cached
-        message into ``lo``, and update the cache; the slots before ``lo`` keep theirs.
-        Costs ``O((K − lo)·d³)``. A traced ``lo`` runs a ``while_loop``; a Python int
-        (the last two slots of every update) is unrolled, its factors linearised in one
-        vmapped call (fewer, larger XLA operations: what a small window's latency is)."""
+    def _reeliminate(self, lo: Array) -> FixedLagSmoother:
+        """Incremental mode: eliminate slots ``lo..K−1`` (``lo`` traced) at ``lin`` again,
+        from the cached message into ``lo``, and update the cache; the slots before
+        ``lo`` keep theirs. Costs ``O((K − lo)·d³)``."""
         k = self.window
-        info, grad = self.msg_info, self.msg_grad
-        a, m = self.back_a, self.back_m
-        if isinstance(lo, int):
-            slots = jnp.arange(lo, k)
-            u_info, u_grad, pairs = self._chain_terms(self.lin, slots)
-            empty = self._empty_blocks(slots)
-            for j, s in enumerate(range(lo, k - 1)):
-                (ni, ng), a_s, m_s = self._elimination_step(
-                    (info[s], grad[s]), (u_info[j], u_grad[j]), empty[j],
-                    jax.tree.map(lambda v, j=j: v[j], pairs),
-                )
-                info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
-                a, m = a.at[s].set(a_s), m.at[s].set(m_s)
-            newest = (u_info[-1], u_grad[-1]), empty[-1]
-        else:
 
-            def cond(c):
-                return c[0] < k - 1
+        def cond(c):
+            return c[0] < k - 1
 
-            def body(c):
-                s, info, grad, a, m = c
-                u_info, u_grad, pair = self._chain_terms(self.lin, s[None])
-                (ni, ng), a_s, m_s = self._elimination_step(
-                    (info[s], grad[s]),
-                    (u_info[0], u_grad[0]),
-                    self._empty_blocks(s[None])[0],
-                    jax.tree.map(lambda v: v[0], pair),
-                )
-                info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
-                return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s)
+        def body(c):
+            s, info, grad, a, m = c
+            u_info, u_grad, pair = self._chain_terms(self.lin, s[None])
+            (ni, ng), a_s, m_s = self._elimination_step(
+                (info[s], grad[s]),
+                (u_info[0], u_grad[0]),
+                self._empty_blocks(s[None])[0],
+                jax.tree.map(lambda v: v[0], pair),
+            )
+            info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
+            return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s)
 
-            _, info, grad, a, m = jax.lax.while_loop(cond, body, (jnp.asarray(lo), info, grad,
-                                                                  a, m))
-            last = jnp.arange(k - 1, k)
-            u_info, u_grad, _ = self._chain_terms(self.lin, last, pairs=False)
-            newest = (u_info[0], u_grad[0]), self._empty_blocks(last)[0]
-        a_last = self._newest_step((info[-1], grad[-1]), *newest)
+        cache = (self.msg_info, self.msg_grad, self.back_a, self.back_m)
+        _, info, grad, a, m = jax.lax.while_loop(cond, body, (jnp.asarray(lo), *cache))
+        newest = jnp.arange(k - 1, k)
+        u_info, u_grad, _ = self._chain_terms(self.lin, newest, pairs=False)
+        a_last = self._newest_step(
+            (info[-1], grad[-1]), (u_info[0], u_grad[0]), self._empty_blocks(newest)[0]
+        )
         return eqx.tree_at(
             lambda s: (s.msg_info, s.msg_grad, s.back_a, s.back_m),
             self,
@@ -690,7 +674,7 @@ class FixedLagSmoother(eqx.Module):
         when ``phase`` is 0; a step that is not finite, at once) at their estimate and
         eliminate again from the oldest of them."""
         k = self.window
-        new, delta = self._reeliminate(k - 2)._step_from_cache(0)
+        new, delta = self._reeliminate(jnp.asarray(k - 2))._step_from_cache(0)
         moving = new.valid & ~new.frozen
         largest = jnp.max(jnp.abs(delta), axis=1)  # +inf where the step is not finite
         check = (self.phase == 0) | ~jnp.isfinite(largest)

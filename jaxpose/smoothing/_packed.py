@@ -38,7 +38,8 @@ PyTree = Any
 class _Layout:
     """Tree structure, shapes and dtypes of a packed smoother, interned: equal layouts are
     one object with a precomputed hash, so a jitted call compares its static data by
-    identity (hashing the smoother's tree structure on every call cost ~15 µs)."""
+    identity (hashing the smoother's tree structure on every call cost ~5 µs of a ~0.21 ms
+    update). Layouts are kept for the life of the process (one per configuration)."""
 
     _interned: dict = {}
 
