@@ -30,6 +30,8 @@ import scipy.sparse as sp
 from jax import core
 from jax.extend import core as jex_core
 
+from ._host_eval import Unsupported, host_eval
+
 Dep = sp.csr_matrix | None  # None: depends on no input tangent
 
 _ELEMENTWISE = frozenset(
@@ -133,11 +135,8 @@ class _Analysis:
                     for o in eqn.outvars
                 ):
                     try:
-                        with jax.ensure_compile_time_eval():
-                            out = eqn.primitive.bind(*ivals, **eqn.params)
-                        outs = out if eqn.primitive.multiple_results else [out]
-                        for o, ov in zip(eqn.outvars, outs):
-                            vals[o] = np.asarray(ov)
+                        for o, ov in zip(eqn.outvars, _evaluate(eqn, ivals)):
+                            vals[o] = ov
                     except Exception:  # noqa: BLE001 - folding is an optimisation only
                         pass
                 continue
@@ -235,12 +234,10 @@ class _Analysis:
                 if ivals[i] is None:
                     return None  # traced index: conservative
                 args.append(ivals[i])
-        params = dict(eqn.params)
-        if name == "gather" and "fill_value" in params:
-            params["fill_value"] = -1
-        with jax.ensure_compile_time_eval():
-            out = eqn.primitive.bind(*[jnp.asarray(a) for a in args], **params)
-        outs = out if eqn.primitive.multiple_results else [out]
+        if name == "gather":  # copies out of bounds read −1 (no operand element)
+            outs = _bind(eqn, args, {**eqn.params, "fill_value": -1})
+        else:
+            outs = _evaluate(eqn, args, cast=False)
         alldeps = _clean(sp.vstack(stacked).tocsr())
         return [_gather_rows(alldeps, np.asarray(o)) for o in outs]
 
@@ -278,6 +275,22 @@ class _Analysis:
             o, i = np.broadcast_arrays(out_idx, ri)
             parts.append(_incidence(o, i, out_size, ri.size) @ ins[1])
         return _union(parts, out_size, self.n)
+
+
+def _bind(eqn: Any, args: list[Any], params: dict[str, Any]) -> list[np.ndarray]:
+    with jax.ensure_compile_time_eval():
+        out = eqn.primitive.bind(*[jnp.asarray(a) for a in args], **params)
+    return [np.asarray(o) for o in (out if eqn.primitive.multiple_results else [out])]
+
+
+def _evaluate(eqn: Any, args: list[Any], *, cast: bool = True) -> list[np.ndarray]:
+    """Outputs of ``eqn`` on concrete ``args``: NumPy where :mod:`._host_eval` has a rule
+    (``cast``: see :func:`host_eval`), else the primitive bound eagerly (one small XLA
+    compilation)."""
+    try:
+        return host_eval(eqn, args, cast=cast)
+    except Unsupported:
+        return _bind(eqn, args, eqn.params)
 
 
 def _is_concrete(x: Any) -> bool:
