@@ -5,8 +5,8 @@ on element-index arrays and folds small integer constants. Binding a primitive e
 compiles one XLA program per primitive and shape (~20–40 ms each on a CPU, about 0.7 s of
 a cold ``least_squares`` trace); the primitives here are evaluated with NumPy instead,
 with XLA's semantics (clamped dynamic-slice starts, C-style integer division, negative
-and interior padding). :func:`host_eval` raises :class:`Unsupported` for anything else,
-and the caller binds the primitive as before.
+and interior padding). :func:`host_eval` raises :class:`UnsupportedPrimitiveError` for
+anything else, and the caller binds the primitive as before.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 from jax.extend import core as jex_core
 
 
-class Unsupported(Exception):
+class UnsupportedPrimitiveError(Exception):
     """The primitive (or one inside a called jaxpr) has no NumPy rule here."""
 
 
@@ -26,13 +26,13 @@ def _int_div(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if np.issubdtype(np.result_type(a, b), np.integer):  # XLA: truncation towards zero
         q = np.abs(a) // np.abs(b)
         return np.where((a < 0) != (b < 0), -q, q).astype(np.result_type(a, b))
-    raise Unsupported("div")
+    raise UnsupportedPrimitiveError("div")
 
 
 def _int_rem(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if np.issubdtype(np.result_type(a, b), np.integer):  # XLA: sign of the dividend
         return np.fmod(a, b)
-    raise Unsupported("rem")
+    raise UnsupportedPrimitiveError("rem")
 
 
 _BINARY: dict[str, Callable[[Any, Any], Any]] = {
@@ -94,7 +94,7 @@ def _eval_one(name: str, args: list[np.ndarray], p: dict[str, Any]) -> list[Any]
                                 shape).copy()]
     if name == "reshape":
         if p.get("dimensions") is not None:
-            raise Unsupported(name)
+            raise UnsupportedPrimitiveError(name)
         return [np.reshape(args[0], tuple(p["new_sizes"]))]
     if name == "broadcast_in_dim":
         shape, dims = tuple(p["shape"]), tuple(p["broadcast_dimensions"])
@@ -134,13 +134,14 @@ def _eval_one(name: str, args: list[np.ndarray], p: dict[str, Any]) -> list[Any]
     if name in ("jit", "pjit"):
         closed = p["jaxpr"]
         return eval_jaxpr(closed.jaxpr, [np.asarray(c) for c in closed.consts], args)
-    raise Unsupported(name)
+    raise UnsupportedPrimitiveError(name)
 
 
 def host_eval(eqn: Any, args: Sequence[Any], *, cast: bool = True) -> list[np.ndarray]:
     """The outputs of ``eqn`` applied to concrete ``args`` (NumPy arrays), checked against
     the output shapes and cast to the output dtypes (``cast=False`` keeps the arguments'
-    dtype: copy primitives applied to index arrays); :class:`Unsupported` otherwise."""
+    dtype: copy primitives applied to index arrays); raises
+    :class:`UnsupportedPrimitiveError` otherwise."""
     arrays = [np.asarray(a) for a in args]
     outs = _eval_one(eqn.primitive.name, arrays, eqn.params)
     result = []
@@ -149,13 +150,14 @@ def host_eval(eqn: Any, args: Sequence[Any], *, cast: bool = True) -> list[np.nd
         if cast:
             o = o.astype(v.aval.dtype, copy=False)
         if o.shape != tuple(v.aval.shape):
-            raise Unsupported(f"{eqn.primitive.name}: shape {o.shape} != {v.aval.shape}")
+            raise UnsupportedPrimitiveError(
+                f"{eqn.primitive.name}: shape {o.shape} != {v.aval.shape}")
         result.append(o)
     return result
 
 
 def eval_jaxpr(jaxpr: Any, consts: Sequence[Any], args: Sequence[Any]) -> list[np.ndarray]:
-    """Evaluate a jaxpr with :func:`host_eval` (raises :class:`Unsupported`)."""
+    """Evaluate a jaxpr with :func:`host_eval` (raises :class:`UnsupportedPrimitiveError`)."""
     env: dict[Any, Any] = {}
     for v, x in zip((*jaxpr.constvars, *jaxpr.invars), (*consts, *args), strict=True):
         env[v] = np.asarray(x)
@@ -169,4 +171,4 @@ def eval_jaxpr(jaxpr: Any, consts: Sequence[Any], args: Sequence[Any]) -> list[n
     return [read(v) for v in jaxpr.outvars]
 
 
-__all__ = ["Unsupported", "eval_jaxpr", "host_eval"]
+__all__ = ["UnsupportedPrimitiveError", "eval_jaxpr", "host_eval"]

@@ -30,7 +30,7 @@ import scipy.sparse as sp
 from jax import core
 from jax.extend import core as jex_core
 
-from ._host_eval import Unsupported, host_eval
+from ._host_eval import UnsupportedPrimitiveError, host_eval
 
 Dep = sp.csr_matrix | None  # None: depends on no input tangent
 
@@ -289,7 +289,7 @@ def _evaluate(eqn: Any, args: list[Any], *, cast: bool = True) -> list[np.ndarra
     compilation)."""
     try:
         return host_eval(eqn, args, cast=cast)
-    except Unsupported:
+    except UnsupportedPrimitiveError:
         return _bind(eqn, args, eqn.params)
 
 

@@ -147,6 +147,22 @@ def test_kernel_parameter_is_traced_and_differentiable():
     assert float(f(0.3)) != pytest.approx(float(f(0.6)))  # the scale is not baked in
 
 
+@pytest.mark.parametrize("name", ["SO2", "SE2", "SO3", "SE3", "Sim3", "RxSO3"])
+def test_structure_constants_are_the_derivative_of_the_adjoint(name):
+    """``c[:, :, p] = ad(e_p) = d/ds Ad(Exp(s·e_p))`` at 0 (autodiff of the adjoint, the
+    definition), in float64 and float32, also when requested inside a jitted function."""
+    import jaxpose.lie as lie
+    from jaxpose.graph._implicit import _structure_constants
+
+    group = getattr(lie, name)
+    zero = jnp.zeros((group.tangent_dim,), jnp.float64)
+    want = np.asarray(jax.jacfwd(lambda a: group.exp(a).adj_matrix())(zero))
+    for dtype, tol in ((jnp.float64, 1e-15), (jnp.float32, 1e-7)):
+        got = jax.jit(lambda dtype=dtype: _structure_constants(group, dtype))()
+        assert got.dtype == dtype
+        np.testing.assert_allclose(np.asarray(got, np.float64), want, atol=tol)
+
+
 @pytest.mark.parametrize("derivative", [False, pytest.param(True, marks=pytest.mark.slow)],
                          ids=["value", "derivative"])  # derivative: third order, ~70 s
 # SE2 in the slow tier: in the default tier the solution Jacobian of the SE2 loop graph is

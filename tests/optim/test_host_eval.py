@@ -7,7 +7,7 @@ import pytest
 from jax import lax
 
 from jaxpose.optim import _sparsity
-from jaxpose.optim._host_eval import Unsupported, eval_jaxpr, host_eval
+from jaxpose.optim._host_eval import UnsupportedPrimitiveError, eval_jaxpr, host_eval
 
 X = np.arange(24, dtype=np.int32).reshape(2, 3, 4) - 7
 CASES = {
@@ -20,7 +20,8 @@ CASES = {
     "concatenate": lambda x: jnp.concatenate([x, -x], 2),
     "stack": lambda x: jnp.stack([x, x + 1], 1),
     "split": lambda x: jnp.split(x, [1, 3], 2),
-    "pad_negative_interior": lambda x: lax.pad(x, np.int32(-1), ((1, -1, 2), (0, 0, 0), (-1, 2, 1))),
+    "pad_negative_interior": lambda x: lax.pad(
+        x, np.int32(-1), ((1, -1, 2), (0, 0, 0), (-1, 2, 1))),
     "dynamic_slice_clamped": lambda x: lax.dynamic_slice(x, (1, 2, -3), (2, 2, 3)),
     "dynamic_update_slice_clamped": lambda x: lax.dynamic_update_slice(
         x, -x[:, :2, :2], (np.int32(5), np.int32(0), np.int32(3))),
@@ -45,7 +46,7 @@ def test_host_evaluation_equals_xla(name):
 
 def test_unmodelled_primitives_are_refused():
     closed = jax.make_jaxpr(lambda x: jnp.cumsum(x))(X[0, 0])
-    with pytest.raises(Unsupported):
+    with pytest.raises(UnsupportedPrimitiveError):
         host_eval(closed.jaxpr.eqns[0], [X[0, 0]])
 
 
