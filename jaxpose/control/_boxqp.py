@@ -14,11 +14,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.scipy.linalg import cho_solve
 
 Array = jax.Array
 
-_ALPHAS = 0.5 ** jnp.arange(12)
+_ALPHAS = 0.5 ** np.arange(12.0)  # NumPy: a jnp constant compiled at import
 _ARMIJO = 0.1
 
 
@@ -60,7 +61,7 @@ def box_qp(
         dx = -cho_solve((L, True), jnp.where(free, grad, 0.0))
         dx = jnp.where(free, dx, 0.0)
         fx = q(x)
-        cands = jnp.clip(x[None] + _ALPHAS[:, None].astype(x.dtype) * dx[None], lo, hi)
+        cands = jnp.clip(x[None] + jnp.asarray(_ALPHAS[:, None], x.dtype) * dx[None], lo, hi)
         fc = jax.vmap(q)(cands)
         decrease = fc <= fx + _ARMIJO * ((cands - x[None]) @ grad)
         good = decrease & jnp.isfinite(fc)

@@ -13,10 +13,12 @@ gauge free (LM's damping keeps the steps finite).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -28,6 +30,13 @@ from ._problem import FactorGraph
 from ._solve import solve
 
 _GROUPS = {"SE3": SE3, "SE2": SE2}
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _normalized(group: type, data: jax.Array) -> Any:
+    """``group(data).normalize()`` as one compiled program (run op by op, it compiled
+    ~20 tiny XLA programs: ~0.6 s of a cold ``jaxpose pgo``)."""
+    return group(data).normalize()
 
 
 def pose_graph_problem(
@@ -69,8 +78,8 @@ def pose_graph_problem(
             f"pose_graph_problem(poses): expected shape {np.shape(graph.poses)} "
             f"like graph.poses, got {np.shape(start)}"
         )
-    poses = group(jnp.asarray(start, dtype)).normalize()
-    z = group(jnp.asarray(graph.measurements, dtype)).normalize()
+    poses = _normalized(group, jnp.asarray(start, dtype))
+    z = _normalized(group, jnp.asarray(graph.measurements, dtype))
     edges = np.asarray(graph.edges)
     factor = Factor(
         between_residual,
