@@ -277,15 +277,17 @@ def time_jax(
     repeats: int = 7,
     min_time: float = 0.05,
     max_time: float = 10.0,
+    compiler_options: dict[str, Any] | None = None,
 ) -> tuple[Timing, Any]:
-    """Jit ``fn``, time compilation (lower + compile) and then steady-state calls.
+    """Jit ``fn``, time compilation (lower + compile, with ``compiler_options``) and then
+    steady-state calls.
 
     Returns the :class:`Timing` and the output of one call (for correctness checks)."""
     import jax
 
     jitted = jax.jit(fn)
     t0 = time.perf_counter()
-    compiled = jitted.lower(*args).compile()
+    compiled = jitted.lower(*args).compile(compiler_options=compiler_options)
     compile_s = time.perf_counter() - t0
     call = lambda: _block(compiled(*args))
     out, _ = _timed(call)  # first execution (page faults, thread-pool warm-up)
