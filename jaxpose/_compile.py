@@ -1,11 +1,15 @@
 """XLA compiler options that shorten the compilation of jaxpose's solvers.
 
 XLA:CPU's newer fusion emitters generate code for the large fused loops of a solver and
-its derivatives more slowly than the classic emitters, at the same run time: without them
-a cold ``jax.jit(jax.grad(...))`` through ``least_squares`` or ``graph.solve`` compiles
-20–30 % faster (``bench/compile.py``; parking-garage, sphere2500, smallGrid3D and intel
-solve at the same speed). They are XLA *debug* options, so jaxpose never sets them
-behind a user's back: pass them to your own ``jax.jit`` (the ``jaxpose`` command does)::
+its derivatives more slowly than the classic emitters: without them a cold
+``jax.jit(jax.grad(...))`` through ``least_squares`` or ``graph.solve`` compiles 20–30 %
+faster (``bench/compile.py``). The compiled code is not always as fast: the same for the
+dense least-squares entries and within 5 % for the ``jaxpose pgo`` solves (parking-garage,
+smallGrid3D), but up to 25 % slower for a graph solve that differentiates its factors by
+autodiff (``bench/compile.py``'s ``graph_solve``). So they pay off where compilation
+dominates (notebooks, one-shot jobs such as the ``jaxpose`` command, which uses them) and
+not in a long training loop. They are XLA *debug* options: jaxpose never sets them behind
+a user's back; pass them to your own ``jax.jit``::
 
     step = jax.jit(jax.grad(loss), compiler_options=jaxpose.compile_options())
 """
