@@ -61,17 +61,27 @@ def preintegrate_windows(
     if b.ndim != 1 or b.size < 2 or np.any(np.diff(b) <= 0) or b[0] < 0 or b[-1] > n:
         raise ValueError(f"preintegrate_windows(bounds): expected increasing sample "
                          f"indices in [0, {n}] (at least two), got {b.tolist()[:8]}...")
-    d = jnp.broadcast_to(jnp.asarray(dt, g.dtype), (n,))
     lengths = np.diff(b)
     parts, order = [], []
     for length in np.unique(lengths):
         sel = np.flatnonzero(lengths == length)
         idx = b[sel][:, None] + np.arange(length)[None, :]  # (w, L)
-        parts.append(preintegrate(g[idx], a[idx], d[idx], **kwargs))
+        parts.append(preintegrate(*_windows(g, a, jnp.asarray(dt, g.dtype), idx), **kwargs))
         order.append(sel)
-    inv = np.argsort(np.concatenate(order))
-    cat = jax.tree.map(lambda *xs: jnp.concatenate(xs, 0)[inv], *parts)
-    return cat
+    return _in_order(parts, np.argsort(np.concatenate(order)))
+
+
+# one compiled program each (op by op: a gather per input and length, a concatenation
+# and a gather per output leaf, ~40 tiny XLA compilations per call)
+@jax.jit
+def _windows(g: Array, a: Array, dt: Array, idx: Any) -> tuple[Array, Array, Array]:
+    d = jnp.broadcast_to(dt, g.shape[:1])
+    return g[idx], a[idx], d[idx]
+
+
+@jax.jit
+def _in_order(parts: list[Any], inv: Any) -> Any:
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs, 0)[inv], *parts)
 
 
 class _FusionOptions(NamedTuple):

@@ -58,6 +58,7 @@ States are pytrees mixing Lie groups and arrays (e.g. ``{"pose": SE3, "vel": (3,
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -75,10 +76,14 @@ Array = jax.Array
 PyTree = Any
 
 
+# jitted: used eagerly (construction, accessors such as ``newest``), op by op they
+# compiled one tiny XLA program per leaf, shape and index (~100 in the smoother notebook)
+@functools.partial(jax.jit, static_argnums=1)
 def _stack(x: PyTree, k: int) -> PyTree:
     return jax.tree.map(lambda a: jnp.broadcast_to(jnp.asarray(a)[None], (k, *jnp.shape(a))), x)
 
 
+@jax.jit
 def _take(x: PyTree, i: Any) -> PyTree:
     return jax.tree.map(lambda a: a[i], x)
 
