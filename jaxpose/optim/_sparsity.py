@@ -235,7 +235,10 @@ class _Analysis:
                     return None  # traced index: conservative
                 args.append(ivals[i])
         if name == "gather":  # copies out of bounds read −1 (no operand element)
-            outs = _bind(eqn, args, {**eqn.params, "fill_value": -1})
+            params = dict(eqn.params)
+            if "fill_value" in params:
+                params["fill_value"] = -1
+            outs = _bind(eqn, args, params)
         else:
             outs = _evaluate(eqn, args, cast=False)
         alldeps = _clean(sp.vstack(stacked).tocsr())
