@@ -22,17 +22,21 @@ class UnsupportedPrimitiveError(Exception):
     """The primitive (or one inside a called jaxpr) has no NumPy rule here."""
 
 
+def _integer_operands(a: np.ndarray, b: np.ndarray, name: str) -> None:
+    """Integer operands with no zero divisor (XLA defines x/0 its own way: let it)."""
+    if not np.issubdtype(np.result_type(a, b), np.integer) or np.any(b == 0):
+        raise UnsupportedPrimitiveError(name)
+
+
 def _int_div(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    if np.issubdtype(np.result_type(a, b), np.integer):  # XLA: truncation towards zero
-        q = np.abs(a) // np.abs(b)
-        return np.where((a < 0) != (b < 0), -q, q).astype(np.result_type(a, b))
-    raise UnsupportedPrimitiveError("div")
+    _integer_operands(a, b, "div")
+    q = np.abs(a) // np.abs(b)  # XLA: truncation towards zero
+    return np.where((a < 0) != (b < 0), -q, q).astype(np.result_type(a, b))
 
 
 def _int_rem(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    if np.issubdtype(np.result_type(a, b), np.integer):  # XLA: sign of the dividend
-        return np.fmod(a, b)
-    raise UnsupportedPrimitiveError("rem")
+    _integer_operands(a, b, "rem")
+    return np.fmod(a, b)  # XLA: the sign of the dividend
 
 
 _BINARY: dict[str, Callable[[Any, Any], Any]] = {
@@ -80,7 +84,10 @@ def _eval_one(name: str, args: list[np.ndarray], p: dict[str, Any]) -> list[Any]
     if name in _UNARY:
         return [_UNARY[name](args[0])]
     if name == "convert_element_type":
-        return [np.asarray(args[0]).astype(p["new_dtype"])]
+        x = np.asarray(args[0])
+        if np.issubdtype(x.dtype, np.inexact) and not np.all(np.isfinite(x)):
+            raise UnsupportedPrimitiveError(name)  # NaN/Inf → int: XLA's own definition
+        return [x.astype(p["new_dtype"])]
     if name == "select_n":
         which, cases = args[0], args[1:]
         return [np.choose(np.asarray(which, np.int64), np.broadcast_arrays(*cases))
