@@ -62,11 +62,12 @@ def preintegrate_windows(
         raise ValueError(f"preintegrate_windows(bounds): expected increasing sample "
                          f"indices in [0, {n}] (at least two), got {b.tolist()[:8]}...")
     lengths = np.diff(b)
+    d = jnp.asarray(dt, g.dtype)
     parts, order = [], []
     for length in np.unique(lengths):
         sel = np.flatnonzero(lengths == length)
         idx = b[sel][:, None] + np.arange(length)[None, :]  # (w, L)
-        parts.append(preintegrate(*_windows(g, a, jnp.asarray(dt, g.dtype), idx), **kwargs))
+        parts.append(preintegrate(*_windows(g, a, d, idx), **kwargs))
         order.append(sel)
     return _in_order(parts, np.argsort(np.concatenate(order)))
 
