@@ -1,6 +1,7 @@
 """The learned-edge-weights example (notebooks/_examples/learned_weights.py): the untrained
 network gives a uniform fraction of the kernel's IRLS weights (so training starts at the
-kernel's solution), and the features are those documented."""
+kernel's solution), the features are those documented, and the training target is each
+draw's own clean optimum."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxpose.datasets import synthetic_pose_graph
+from jaxpose.io import PoseGraph
 from jaxpose.optim import Cauchy
 from notebooks._examples import learned_weights as lw
 
@@ -39,4 +41,26 @@ def test_untrained_network_returns_the_kernel_weights_and_features_are_documente
     np.testing.assert_allclose(feats[:, 3], 1.0 / (1.0 + s / 4.0), rtol=1e-12)  # Cauchy ρ'
     net = lw.WeightNet(jax.random.PRNGKey(0))
     w = np.asarray(net(jnp.asarray(feats)))  # a uniform fraction of ρ': the same minimiser
-    np.testing.assert_allclose(w / feats[:, 3], 1.0 / (1.0 + np.exp(-4.0)), rtol=1e-12)
+    np.testing.assert_allclose(w / feats[:, 3], 0.5, rtol=1e-12)
+
+
+def test_training_target_is_the_draws_graph_without_its_wrong_loop_closures():
+    # the oracle weighting (1 true edge, 0 wrong loop closure) solved from a kernel's
+    # solution equals LM on the draw's graph with the wrong edges deleted
+    graph, _ = synthetic_pose_graph("SE2", n_poses=30, seed=1)
+    start = np.asarray(graph.poses)
+    (draw,) = lw.make_draws(graph, 0.3, [7], start, 100)
+    keep = draw.true_edges()
+    assert keep.dtype == float and set(np.unique(keep)) == {0.0, 1.0}
+    np.testing.assert_array_equal(np.flatnonzero(keep == 0), draw.outliers)
+    assert draw.outliers.size == round(0.3 * np.sum(np.abs(np.diff(graph.edges, axis=1)) != 1))
+    kernel = Cauchy(2.0)
+    base = draw.kernel_solve("cauchy", 2.0)
+    target, weights = lw.learned_solver(draw, base, kernel)(keep)
+    np.testing.assert_array_equal(weights, keep)
+    g = draw.graph
+    kept = keep.astype(bool)
+    pruned = PoseGraph(kind=g.kind, vertex_ids=g.vertex_ids, poses=base, edges=g.edges[kept],
+                       measurements=g.measurements[kept], information=g.information[kept])
+    ref = lw.clean_optimum(pruned, base, 100)
+    np.testing.assert_allclose(target, ref, atol=1e-8)
