@@ -336,3 +336,55 @@ def test_psd_parts_matches_the_eigendecomposition_on_every_branch():
     clipped = (v * np.clip(w, 0.0, None)[..., None, :]) @ np.swapaxes(v, -1, -2)
     np.testing.assert_allclose(np.swapaxes(root, -1, -2) @ root, clipped, atol=1e-12)
     np.testing.assert_allclose(pinv, np.linalg.pinv(m, hermitian=True), rtol=1e-9, atol=1e-9)
+
+
+def _dense_block_lstsq(n, edges, bi, bj, c, anchors, x_anchor):
+    """Reference for ``_BlockLstsq``: the dense design matrix and ``np.linalg.lstsq``."""
+    m, k, d = bi.shape
+    p = c.shape[-1]
+    a = np.zeros((m * k, n * d))
+    for e, (i, j) in enumerate(edges):
+        a[e * k:(e + 1) * k, i * d:(i + 1) * d] += bi[e]
+        a[e * k:(e + 1) * k, j * d:(j + 1) * d] += bj[e]
+    rhs = c.reshape(m * k, p).copy()
+    free = np.setdiff1d(np.arange(n), anchors)
+    cols = lambda v: (v[:, None] * d + np.arange(d)).reshape(-1)  # noqa: E731
+    rhs -= a[:, cols(anchors)] @ x_anchor.reshape(-1, p)
+    x = np.zeros((n, d, p))
+    x[anchors] = x_anchor
+    x[free] = np.linalg.lstsq(a[:, cols(free)], rhs, rcond=None)[0].reshape(-1, d, p)
+    return x
+
+
+@pytest.mark.parametrize("use_cholmod", [True, False])
+def test_block_least_squares_matches_the_dense_solution(monkeypatch, use_cholmod):
+    # repeated edges, an edge in both directions, a self-loop, edges between anchors and
+    # a vertex seen only by zero-weight rows (the ridge fallback): the normal equations
+    # assembled straight into CSR against the dense design matrix
+    from jaxpose.graph import _cholmod as cholmod
+    from jaxpose.graph._init import _BlockLstsq
+
+    if use_cholmod and not cholmod.available():
+        pytest.skip(f"CHOLMOD unavailable: {cholmod.unavailable_reason()}")
+    if not use_cholmod:
+        monkeypatch.setattr(cholmod, "available", lambda: False)
+    rng = np.random.default_rng(4)
+    n, k, d, p = 7, 4, 3, 2
+    edges = np.array([[0, 1], [1, 2], [1, 2], [2, 1], [3, 3], [2, 4], [4, 5], [0, 5],
+                      [5, 3], [0, 6], [1, 6], [6, 0]])
+    m = len(edges)
+    bi, bj, c = rng.normal(size=(m, k, d)), rng.normal(size=(m, k, d)), rng.normal(size=(m, k, p))
+    anchors = np.array([0, 5])
+    x_anchor = rng.normal(size=(2, d, p))
+    lstsq = _BlockLstsq(n, edges, anchors, d)
+    got = lstsq(bi, bj, c, x_anchor)
+    want = _dense_block_lstsq(n, edges, bi, bj, c, anchors, x_anchor)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+    # vertex 6 only in zero-weight rows: singular normal equations → the ridge, X₆ = 0
+    zero = np.isin(np.arange(m), [9, 10, 11])
+    bi[zero], bj[zero] = 0.0, 0.0
+    got = lstsq(bi, bj, c, x_anchor)
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got[6], 0.0, atol=1e-12)
+    want = _dense_block_lstsq(n, edges[~zero], bi[~zero], bj[~zero], c[~zero], anchors, x_anchor)
+    np.testing.assert_allclose(got[:6], want[:6], rtol=1e-8, atol=1e-10)
