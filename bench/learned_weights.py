@@ -9,7 +9,8 @@ replaced by seeded random edges, :func:`jaxpose.datasets.corrupt_loop_closures`)
 * the learned weights (``notebooks/_examples/learned_weights.py``): a 2×16 MLP from three
   per-loop-closure features at the best tuned kernel's solution to a weight in (0, 1),
   trained by Adam through the weighted sparse LM solve (implicit differentiation of
-  ``graph.solve``) to minimise the position MSE against the clean optimum.
+  ``graph.solve``) to minimise the position MSE against each training draw's own clean
+  optimum (its graph without the wrong loop closures: the best its edges can give).
 
 APE (translation RMSE against the clean optimum, pose 0 held in both) is the mean over the
 held-out draws (seeds ≥ 1000), as a % of the clean trajectory's extent (RMS distance of

@@ -155,15 +155,30 @@ def run_one(name: str, quick: bool, timeout: float, log=None,
             proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
                                   timeout=timeout)
         except subprocess.TimeoutExpired as err:
-            tail = ((err.stderr or b"").decode(errors="replace")
-                    if isinstance(err.stderr, bytes) else (err.stderr or ""))
+            # what it printed before it was stopped (scripts print their rows as they go)
+            text = [(x.decode(errors="replace") if isinstance(x, bytes) else (x or ""))
+                    for x in (err.stdout, err.stderr)]
             return Outcome(name, cmd, f"timeout after {timeout:.0f} s",
-                           time.perf_counter() - t0, tail=tail.splitlines()[-8:])
+                           time.perf_counter() - t0,
+                           tail=text[0].splitlines()[-12:] + text[1].splitlines()[-8:])
         seconds = time.perf_counter() - t0
         report = out.read_text(encoding="utf-8") if out.is_file() else proc.stdout
     status = "ok" if proc.returncode == 0 else f"failed (rc {proc.returncode})"
     tail = [] if proc.returncode == 0 else (proc.stderr or proc.stdout).splitlines()[-8:]
     return Outcome(name, cmd, status, seconds, report.strip(), tail)
+
+
+def keep_after_failure(o: Outcome, row: list[str], section: str) -> Outcome:
+    """A ``--merge`` rerun that failed or timed out: the earlier section stays (a failed
+    rerun measures nothing), its summary row says so, and the rerun's last lines follow."""
+    row = list(row)
+    status = SUMMARY_HEADER.index("status")
+    row[status] = f"{o.status} on {o.measured}; result of {row[-1]} kept"
+    note = [f"Rerun on {o.measured}: {o.status}; the result above is from {row[-1]}."]
+    if o.tail:
+        note += ["", "Last lines of the rerun:", "", "```", *o.tail, "```"]
+    return Outcome(o.name, o.command, o.status, o.seconds, tail=o.tail, measured=o.measured,
+                   kept_row=row, kept_section=section + "\n\n" + "\n".join(note))
 
 
 def demote(markdown: str, levels: int = 1) -> str:
@@ -338,6 +353,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         o = run_one(n, args.quick, args.timeout, log, overrides.get(n))
         o.measured = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
         log(f"    -> {o.status} in {o.seconds:.0f} s")
+        if o.status != "ok" and n in kept:
+            o = keep_after_failure(o, *kept[n])
         fresh[n] = o
         # written after every script, so a run stopped from outside keeps what it measured
         outcomes = [fresh[k] if k in fresh else

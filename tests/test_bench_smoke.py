@@ -147,3 +147,43 @@ def test_set_overrides_arguments_and_the_report_is_written_after_each_script(tmp
     assert "optim ran" in text and "--batches 100,1000" in text and '<a id="pgo">' not in text
     with pytest.raises(SystemExit, match="--set: expected NAME=ARGS"):
         run.main(["--set", "nosuchbench=--quick", "--out", str(report)])
+
+
+def test_merge_keeps_the_earlier_section_when_the_rerun_times_out(tmp_path, monkeypatch):
+    """A rerun that measured nothing (timeout, failure) must not erase the earlier result:
+    the section stays, the summary row names the failure and the date of what was kept,
+    and the rerun's last output lines (its rows so far) follow the section."""
+    from bench import run
+
+    old = run.render([run.Outcome("optim", ["py", "bench/optim.py"], "ok", 3.0,
+                                  "# Optim\n\nResult: old optim 2x\n\n| row | 1 |")],
+                     quick=False, load=(0.5, 0.5))
+    report = tmp_path / "RESULTS.md"
+    report.write_text(old, encoding="utf-8")
+
+    def fake_run_one(name, quick, timeout, log=None, args=None):
+        return run.Outcome(name, ["py", f"bench/{name}.py"], "timeout after 5 s", 5.0,
+                           tail=["partial row | 0.9x"])
+
+    monkeypatch.setattr(run, "run_one", fake_run_one)
+    assert run.main(["--only", "optim", "--merge", "--out", str(report)]) == 1
+    text = report.read_text(encoding="utf-8")
+    assert "old optim 2x" in text and "| row | 1 |" in text
+    summary = text.split("## Summary", 1)[1].split('<a id="', 1)[0]
+    assert "timeout after 5 s on" in summary and "kept" in summary
+    assert "Rerun on" in text and "partial row | 0.9x" in text
+    # and the merged report parses again, keeping the section once
+    again = run.previous_sections(text)
+    assert again["optim"][1].count("old optim 2x") == 1
+
+
+def test_timeout_keeps_what_the_script_printed(monkeypatch):
+    import sys
+
+    from bench import run
+
+    script = "import time; print('row 1 | 0.9x', flush=True); time.sleep(60)"
+    monkeypatch.setattr(run, "command", lambda *a, **k: [sys.executable, "-c", script])
+    o = run.run_one("optim", False, timeout=3)
+    assert o.status == "timeout after 3 s"
+    assert "row 1 | 0.9x" in o.tail
