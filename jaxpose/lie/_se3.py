@@ -9,6 +9,7 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 
+from .._precision import FULL
 from . import _quaternion as quat
 from . import series
 from ._base import Array, LieAlgebra, LieGroup, skew, small_matmul
@@ -130,7 +131,10 @@ class SE3(LieGroup):
         q = q_block(rho, phi)
         z = jnp.zeros_like(ji)
         return jnp.concatenate(
-            [jnp.concatenate([ji, -small_matmul(small_matmul(ji, q), ji)], -1),
+            # J⁻¹QJ⁻¹ by matmul: the unrolled small_matmul of two long fused chains made its
+            # derivatives ~10x slower (jacfwd over 6275 elements: 600 ms against 23–60 ms)
+            [jnp.concatenate([ji, -jnp.matmul(jnp.matmul(ji, q, precision=FULL), ji,
+                                              precision=FULL)], -1),
              jnp.concatenate([z, ji], -1)], -2
         )
 
