@@ -22,8 +22,8 @@ exceeds half its trace). In 2D the weight is ``Ω_θθ`` on ``|(c_j + i s_j) −
 the cross block Ω_tR shifts their target to ``−Ω_tt⁻¹·Ω_tR·φ`` (the minimiser of the full
 quadratic form over the translation residual).
 
-Where it runs: on the host, in NumPy (the normal equations assembled block by block into
-CSR) and CHOLMOD (:mod:`jaxpose.graph._cholmod`, one factorisation per linear system;
+Where it runs: on the host, in NumPy and SciPy (sparse assembly of the normal equations
+``AᵀA``) and CHOLMOD (:mod:`jaxpose.graph._cholmod`, one factorisation per linear system;
 SciPy's sparse solver when CHOLMOD is unavailable). The whole initialisation takes tens of
 milliseconds on the shared graphs (sphere_bignoise_vertex3: 2200 poses, 8647 edges), less
 than tracing a jitted version would, so it is not jitted; it is not differentiable either
@@ -36,11 +36,11 @@ import warnings
 from typing import Any
 
 import numpy as np
+import scipy.sparse
 
 from ..io._g2o import connected_components
 from ..lie._numpy import quat_from_matrix, quat_to_matrix, skew, so3_log
 from . import _cholmod as cholmod
-from ._pattern import build_pattern
 
 __all__ = ["INIT_METHODS", "chordal_initialization", "initial_poses", "pose_graph_cost"]
 
@@ -120,85 +120,66 @@ def _v2_inverse(th: np.ndarray) -> np.ndarray:
     return np.stack([a, b, -b, a], -1).reshape(-1, 2, 2) / det[:, None, None]
 
 
-def _spd_solve(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray,
-               rhs: np.ndarray) -> np.ndarray:
-    """Solve H X = RHS (H sparse SPD in symmetric CSR with sorted columns, RHS (N, p)) with
-    CHOLMOD (SciPy when CHOLMOD is unavailable); non-finite values when H is singular."""
+def _spd_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray:
+    """Solve H X = RHS (H sparse SPD, RHS (N, p)) with CHOLMOD (SciPy when CHOLMOD is
+    unavailable); non-finite values when H is singular."""
+    h = h.tocsr()
+    h.sum_duplicates()
+    h.sort_indices()
     if cholmod.available():
-        return cholmod.solve(data, indices, indptr, rhs)  # NaN when not SPD
+        return cholmod.solve(h.data, h.indices, h.indptr, rhs)  # NaN when not SPD
     import scipy.sparse.linalg
 
-    h = scipy.sparse.csc_matrix((data, indices, indptr))  # symmetric: CSR read as CSC
     with warnings.catch_warnings():  # singular: non-finite values, which the caller handles
         warnings.simplefilter("ignore", scipy.sparse.linalg.MatrixRankWarning)
-        return np.asarray(scipy.sparse.linalg.spsolve(h, rhs)).reshape(rhs.shape)
+        return np.asarray(scipy.sparse.linalg.spsolve(h.tocsc(), rhs)).reshape(rhs.shape)
 
 
-def _scatter_add(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
-    """(size, q) sums of the (len(index), q) ``values`` rows by ``index`` (one bincount)."""
-    q = values.shape[1]
-    flat = (index[:, None] * q + np.arange(q)).reshape(-1)
-    return np.bincount(flat, values.reshape(-1), size * q).reshape(size, q)
+def _block_lstsq(
+    n: int,
+    edges: np.ndarray,
+    bi: np.ndarray,
+    bj: np.ndarray,
+    c: np.ndarray,
+    anchors: np.ndarray,
+    x_anchor: np.ndarray,
+) -> np.ndarray:
+    """Least-squares solution of ``Bj_e·X_j + Bi_e·X_i = C_e`` for every edge e.
 
-
-class _BlockLstsq:
-    """Least squares ``Σ_e ‖Bi_e·X_i + Bj_e·X_j − C_e‖²`` over (d, p) unknowns X_v, one
-    per vertex, with the vertices in ``anchors`` held. Built once per graph (the normal
-    equations' CSR pattern, :func:`~jaxpose.graph._pattern.build_pattern`), then called for
-    each system on its edges (rotations, translations: the same pattern).
-
-    The normal equations are assembled block by block, each edge adding B_sᵀB_t at the
-    blocks (s, t) of its free ends s, t ∈ {i, j}: no sparse matrix products."""
-
-    def __init__(self, n: int, edges: np.ndarray, anchors: np.ndarray, d: int):
-        self.n, self.d = n, d
-        self.i, self.j = edges[:, 0], edges[:, 1]
-        self.held = np.zeros(n, bool)
-        self.held[anchors] = True
-        self.anchors, self.free = anchors, np.flatnonzero(~self.held)
-        col = np.full(n, -1)
-        col[self.free] = np.arange(self.free.size)
-        self.ends = np.stack([col[self.i], col[self.j]])  # (2, m) block rows, −1 if held
-        self.pairs = ((0, 0), (0, 1), (1, 0), (1, 1))
-        self.live = [(self.ends[s] >= 0) & (self.ends[t] >= 0) for s, t in self.pairs]
-        if self.free.size:
-            self.pattern, located = build_pattern(
-                [self.free.size], [d],
-                [(0, self.ends[s][lv], 0, self.ends[t][lv])
-                 for (s, t), lv in zip(self.pairs, self.live, strict=True)])
-            self.slots = np.concatenate([idx for _, idx in located])
-
-    def __call__(self, bi: np.ndarray, bj: np.ndarray, c: np.ndarray,
-                 x_anchor: np.ndarray) -> np.ndarray:
-        """bi, bj: (m, k, d); c: (m, k, p); x_anchor: (len(anchors), d, p) → X (n, d, p)."""
-        d, p, nf = self.d, c.shape[-1], self.free.size
-        x_all = np.zeros((self.n, d, p))
-        x_all[self.anchors] = x_anchor
-        if nf == 0:
-            return x_all
-        # move the anchored unknowns to the right-hand side
-        c = c - np.where(self.held[self.i][:, None, None], bi @ x_all[self.i], 0.0)
-        c = c - np.where(self.held[self.j][:, None, None], bj @ x_all[self.j], 0.0)
-        b = np.stack([bi, bj])  # (2, m, k, d)
-        bt = np.swapaxes(b, -1, -2)
-        prods = bt[:, None] @ b[None, :]  # (2, 2, m, d, d): B_sᵀB_t
-        values = np.concatenate([prods[s, t][lv].reshape(-1, d * d)
-                                 for (s, t), lv in zip(self.pairs, self.live, strict=True)])
-        blocks = _scatter_add(self.slots, values, self.pattern.classes[0][2])
-        data = blocks.reshape(-1)[self.pattern.perm]
-        keep = self.ends >= 0
-        rhs = _scatter_add(self.ends[keep], (bt @ c[None])[keep].reshape(-1, d * p), nf)
-        rhs = rhs.reshape(nf * d, p)
-        indices, indptr = self.pattern.indices, self.pattern.indptr
-        x = _spd_solve(data, indices, indptr, rhs)
-        if not np.all(np.isfinite(x)):  # a free vertex seen only by zero-weight edges
-            diag = self.pattern.diag_pos
-            top = float(data[diag].max())
-            data = data.copy()
-            data[diag] += 1e-12 * (top if top > 0 else 1.0)
-            x = _spd_solve(data, indices, indptr, rhs)
-        x_all[self.free] = x.reshape(nf, d, p)
-        return x_all
+    bi, bj: (m, k, d); c: (m, k, p); unknowns X_v (d, p) for every vertex; the vertices in
+    ``anchors`` are held at ``x_anchor`` (len(anchors), d, p). Returns X (n, d, p)."""
+    m, k, d = bi.shape
+    p = c.shape[-1]
+    held = np.zeros(n, bool)
+    held[anchors] = True
+    x_all = np.zeros((n, d, p))
+    x_all[anchors] = x_anchor
+    i, j = edges[:, 0], edges[:, 1]
+    # move the anchored unknowns to the right-hand side
+    c = c - np.where(held[i][:, None, None], bi @ x_all[i], 0.0)
+    c = c - np.where(held[j][:, None, None], bj @ x_all[j], 0.0)
+    free = np.flatnonzero(~held)
+    col = np.full(n, -1)
+    col[free] = np.arange(free.size)
+    rows = np.arange(m)[:, None] * k + np.arange(k)[None, :]  # (m, k)
+    entries = []
+    for ends, blocks in ((i, bi), (j, bj)):
+        keep = col[ends] >= 0
+        r = np.broadcast_to(rows[keep][:, :, None], (int(keep.sum()), k, d))
+        cc = col[ends][keep][:, None, None] * d + np.arange(d)[None, None, :]
+        cc = np.broadcast_to(cc, r.shape)
+        entries.append((blocks[keep].reshape(-1), r.reshape(-1), cc.reshape(-1)))
+    vals, r, cc = (np.concatenate(a) for a in zip(*entries, strict=True))
+    a = scipy.sparse.csr_matrix((vals, (r, cc)), shape=(m * k, free.size * d))
+    h = (a.T @ a).tocsr()
+    rhs = a.T @ c.reshape(m * k, p)
+    x = _spd_solve(h, np.asarray(rhs))
+    if not np.all(np.isfinite(x)):  # a free vertex seen only by zero-weight edges
+        diag = h.diagonal()
+        ridge = 1e-12 * (float(diag.max()) if diag.size and diag.max() > 0 else 1.0)
+        x = _spd_solve(h + scipy.sparse.diags(np.full(h.shape[0], ridge)), np.asarray(rhs))
+    x_all[free] = x.reshape(free.size, d, p)
+    return x_all
 
 
 def gauge_anchors(graph: Any, held: Any) -> np.ndarray:
@@ -252,26 +233,26 @@ def chordal_initialization(graph: Any, *, fix: str = "first") -> np.ndarray:
     i, j = edges[:, 0], edges[:, 1]
     if m == 0:
         return poses.copy()
-    d = 3 if graph.kind == "SE3" else 2  # rotation rows (3×3 or (c, s)), translations
-    lstsq = _BlockLstsq(n, edges, anchors, d)
     if graph.kind == "SE3":
-        return _chordal_se3(poses, lstsq, z, info, anchors, i, j)
-    return _chordal_se2(poses, lstsq, z, info, anchors, i, j)
+        return _chordal_se3(poses, edges, z, info, anchors, i, j)
+    return _chordal_se2(poses, edges, z, info, anchors, i, j)
 
 
 def _translations(
-    lstsq: _BlockLstsq,
+    n: int,
+    edges: np.ndarray,
     rot: np.ndarray,
     zr: np.ndarray,
     zt: np.ndarray,
     info: np.ndarray,
     phi: np.ndarray,
     vinv: np.ndarray,
+    anchors: np.ndarray,
     t_anchor: np.ndarray,
 ) -> np.ndarray:
     """Translations minimising ½Σ rᵀΩr with the rotations (and so φ) fixed."""
     dt = zt.shape[-1]
-    i = lstsq.i
+    i = edges[:, 0]
     o_tt, o_tr = info[:, :dt, :dt], info[:, :dt, dt:]
     s, o_tt_pinv = _psd_parts(o_tt)
     # target of the translation residual: −Ω_tt⁻¹·Ω_tR·φ (pinv: Ω_tt may be singular)
@@ -283,11 +264,12 @@ def _translations(
     a = vinv @ np.swapaxes(zr, -1, -2)  # V⁻¹·Z_Rᵀ
     bj = s @ a @ np.swapaxes(rot[i], -1, -2)
     c = np.einsum("mij,mj->mi", s, target + np.einsum("mij,mj->mi", a, zt))[..., None]
-    x = lstsq(-bj, bj, c, t_anchor[..., None])
+    x = _block_lstsq(n, edges, -bj, bj, c, anchors, t_anchor[..., None])
     return x[..., 0]
 
 
-def _chordal_se3(poses, lstsq, z, info, anchors, i, j) -> np.ndarray:
+def _chordal_se3(poses, edges, z, info, anchors, i, j) -> np.ndarray:
+    n = poses.shape[0]
     zr = quat_to_matrix(z[:, 3:])
     o_rr = info[:, 3:, 3:]
     mm = 0.5 * np.trace(o_rr, axis1=1, axis2=2)[:, None, None] * np.eye(3) - o_rr
@@ -295,19 +277,22 @@ def _chordal_se3(poses, lstsq, z, info, anchors, i, j) -> np.ndarray:
     # unknowns X_v = R_vᵀ (3×3; its columns are the rows of R_v): W·R_jᵀ − W·Z_ijᵀ·R_iᵀ = 0
     bj = w
     bi = -w @ np.swapaxes(zr, -1, -2)
-    c = np.zeros((len(z), 3, 3))
+    c = np.zeros((len(edges), 3, 3))
     r_anchor = quat_to_matrix(poses[anchors, 3:])
-    x = lstsq(bi, bj, c, np.swapaxes(r_anchor, -1, -2))
+    x = _block_lstsq(n, edges, bi, bj, c, anchors, np.swapaxes(r_anchor, -1, -2))
     rot = _project_so(np.swapaxes(x, -1, -2))
     rot[anchors] = r_anchor
     phi = so3_log(np.swapaxes(zr, -1, -2) @ np.swapaxes(rot[i], -1, -2) @ rot[j])
-    t = _translations(lstsq, rot, zr, z[:, :3], info, phi, _v_inverse(phi), poses[anchors, :3])
+    t = _translations(
+        n, edges, rot, zr, z[:, :3], info, phi, _v_inverse(phi), anchors, poses[anchors, :3]
+    )
     out = np.concatenate([t, quat_from_matrix(rot)], 1)
     out[anchors] = poses[anchors]
     return out
 
 
-def _chordal_se2(poses, lstsq, z, info, anchors, i, j) -> np.ndarray:
+def _chordal_se2(poses, edges, z, info, anchors, i, j) -> np.ndarray:
+    n = poses.shape[0]
     cz, sz = z[:, 2], z[:, 3]
     nz = np.hypot(cz, sz)
     cz, sz = cz / nz, sz / nz
@@ -316,9 +301,9 @@ def _chordal_se2(poses, lstsq, z, info, anchors, i, j) -> np.ndarray:
     rz = np.stack([cz, -sz, sz, cz], -1).reshape(-1, 2, 2)
     bj = w * np.eye(2)
     bi = -w * rz
-    c = np.zeros((len(z), 2, 1))
+    c = np.zeros((len(edges), 2, 1))
     cs_anchor = poses[anchors, 2:4] / np.linalg.norm(poses[anchors, 2:4], axis=1, keepdims=True)
-    x = lstsq(bi, bj, c, cs_anchor[..., None])[..., 0]
+    x = _block_lstsq(n, edges, bi, bj, c, anchors, cs_anchor[..., None])[..., 0]
     norm = np.linalg.norm(x, axis=1)
     x = np.where(norm[:, None] > 0, x / np.where(norm > 0, norm, 1.0)[:, None], [1.0, 0.0])
     x[anchors] = cs_anchor
@@ -326,8 +311,18 @@ def _chordal_se2(poses, lstsq, z, info, anchors, i, j) -> np.ndarray:
     # θ of Z⁻¹·R_iᵀ·R_j
     th_i, th_j = np.arctan2(x[i, 1], x[i, 0]), np.arctan2(x[j, 1], x[j, 0])
     phi = np.angle(np.exp(1j * (th_j - th_i - np.arctan2(sz, cz))))
-    t = _translations(lstsq, rot, rz, z[:, :2], info, phi[:, None], _v2_inverse(phi),
-                      poses[anchors, :2])
+    t = _translations(
+        n,
+        edges,
+        rot,
+        rz,
+        z[:, :2],
+        info,
+        phi[:, None],
+        _v2_inverse(phi),
+        anchors,
+        poses[anchors, :2],
+    )
     out = np.concatenate([t, x], 1)
     out[anchors] = poses[anchors]
     return out

@@ -339,7 +339,7 @@ def test_psd_parts_matches_the_eigendecomposition_on_every_branch():
 
 
 def _dense_block_lstsq(n, edges, bi, bj, c, anchors, x_anchor):
-    """Reference for ``_BlockLstsq``: the dense design matrix and ``np.linalg.lstsq``."""
+    """Reference for ``_block_lstsq``: the dense design matrix and ``np.linalg.lstsq``."""
     m, k, d = bi.shape
     p = c.shape[-1]
     a = np.zeros((m * k, n * d))
@@ -359,10 +359,10 @@ def _dense_block_lstsq(n, edges, bi, bj, c, anchors, x_anchor):
 @pytest.mark.parametrize("use_cholmod", [True, False])
 def test_block_least_squares_matches_the_dense_solution(monkeypatch, use_cholmod):
     # repeated edges, an edge in both directions, a self-loop, edges between anchors and
-    # a vertex seen only by zero-weight rows (the ridge fallback): the normal equations
-    # assembled straight into CSR against the dense design matrix
+    # a vertex seen only by zero-weight rows (the ridge fallback): the sparse normal
+    # equations against the dense design matrix
     from jaxpose.graph import _cholmod as cholmod
-    from jaxpose.graph._init import _BlockLstsq
+    from jaxpose.graph._init import _block_lstsq
 
     if use_cholmod and not cholmod.available():
         pytest.skip(f"CHOLMOD unavailable: {cholmod.unavailable_reason()}")
@@ -376,14 +376,13 @@ def test_block_least_squares_matches_the_dense_solution(monkeypatch, use_cholmod
     bi, bj, c = rng.normal(size=(m, k, d)), rng.normal(size=(m, k, d)), rng.normal(size=(m, k, p))
     anchors = np.array([0, 5])
     x_anchor = rng.normal(size=(2, d, p))
-    lstsq = _BlockLstsq(n, edges, anchors, d)
-    got = lstsq(bi, bj, c, x_anchor)
+    got = _block_lstsq(n, edges, bi, bj, c, anchors, x_anchor)
     want = _dense_block_lstsq(n, edges, bi, bj, c, anchors, x_anchor)
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
     # vertex 6 only in zero-weight rows: singular normal equations → the ridge, X₆ = 0
     zero = np.isin(np.arange(m), [9, 10, 11])
     bi[zero], bj[zero] = 0.0, 0.0
-    got = lstsq(bi, bj, c, x_anchor)
+    got = _block_lstsq(n, edges, bi, bj, c, anchors, x_anchor)
     assert np.all(np.isfinite(got))
     np.testing.assert_allclose(got[6], 0.0, atol=1e-12)
     want = _dense_block_lstsq(n, edges[~zero], bi[~zero], bj[~zero], c[~zero], anchors, x_anchor)
