@@ -174,9 +174,9 @@ def keep_after_failure(o: Outcome, row: list[str], section: str) -> Outcome:
     """A ``--merge`` rerun that failed or timed out: the earlier section stays (a failed
     rerun measures nothing), its summary row says so, and the rerun's last lines follow."""
     row = list(row)
-    status = SUMMARY_HEADER.index("status")
-    row[status] = f"{o.status} on {o.measured}; result of {row[-1]} kept"
-    note = [f"Rerun on {o.measured}: {o.status}; the result above is from {row[-1]}."]
+    when = row[SUMMARY_HEADER.index("measured")]
+    row[SUMMARY_HEADER.index("status")] = f"{o.status} on {o.measured}; result of {when} kept"
+    note = [f"Rerun on {o.measured}: {o.status}; the result above is from {when}."]
     if o.tail:
         note += ["", "Last lines of the rerun:", "", "```", *o.tail, "```"]
     return Outcome(o.name, o.command, o.status, o.seconds, tail=o.tail, measured=o.measured,

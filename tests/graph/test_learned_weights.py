@@ -64,3 +64,4 @@ def test_training_target_is_the_draws_graph_without_its_wrong_loop_closures():
                        measurements=g.measurements[kept], information=g.information[kept])
     ref = lw.clean_optimum(pruned, base, 100)
     np.testing.assert_allclose(target, ref, atol=1e-8)
+    np.testing.assert_allclose(draw.oracle_solution(base), ref, atol=1e-8)  # what trains
