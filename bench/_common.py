@@ -44,14 +44,14 @@ def parser(description: str | None, *, quick: str = "smoke-run settings (minutes
            threads: bool = True, clock: bool = True,
            workers: bool = False) -> argparse.ArgumentParser:
     """The common command line of every benchmark script: ``--quick`` (help text
-    ``quick``), ``--out FILE.md``, with ``threads`` ``--threads N`` (default
-    :data:`DEFAULT_THREADS`; 0 = each library's default) and, with ``threads`` and
-    ``clock`` (scripts timing through :func:`time_jax`/:func:`time_callable`),
-    ``--clock wall|cpu``; with ``workers`` (scripts that run each contestant in a
-    :func:`spawn_worker` subprocess) ``--timeout`` seconds per subprocess (default
-    :data:`WORKER_TIMEOUT`)."""
+    ``quick``, plain text: a ``%`` in it is literal), ``--out FILE.md``, with
+    ``threads`` ``--threads N`` (default :data:`DEFAULT_THREADS`; 0 = each library's
+    default) and, with ``threads`` and ``clock`` (scripts timing through
+    :func:`time_jax`/:func:`time_callable`), ``--clock wall|cpu``; with ``workers``
+    (scripts that run each contestant in a :func:`spawn_worker` subprocess)
+    ``--timeout`` seconds per subprocess (default :data:`WORKER_TIMEOUT`)."""
     ap = argparse.ArgumentParser(description=(description or "").strip().split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help=quick)
+    ap.add_argument("--quick", action="store_true", help=quick.replace("%", "%%"))
     ap.add_argument("--out", default=None, help="also write the markdown report to this file")
     if threads:
         ap.add_argument("--threads", type=int, default=DEFAULT_THREADS,

@@ -1,7 +1,9 @@
 """Cost of the backward pass through ``graph.solve`` against one forward LM iteration.
 
 For each problem (parking-garage and sphere2500 pose graphs, the largest BAL problem in
-``../shared/data/bal``) a loss ``L(θ) = Σ w ⊙ X*(θ) + cost`` of the solution ``X*`` is
+``../shared/data/bal`` — a few dozen observations — and a synthetic BAL problem of
+realistic size, ``synthetic_bal(20, 2000)``: 20 cameras, 2 000 points, 10 000
+observations) a loss ``L(θ) = Σ w ⊙ X*(θ) + cost`` of the solution ``X*`` is
 differentiated with respect to a perturbation θ of every measurement (pose graphs:
 ``Z ⊕ θ``; BAL: observations + θ). Each contestant runs in its own cold process:
 
@@ -19,7 +21,8 @@ backward ≤ one forward iteration, peak memory ≤ 1.5× the forward's (XLA buf
 
 Usage::
 
-    python bench/backward.py [--only garage,sphere2500,bal] [--quick] [--out F.md]
+    python bench/backward.py [--only garage,sphere2500,bal,bal-synthetic] [--quick]
+                             [--out F.md]
 """
 
 from __future__ import annotations
@@ -50,7 +53,8 @@ from bench._common import (  # noqa: E402 - imports no jax
 
 NOISE = 0.05  # run-to-run spread of a median time, as a fraction of it
 DATA = ROOT.parent / "shared" / "data"
-PROBLEMS = ("garage", "sphere2500", "bal")
+PROBLEMS = ("garage", "sphere2500", "bal", "bal-synthetic")
+SYNTHETIC_BAL = (20, 2000)  # cameras, points (5 observations per point)
 QUICK = ("garage",)
 
 
@@ -59,9 +63,11 @@ def _bal_file() -> Path | None:
     return files[-1] if files else None
 
 
-def _source(name: str) -> Path | None:
+def _source(name: str) -> Path | str | None:
     if name == "bal":
         return _bal_file()
+    if name == "bal-synthetic":
+        return "synthetic_bal({}, {})".format(*SYNTHETIC_BAL)
     path = DATA / "g2o" / ("parking-garage.g2o" if name == "garage" else f"{name}.g2o")
     return path if path.exists() else None
 
@@ -74,12 +80,17 @@ def _problem(name: str) -> tuple[Any, Any]:
     import numpy as np
 
     from jaxpose import graph as jg
+    from jaxpose.datasets import synthetic_bal
     from jaxpose.io import read_bal, read_g2o
     from jaxpose.lie import LieGroup
 
     path = _source(name)
-    graph = (jg.bundle_adjustment_problem(read_bal(path)) if name == "bal"
-             else jg.pose_graph_problem(read_g2o(path)))
+    if name == "bal-synthetic":
+        graph = jg.bundle_adjustment_problem(synthetic_bal(*SYNTHETIC_BAL, seed=0)[0])
+    elif name == "bal":
+        graph = jg.bundle_adjustment_problem(read_bal(path))
+    else:
+        graph = jg.pose_graph_problem(read_g2o(path))
     data = graph.factors[0].data
     theta0 = jnp.zeros((graph.factors[0].count, data.tangent_dim if isinstance(data, LieGroup)
                         else data.shape[-1]))
@@ -151,7 +162,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         ok = (backward <= per_iter or not resolved) and mem <= 1.5
         verdicts.append(ok)
         rows.append([
-            f"{name} ({src.name})", f"{fw['iterations']}", fmt_seconds(fw["run_s"]),
+            f"{name} ({getattr(src, 'name', src)})", f"{fw['iterations']}",
+            fmt_seconds(fw["run_s"]),
             fmt_seconds(per_iter),
             fmt_seconds(backward) if resolved else f"< {fmt_seconds(noise)} (noise)",
             f"{backward / per_iter:.2f}" if resolved else "—",

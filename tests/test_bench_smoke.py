@@ -40,6 +40,14 @@ def test_bars_and_formatting():
     assert table.splitlines()[1] == "|---|---:|"
 
 
+def test_quick_help_text_is_literal():
+    # `--help` of learned_weights.py crashed: its --quick text says "30 %", which argparse
+    # read as a format directive.
+    from bench._common import parser
+
+    assert "intel at 30 % only" in parser("doc", quick="intel at 30 % only").format_help()
+
+
 def test_missing_peer_is_reported_not_faked():
     from bench._common import import_peer
 
