@@ -10,8 +10,9 @@ solution's tangent
 with H = ∂²φ/∂δ² the exact Hessian of the (robust, weighted) cost. H has the block
 pattern of J̃ᵀJ̃ (a factor only couples its own variables), so it is assembled in the
 graph's CSR pattern from per-factor Hessians (one ``jax.hessian`` of a factor's cost,
-vmapped over the group) and solved by the sparse direct solver inside
-``jax.lax.custom_linear_solve`` (:func:`~jaxpose.graph._linear.solve_sparse_spd`).
+vmapped over :data:`HESSIAN_CHUNK` factors at a time) and solved by the forward's linear
+solver (:func:`_tangent_solve`) inside ``jax.lax.custom_linear_solve``
+(:func:`~jaxpose.graph._linear.solve_sparse_spd`).
 Fixed variables have zero tangents (unit diagonal, zero right-hand side).
 
 The rule is a ``custom_jvp``: its right-hand side is linear in θ̇ and the solve linear in
@@ -38,7 +39,7 @@ from ..lie import LieGroup
 from ..optim._implicit import jvp_where
 from ._analysis import slot_pairs, tangent_dim
 from ._factor import between_residual
-from ._linear import solve_sparse_spd
+from ._linear import block_jacobi, pcg_spd, solve_dense, solve_sparse_spd
 from ._problem import (
     FactorGraph,
     Variables,
@@ -215,9 +216,7 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost) and
     # b = ∂(∇_δφ)/∂θ · θ̇
     grad0, b = jvp_where(lambda g: jax.grad(phi)(zero, g), graph, t_graph)
-    st = graph.structure
-    hess = exact_hessian_csr(graph, xs)
-    eps_dot = -solve_sparse_spd(hess, st.csr_indices, st.csr_indptr, b * free)
+    eps_dot = -_tangent_solve(graph, options, exact_hessian_csr(graph, xs), b * free)
     x_dot = jax.jvp(lambda d: retract_all(graph, xs, d, "retract_quadratic"), (zero,),
                     (eps_dot,))[1]
     _, dcost = jvp_where(lambda g: cost(g, xs), graph, t_graph)
@@ -225,6 +224,43 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     _, dinit = jvp_where(lambda gx: cost(*gx), (graph, x0), (t_graph, t_x0))
     t_sol = type(sol)(x_dot, dcost, dinit, None, None, None, None)  # None: no tangent
     return sol, t_sol
+
+
+BACKWARD_RTOL = {"float64": 1e-10, "float32": 1e-5}
+"""Relative residual the backward's CG reaches (``linear_solver="pcg"``) whatever the
+forward's ``PCG.rtol``: derivatives are as exact as the dtype allows."""
+
+
+def _tangent_solve(graph: FactorGraph, options: dict[str, Any], hess: Array,
+                   rhs: Array) -> Array:
+    """H⁻¹·rhs (H: CSR values, the exact Hessian) by the forward's linear solver:
+    ``dense`` Cholesky, ``pcg`` (block-Jacobi CG to :data:`BACKWARD_RTOL` on any backend;
+    NaN if it does not get there in ``PCG.max_iters``), else (``sparse``, ``schur``) the
+    sparse direct solver on the whole system."""
+    st = graph.structure
+    solver = options.get("linear_solver")
+    method = solver.resolve(graph) if solver is not None else "sparse"
+    if method == "dense":
+        return solve_dense(hess, st.csr_indices, st.csr_indptr, rhs)
+    inner = None
+    if method == "pcg":
+        rtol = BACKWARD_RTOL.get(jnp.dtype(hess.dtype).name, 1e-10)
+        inner = pcg_spd(block_jacobi(_diagonal_blocks(graph, hess)), rtol,
+                        options["cg"].max_iters)
+    return solve_sparse_spd(hess, st.csr_indices, st.csr_indptr, rhs, inner)
+
+
+def _diagonal_blocks(graph: FactorGraph, values: Array) -> tuple[Array, ...]:
+    """Per variable type the (n, d, d) diagonal blocks of the CSR matrix ``values``. A
+    diagonal block's columns are consecutive and all present in each of its rows, so
+    entry (a, b) of block i sits ``b − a`` after the diagonal entry of row ``i·d + a``."""
+    st = graph.structure
+    out = []
+    for off, n, d in zip(st.offsets[:-1], st.counts, st.dims, strict=True):
+        rows = off + jnp.arange(n * d).reshape(n, d)
+        shift = jnp.arange(d)[None, None, :] - jnp.arange(d)[None, :, None]
+        out.append(values[st.diag_pos[rows][:, :, None] + shift])
+    return tuple(out)
 
 
 def solve_differentiable(run: Callable[..., Any], graph: FactorGraph, x0: Variables,

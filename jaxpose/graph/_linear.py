@@ -87,11 +87,15 @@ def solve_sparse_direct(data: Array, indices: Array, indptr: Array, b: Array) ->
     )
 
 
-def solve_sparse_spd(data: Array, indices: Array, indptr: Array, b: Array) -> Array:
-    """:func:`solve_sparse_direct` inside ``jax.lax.custom_linear_solve`` (A symmetric):
-    jit, vmap and derivatives of any order in ``data`` and ``b`` (the implicit rule of the
-    linear solve, with the CSR product as its operator; the callback is never
-    differentiated)."""
+def solve_sparse_spd(data: Array, indices: Array, indptr: Array, b: Array,
+                     inner: Callable[[Callable[[Array], Array], Array], Array] | None = None
+                     ) -> Array:
+    """Solve A x = b, A symmetric positive definite in CSR, inside
+    ``jax.lax.custom_linear_solve``: jit, vmap and derivatives of any order in ``data``
+    and ``b`` (the implicit rule of the linear solve, with the CSR product as its
+    operator; the inner solver is never differentiated). ``inner(matvec, rhs) -> x`` is
+    the solver (default :func:`solve_sparse_direct`, CHOLMOD on the host; e.g.
+    :func:`pcg_spd` on any backend)."""
     n = b.shape[0]
     rows = jnp.repeat(jnp.arange(n), jnp.diff(jnp.asarray(indptr)),
                       total_repeat_length=data.shape[0])
@@ -103,7 +107,24 @@ def solve_sparse_spd(data: Array, indices: Array, indptr: Array, b: Array) -> Ar
     def direct(_: object, rhs: Array) -> Array:
         return solve_sparse_direct(data, indices, indptr, rhs)
 
-    return jax.lax.custom_linear_solve(matvec, b, direct, symmetric=True)
+    return jax.lax.custom_linear_solve(matvec, b, direct if inner is None else inner,
+                                       symmetric=True)
+
+
+def pcg_spd(precond: Callable[[Array], Array], rtol: float, max_iters: int
+            ) -> Callable[[Callable[[Array], Array], Array], Array]:
+    """An ``inner`` solver for :func:`solve_sparse_spd`: :func:`solve_pcg` to ``rtol``
+    with ``precond``; NaN where it has not reached ``rtol`` (relative residual, checked
+    with one more product) within ``max_iters`` iterations, never a silently inexact
+    answer."""
+
+    def inner(matvec: Callable[[Array], Array], rhs: Array) -> Array:
+        x, _ = solve_pcg(matvec, rhs, precond, rtol=rtol, max_iters=max_iters)
+        residual = _two_norm(matvec(x) - rhs)
+        ok = residual <= 10.0 * rtol * _two_norm(rhs)
+        return jnp.where(ok, x, jnp.nan)
+
+    return inner
 
 
 def _two_norm(x: Array) -> Array:

@@ -309,8 +309,8 @@ def solve(
     Differentiable, exactly and at every order (``grad``, ``jvp``, ``jacfwd``,
     ``hessian``), with respect to every floating-point array of the graph (measurements,
     information, factor data) by the implicit function theorem at the solution, solved
-    sparse (see :mod:`jaxpose.graph._implicit`). The derivative with respect to the
-    starting values is zero.
+    with ``linear_solver``'s method (see :mod:`jaxpose.graph._implicit`). The derivative
+    with respect to the starting values is zero.
     """
     linear_solver = _option(linear_solver, GraphLinearSolver, "linear_solver")
     damping = _option(damping, Damping, "damping")

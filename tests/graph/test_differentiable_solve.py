@@ -28,18 +28,18 @@ INFO = jnp.diag(jnp.array([1.0, 2.0, 3.0]))
 TIGHT = jo.Stopping(max_steps=100, cost_rtol=0.0, gtol=1e-14, xtol=0.0)
 
 
-def solved(noise, scale=1.0, kernel=None):
+def solved(noise, scale=1.0, kernel=None, linear_solver="auto"):
     """Poses of the loop graph whose measurements are Z_TRUE ⊕ noise, information
     scale·INFO (both traced), first pose fixed."""
     info = jnp.broadcast_to(INFO * scale, (len(EDGES), 3, 3))
     f = G.Factor(between_residual, [("pose", EDGES[:, 0]), ("pose", EDGES[:, 1])],
                  data=Z_TRUE.retract(noise), information=info, kernel=kernel)
     graph = G.FactorGraph([f], {"pose": X0}, fixed={"pose": np.array([0])})
-    return G.solve(graph, stopping=TIGHT)
+    return G.solve(graph, stopping=TIGHT, linear_solver=linear_solver)
 
 
-def loss(noise, scale=1.0, kernel=None):
-    sol = solved(noise, scale, kernel)
+def loss(noise, scale=1.0, kernel=None, linear_solver="auto"):
+    sol = solved(noise, scale, kernel, linear_solver)
     return jnp.sum(W * sol.variables["pose"].data) + sol.cost
 
 
@@ -54,7 +54,12 @@ def _richardson(f, x, eps=1e-3):
     return np.stack(cols, -1)
 
 
-GRAD = jax.jit(jax.grad(loss))  # shared by the tests below (one compilation)
+def sparse_loss(noise):
+    """``loss`` on the SLAM-scale path: CHOLMOD forward and backward."""
+    return loss(noise, linear_solver="sparse")
+
+
+GRAD = jax.jit(jax.grad(sparse_loss))  # shared by the tests below (one compilation)
 
 
 @pytest.mark.slow  # compiles grad through graph.solve twice more (~35 s)
@@ -107,7 +112,7 @@ def test_information_scale_closed_form_and_jvp():
 
 def test_second_derivative_matches_finite_differences_of_the_gradient():
     grad = GRAD
-    hess = jax.jit(jax.jacfwd(jax.grad(loss)))(NOISE)  # (8, 3, 8, 3)
+    hess = jax.jit(jax.jacfwd(jax.grad(sparse_loss)))(NOISE)  # (8, 3, 8, 3)
     for i, j in ((1, 2), (6, 0)):
         e = jnp.zeros_like(NOISE).at[i, j].set(1e-3)
         d1 = (grad(NOISE + e) - grad(NOISE - e)) / 2e-3
@@ -233,3 +238,43 @@ def test_exact_hessian_in_chunks_equals_the_dense_hessian_of_the_cost(monkeypatc
     want[:3], want[:, :3] = 0.0, 0.0  # pose 0 is fixed
     want[:3, :3] = np.eye(3)
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
+
+
+def test_backward_follows_the_forward_linear_solver():
+    """The backward's linear solve is the forward's: dense Cholesky for small graphs
+    (``auto``), CHOLMOD for ``sparse``, CG for ``pcg`` — the first and last never call
+    CHOLMOD on the host, forward or backward (they run on an accelerator). All three give
+    the same gradient (CG to its 1e-10 backward tolerance)."""
+    grads = {m: jax.jit(jax.grad(lambda n, m=m: loss(n, linear_solver=m)))(NOISE)
+             for m in ("auto", "pcg")}
+    grads["sparse"] = GRAD(NOISE)
+    np.testing.assert_allclose(grads["auto"], grads["sparse"], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(grads["pcg"], grads["sparse"], rtol=1e-8, atol=1e-10)
+    for method, host in (("pcg", False), ("auto", False), ("sparse", True)):
+        text = str(jax.make_jaxpr(jax.grad(lambda n, m=method: loss(n, linear_solver=m)))(NOISE))
+        assert ("function _cholmod_solve" in text) == host, method
+
+
+def test_backward_cg_that_does_not_converge_gives_nan_not_a_wrong_number():
+    from jaxpose.graph._linear import pcg_spd, solve_sparse_spd
+
+    rng = np.random.default_rng(3)
+    q = np.linalg.qr(rng.normal(size=(30, 30)))[0]
+    a = q @ np.diag(np.logspace(0, 6, 30)) @ q.T  # SPD, condition number 1e6
+    rows, cols = np.nonzero(np.ones_like(a))
+    data, indices = jnp.asarray(a[rows, cols]), jnp.asarray(cols)
+    indptr = jnp.asarray(np.arange(0, 30 * 30 + 1, 30))
+    b = jnp.asarray(rng.normal(size=30))
+    ident = lambda v: v  # noqa: E731
+    x = solve_sparse_spd(data, indices, indptr, b, pcg_spd(ident, 1e-10, 500))
+    np.testing.assert_allclose(a @ np.asarray(x), b, rtol=1e-8, atol=1e-8)
+    x = solve_sparse_spd(data, indices, indptr, b, pcg_spd(ident, 1e-10, 3))
+    assert np.all(np.isnan(np.asarray(x)))
+
+
+@pytest.mark.slow  # two more compilations of second derivatives through graph.solve
+@pytest.mark.parametrize("method", ["pcg", "auto"])
+def test_second_derivative_through_the_cg_and_dense_backward(method):
+    hess = jax.jit(jax.jacfwd(jax.grad(lambda n: loss(n, linear_solver=method))))(NOISE)
+    want = jax.jit(jax.jacfwd(jax.grad(sparse_loss)))(NOISE)
+    np.testing.assert_allclose(hess, want, rtol=1e-7, atol=1e-8)
