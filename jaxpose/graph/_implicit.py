@@ -49,7 +49,9 @@ from ._problem import (
     cost,
     free_flat,
     retract_all,
+    split,
 )
+from ._schur import reduced_solver, schur_step
 
 Array = jax.Array
 
@@ -85,8 +87,6 @@ def _add_factor_hessians(graph: FactorGraph, k: int, variables: Variables,
     dropped from the scatter."""
     st = graph.structure
     f = graph.factors[k]
-    type_of = {n: t for t, n in enumerate(st.names)}
-    hessian = _factor_hessian(f, [variables[s] for s in f.slots])
     size = min(HESSIAN_CHUNK, f.count)
     pairs = list(zip(slot_pairs(len(f.slots)), st.block_class[k], st.block_index[k],
                      strict=True))
@@ -95,18 +95,31 @@ def _add_factor_hessians(graph: FactorGraph, k: int, variables: Variables,
         start = jnp.minimum(i * size, f.count - size)
         new = jnp.arange(size) + start >= i * size  # rows the previous step did not add
         take = partial(jax.tree.map, lambda a: jax.lax.dynamic_slice_in_dim(a, start, size))
-        idx = take(f.indices)
-        vals = [_gather(variables[s], i) for s, i in zip(f.slots, idx, strict=True)]
-        hess = hessian(vals, take(f.data), take(f.sqrt_info))
-        free = [st.free[type_of[s]][i] for s, i in zip(f.slots, idx, strict=True)]
+        hess = _masked_hessians(graph, k, variables, take(f.indices), take(f.data),
+                                take(f.sqrt_info))
         blocks = list(blocks)
         for (s, t), c, where in pairs:
-            h = hess[s][t] * (free[s] * free[t])[:, None, None].astype(hess[s][t].dtype)
             rows = jnp.where(new, take(where), blocks[c].shape[0])  # out of range: dropped
-            blocks[c] = blocks[c].at[rows].add(h.astype(blocks[c].dtype), mode="drop")
+            blocks[c] = blocks[c].at[rows].add(hess[s][t].astype(blocks[c].dtype),
+                                               mode="drop")
         return blocks
 
     return jax.lax.fori_loop(0, -(-f.count // size), step, blocks)
+
+
+def _masked_hessians(graph: FactorGraph, k: int, variables: Variables,
+                     idx: tuple[Array, ...], data: Any, sqrt: Any) -> list[list[Array]]:
+    """``hess[s][t]`` (m, d_s, d_t): exact Hessian blocks of the factors of group ``k``
+    with variable indices ``idx``, ``data`` and ``sqrt`` information, the blocks of fixed
+    variables zero."""
+    st = graph.structure
+    f = graph.factors[k]
+    type_of = {n: t for t, n in enumerate(st.names)}
+    vals = [_gather(variables[s], i) for s, i in zip(f.slots, idx, strict=True)]
+    hess = _factor_hessian(f, vals)(vals, data, sqrt)
+    free = [st.free[type_of[s]][i] for s, i in zip(f.slots, idx, strict=True)]
+    return [[h * (free[s] * free[t])[:, None, None].astype(h.dtype) for t, h in enumerate(row)]
+            for s, row in enumerate(hess)]
 
 
 def _factor_hessian(f: Any, values: list[Any]) -> Callable[..., Any]:
@@ -216,7 +229,7 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost) and
     # b = ∂(∇_δφ)/∂θ · θ̇
     grad0, b = jvp_where(lambda g: jax.grad(phi)(zero, g), graph, t_graph)
-    eps_dot = -_tangent_solve(graph, options, exact_hessian_csr(graph, xs), b * free)
+    eps_dot = -_tangent_solve(graph, options, xs, b * free)
     x_dot = jax.jvp(lambda d: retract_all(graph, xs, d, "retract_quadratic"), (zero,),
                     (eps_dot,))[1]
     _, dcost = jvp_where(lambda g: cost(g, xs), graph, t_graph)
@@ -231,15 +244,19 @@ BACKWARD_RTOL = {"float64": 1e-10, "float32": 1e-5}
 forward's ``PCG.rtol``: derivatives are as exact as the dtype allows."""
 
 
-def _tangent_solve(graph: FactorGraph, options: dict[str, Any], hess: Array,
+def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
                    rhs: Array) -> Array:
-    """H⁻¹·rhs (H: CSR values, the exact Hessian) by the forward's linear solver:
-    ``dense`` Cholesky, ``pcg`` (block-Jacobi CG to :data:`BACKWARD_RTOL` on any backend;
-    NaN if it does not get there in ``PCG.max_iters``), else (``sparse``, ``schur``) the
-    sparse direct solver on the whole system."""
+    """H⁻¹·rhs, H the exact Hessian at ``xs``, by the forward's linear solver: ``dense``
+    Cholesky, ``pcg`` (block-Jacobi CG to :data:`BACKWARD_RTOL` on any backend; NaN if
+    it does not get there in ``PCG.max_iters``), ``schur`` (the eliminated type's
+    blocks eliminated as in the forward, :func:`_schur_solve`), else (``sparse``) the
+    sparse direct solver."""
     st = graph.structure
     solver = options.get("linear_solver")
     method = solver.resolve(graph) if solver is not None else "sparse"
+    if method == "schur":
+        return _schur_solve(graph, xs, rhs, solver.dense_max)
+    hess = exact_hessian_csr(graph, xs)
     if method == "dense":
         return solve_dense(hess, st.csr_indices, st.csr_indptr, rhs)
     inner = None
@@ -248,6 +265,35 @@ def _tangent_solve(graph: FactorGraph, options: dict[str, Any], hess: Array,
         inner = pcg_spd(block_jacobi(_diagonal_blocks(graph, hess)), rtol,
                         options["cg"].max_iters)
     return solve_sparse_spd(hess, st.csr_indices, st.csr_indptr, rhs, inner)
+
+
+def _schur_solve(graph: FactorGraph, xs: Variables, rhs: Array, dense_max: int) -> Array:
+    """H⁻¹·rhs by Schur elimination (:func:`~jaxpose.graph._schur.schur_step` on the
+    exact per-factor Hessian blocks, the reduced system solved like the forward's) inside
+    ``jax.lax.custom_linear_solve`` with the block product as its operator."""
+    st = graph.structure
+    hess = [_masked_hessians(graph, k, xs, f.indices, f.data, f.sqrt_info)
+            for k, f in enumerate(graph.factors)]
+    add = 1.0 - free_flat(graph, rhs.dtype)  # fixed variables: identity rows
+
+    def block(k: int, s: int, t: int) -> Array:
+        return hess[k][s][t]
+
+    def matvec(v: Array) -> Array:
+        parts = split(graph, v)
+        out = [jnp.zeros_like(p) for p in parts]
+        type_of = {n: t for t, n in enumerate(st.names)}
+        for k, f in enumerate(graph.factors):
+            for s, t in slot_pairs(len(f.slots)):
+                a, b = type_of[f.slots[s]], type_of[f.slots[t]]
+                prod = jnp.einsum("mij,mj->mi", block(k, s, t), parts[b][f.indices[t]])
+                out[a] = out[a].at[f.indices[s]].add(prod)
+        return jnp.concatenate([o.reshape(-1) for o in out]) + add * v
+
+    def inner(_: object, b: Array) -> Array:
+        return schur_step(graph, block, -b, add, reduced_solver(graph, dense_max))
+
+    return jax.lax.custom_linear_solve(matvec, rhs, inner, symmetric=True)
 
 
 def _diagonal_blocks(graph: FactorGraph, values: Array) -> tuple[Array, ...]:

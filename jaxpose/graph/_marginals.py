@@ -345,9 +345,9 @@ def _entries(graph: FactorGraph, values: Any, plan: _Plan) -> list[Array]:
 
 
 def _reduced(graph: FactorGraph, lin: Any, free: Array) -> Any:
-    from ._schur import reduced_system
+    from ._schur import jtj_blocks, reduced_system
 
-    return reduced_system(graph, lin, 1.0 - free)
+    return reduced_system(graph, jtj_blocks(lin), 1.0 - free)
 
 
 def _dense_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,

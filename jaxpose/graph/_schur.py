@@ -31,28 +31,41 @@ import jax.numpy as jnp
 
 from ..lie._base import small_matmul
 from ._analysis import SchurStructure, split_tangent
+from ._linear import solve_dense, solve_sparse_direct
 from ._pattern import scatter_blocks
 
 Array = jax.Array
 
 
+PairBlock = Callable[[int, int, int], Array]
+"""``block(k, s, t)``: factor group k's (m, d_s, d_t) blocks of H for its slots (s, t)
+(blocks of fixed variables zero)."""
+
+
+def jtj_blocks(lin: Any) -> PairBlock:
+    """The Gauss–Newton blocks J_sᵀJ_t of the linearisation ``lin``."""
+    return lambda k, s, t: small_matmul(lin.jacobians[k][s].mT, lin.jacobians[k][t])
+
+
 def schur_step(
     graph: Any,
-    lin: Any,
+    block: PairBlock,
     g: Array,
     diag_add: Array,
     solve_reduced: Callable[[Array, Array, Array, Array], Array],
 ) -> Array:
-    """Solve the damped normal equations ``(H + diag(diag_add)) δ = −g`` by elimination.
+    """Solve ``(H + diag(diag_add)) δ = −g`` by elimination, H = Σ of the per-factor
+    ``block``s (:func:`jtj_blocks` for the damped normal equations, the exact Hessian's
+    blocks in the implicit rule).
 
     ``diag_add`` (N,), in the graph's tangent layout, holds everything added to the
-    diagonal of H (damping, and 1 for fixed variables, whose Jacobian columns are zero).
+    diagonal of H (damping, and 1 for fixed variables, whose blocks are zero).
     ``solve_reduced(data, indices, indptr, b)`` solves the reduced CSR system.
     Returns δ (N,) in the graph's tangent layout."""
     st = graph.structure
     sc: SchurStructure = st.schur
     e, kept = sc.eliminated, sc.kept
-    data, v_inv, w, y = reduced_system(graph, lin, diag_add)
+    data, v_inv, w, y = reduced_system(graph, block, diag_add)
 
     # reduced right-hand side and back-substitution
     g_blocks = split_tangent(st, g)
@@ -80,40 +93,41 @@ def schur_step(
 
 
 def reduced_system(
-    graph: Any, lin: Any, diag_add: Array
+    graph: Any, block: PairBlock, diag_add: Array
 ) -> tuple[Array, Array, list[Array], list[Array]]:
-    """The reduced matrix S = U − W V⁻¹ Wᵀ of ``H + diag(diag_add)`` (module docstring).
+    """The reduced matrix S = U − W V⁻¹ Wᵀ of ``H + diag(diag_add)`` (module docstring),
+    H the sum of the per-factor ``block``s.
 
     Returns (S as CSR values in ``graph.structure.schur.pattern``, V⁻¹ (n_e, d, d), the
     entries B per kept type, Y = B V⁻¹ per kept type)."""
     st = graph.structure
     sc: SchurStructure = st.schur
     e, kept = sc.eliminated, sc.kept
-    dtype = lin.cost.dtype
+    dtype = diag_add.dtype
     n_e, d_e = st.counts[e], st.dims[e]
 
     # V (n_e, d, d), U (reduced class arrays) and the entries B per kept type
     v = jnp.zeros((n_e, d_e, d_e), dtype)
     u_contrib = []
     w_parts: list[list[Array]] = [[] for _ in kept]
-    for f, jac, q, pairs, classes, indices, ws in zip(
-        graph.factors, lin.jacobians, sc.e_slot, sc.u_pairs, sc.u_class, sc.u_index,
-        sc.w_slots, strict=True,
-    ):
+    for n, (f, q, pairs, classes, indices, ws) in enumerate(zip(
+        graph.factors, sc.e_slot, sc.u_pairs, sc.u_class, sc.u_index, sc.w_slots,
+        strict=True,
+    )):
         for (s, t), c, idx in zip(pairs, classes, indices, strict=True):
             ka, kb, _ = sc.pattern.classes[c]
             if ka <= kb:  # lower classes are mirrored from the upper ones below
-                u_contrib.append((c, idx, small_matmul(jac[s].mT, jac[t])))
+                u_contrib.append((c, idx, block(n, s, t)))
         if q >= 0:
-            v = v.at[f.indices[q]].add(small_matmul(jac[q].mT, jac[q]))
+            v = v.at[f.indices[q]].add(block(n, q, q))
             for s, k in ws:
-                w_parts[k].append(small_matmul(jac[s].mT, jac[q]))
+                w_parts[k].append(block(n, s, q))
     u = scatter_blocks(sc.pattern.zeros(dtype), u_contrib)
     w = [jnp.concatenate(p)[o] if p else jnp.zeros((0, st.dims[t], d_e), dtype)
          for p, t, o in zip(w_parts, kept, sc.w_order, strict=True)]
 
     # damping (and the identity rows of fixed variables) on the diagonals of V and U
-    add = split_tangent(st, diag_add.astype(dtype))
+    add = split_tangent(st, diag_add)
     diag_idx = jnp.arange(d_e)
     v = v.at[:, diag_idx, diag_idx].add(add[e])
     v_inv = jnp.linalg.inv(v)
@@ -143,3 +157,13 @@ def reduced_system(
         jnp.concatenate([add[t].reshape(-1) for t in kept]))
 
     return data, v_inv, w, y
+
+
+def reduced_solver(graph: Any, dense_max: int) -> Callable[[Array, Array, Array, Array], Array]:
+    """The solver of the reduced system: CHOLMOD on CPU (single-threaded reference BLAS:
+    the dense LAPACK Cholesky goes through a multi-threaded OpenBLAS whose spinning
+    threads cost up to 100x on a loaded machine); dense Cholesky on accelerators when
+    it has at most ``dense_max`` dimensions."""
+    small = (graph.structure.schur.pattern.size <= dense_max
+             and jax.default_backend() != "cpu")
+    return solve_dense if small else solve_sparse_direct

@@ -56,7 +56,7 @@ from ._problem import (
     split,
     zero_linearization,
 )
-from ._schur import schur_step
+from ._schur import jtj_blocks, reduced_solver, schur_step
 
 Array = jax.Array
 
@@ -200,13 +200,8 @@ class _SparseLinear:
             self.iterations = self.iterations + jnp.asarray(its, jnp.int32)
             return x
         if self.kind == "schur":
-            # the reduced system: CHOLMOD on CPU (single-threaded reference BLAS: the
-            # dense LAPACK Cholesky goes through a multi-threaded OpenBLAS whose spinning
-            # threads cost up to 100x on a loaded machine); dense Cholesky on
-            # accelerators when it is small
-            small = st.schur.pattern.size <= self.dense_max and jax.default_backend() != "cpu"
-            direct = linear.solve_dense if small else linear.solve_sparse_direct
-            return schur_step(graph, lin, grad, add, direct)
+            return schur_step(graph, jtj_blocks(lin), grad, add,
+                              reduced_solver(graph, self.dense_max))
         data = csr_values(graph, lin).at[st.diag_pos].add(add)
         direct = linear.solve_sparse_direct if self.kind == "sparse" else linear.solve_dense
         return direct(data, st.csr_indices, st.csr_indptr, -grad)

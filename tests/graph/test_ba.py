@@ -10,6 +10,8 @@ rotation (``_project``), a dense numpy solve of the damped normal equations asse
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,12 +25,13 @@ from jaxpose.graph import (
     FactorGraph,
     default_stopping,
     prior_residual,
+    solve,
     vector_prior_residual,
 )
 from jaxpose.graph import _ba as bal_graph
 from jaxpose.graph import _linear as linear
 from jaxpose.graph._problem import gradient, hessian_diagonal, linearize
-from jaxpose.graph._schur import schur_step
+from jaxpose.graph._schur import jtj_blocks, schur_step
 from jaxpose.io import BALProblem, read_bal
 from jaxpose.lie import SE3
 from jaxpose.optim import Nielsen
@@ -130,8 +133,8 @@ def test_schur_step_equals_the_dense_solve_of_the_full_system():
         zero = jnp.zeros(graph.size)
         return dict(
             lin=lin, g=g, add=add, free=free, J_ref=jax.jacfwd(ref)(zero), r_ref=ref(zero),
-            dense=schur_step(graph, lin, g, add, linear.solve_dense),
-            sparse=schur_step(graph, lin, g, add, linear.solve_sparse_direct),
+            dense=schur_step(graph, jtj_blocks(lin), g, add, linear.solve_dense),
+            sparse=schur_step(graph, jtj_blocks(lin), g, add, linear.solve_sparse_direct),
         )
 
     out = run(graph)
@@ -248,3 +251,28 @@ def test_bad_bundle_adjustment_input():
                   data=jnp.zeros((1, 3)))
     with pytest.raises(ValueError, match="links two 'point' variables"):
         FactorGraph([graph.factors[0], link], graph.variables, eliminate="point")
+
+
+def _ba_loss(linear_solver: str, theta):
+    """Σ w·points + cost of the solved Schur test graph with observations + θ."""
+    import equinox as eqx
+
+    graph, _ = _schur_graph()
+    graph = eqx.tree_at(lambda g: g.factors[0].data, graph, graph.factors[0].data + theta)
+    sol = solve(graph, linear_solver=linear_solver, **BA_OPTIONS)
+    w = jnp.asarray(np.random.default_rng(4).normal(size=sol.variables["point"].shape))
+    return jnp.sum(w * sol.variables["point"]) + sol.cost
+
+
+@pytest.mark.parametrize("order", ["grad", pytest.param("hessian", marks=pytest.mark.slow)])
+def test_schur_backward_equals_the_sparse_backward(order):
+    """The implicit rule's solve by Schur elimination of the exact Hessian (the forward's
+    ``linear_solver="schur"``) gives the derivatives of the full sparse solve, at first
+    and (slow tier) second order, with fixed variables of every type."""
+    graph, _ = _schur_graph()
+    theta = jnp.zeros_like(graph.factors[0].data)
+    d = jax.grad if order == "grad" else (lambda f: jax.jacfwd(jax.grad(f)))
+    got = jax.jit(d(partial(_ba_loss, "schur")), compiler_options=FAST_COMPILE)(theta)
+    want = jax.jit(d(partial(_ba_loss, "sparse")), compiler_options=FAST_COMPILE)(theta)
+    assert np.all(np.isfinite(np.asarray(got))) and float(jnp.max(jnp.abs(want))) > 1e-3
+    np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-9 * float(jnp.max(jnp.abs(want))))
