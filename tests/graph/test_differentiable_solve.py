@@ -238,6 +238,9 @@ def test_exact_hessian_in_chunks_equals_the_dense_hessian_of_the_cost(monkeypatc
     want[:3], want[:, :3] = 0.0, 0.0  # pose 0 is fixed
     want[:3, :3] = np.eye(3)
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
+    # the diagonal blocks the backward's CG preconditions with, read from the CSR values
+    (diag,) = _implicit._diagonal_blocks(graph, values)
+    np.testing.assert_array_equal(diag, [got[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(N)])
 
 
 def test_backward_follows_the_forward_linear_solver():
