@@ -46,6 +46,7 @@ class Structure(eqx.Module):
     offsets: tuple[int, ...] = eqx.field(static=True)
     size: int = eqx.field(static=True)  # total tangent dimension N
     free: tuple[Array, ...]  # per type (n,) 1.0 for free, 0.0 for fixed variables
+    fixed_counts: tuple[int, ...] = eqx.field(static=True)  # per type: how many are fixed
     pattern: BlockPattern  # block-sparse pattern of H = J̃ᵀJ̃
     # per factor group, per ordered slot pair (s, t) (row-major): class id and (m,) blocks
     block_class: tuple[tuple[int, ...], ...] = eqx.field(static=True)
@@ -125,6 +126,7 @@ def build_structure(
         offsets=offsets,
         size=offsets[-1],
         free=tuple(free),
+        fixed_counts=tuple(int(np.sum(m == 0.0)) for m in free),
         pattern=pattern,
         block_class=tuple(block_class),
         block_index=tuple(block_index),

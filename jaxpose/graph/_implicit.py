@@ -217,6 +217,7 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
                         run: Callable[..., Any], options: dict[str, Any]) -> Any:
     graph, x0 = primals
     t_graph, t_x0 = tangents
+    _refuse_open_gauge(graph)
     sol = _differentiable(graph, x0, run=run, options=options)  # differentiable again
     xs = sol.variables
     dtype = sol.cost.dtype
@@ -237,6 +238,33 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     _, dinit = jvp_where(lambda gx: cost(*gx), (graph, x0), (t_graph, t_x0))
     t_sol = type(sol)(x_dot, dcost, dinit, None, None, None, None)  # None: no tangent
     return sol, t_sol
+
+
+def _refuse_open_gauge(graph: FactorGraph) -> None:
+    """Raise where the graph's cost is certainly invariant under a motion of all its
+    variables (a gauge freedom): its solution is not unique, H is singular and the
+    solution's derivative undefined — a sparse factorisation would return large,
+    meaningless numbers. Recognised: graphs of between factors only with no fixed pose,
+    and of BAL reprojections only with fewer than two fixed cameras (the scale stays
+    free). Other graphs (priors, custom factors) are the user's to fix."""
+    st = graph.structure
+    fixed = dict(zip(st.names, st.fixed_counts, strict=True))
+    factors = graph.factors
+    if all(f.residual is between_residual for f in factors) and not any(
+            fixed[s] for f in factors for s in f.slots):
+        why = ("every factor is a between factor and no pose is fixed, so moving all poses "
+               "by one rigid motion leaves the cost unchanged")
+        fix = "fix a pose (FactorGraph(..., fixed={'pose': [0]})) or add a prior factor"
+    elif all(f.name == "reprojection_bal" for f in factors) and fixed.get("pose", 0) < 2:
+        why = ("every factor is a reprojection and fewer than two cameras are fixed, so a "
+               "similarity transform of cameras and points leaves the cost unchanged")
+        fix = ("fix two cameras (bundle_adjustment_problem(..., fixed_cameras=[0, 1])) or "
+               "add priors")
+    else:
+        return
+    raise ValueError(
+        f"graph.solve: cannot differentiate the solution: {why} (a gauge freedom); the "
+        f"solution is not unique and its derivative is undefined. To differentiate, {fix}.")
 
 
 BACKWARD_RTOL = {"float64": 1e-10, "float32": 1e-5}
