@@ -68,6 +68,12 @@ def test_notebook_executes(path, monkeypatch):
     client = nbclient.NotebookClient(
         nb,
         timeout=CELL_TIMEOUT,
+        # a loaded machine (CI's 2 cores, parallel workers) can take over nbclient's
+        # defaults to start a kernel (60 s) or to deliver a cell's output after its reply
+        # (4 s; a dropped output reads as "printed nothing"); two notebooks failed once
+        # each under heavy load and passed on every rerun
+        startup_timeout=CELL_TIMEOUT,
+        iopub_timeout=60,
         kernel_name="python3",
         resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
     )
