@@ -3,9 +3,10 @@
 For each problem (parking-garage and sphere2500 pose graphs, the largest BAL problem in
 ``../shared/data/bal`` — a few dozen observations — and a synthetic BAL problem of
 realistic size, ``synthetic_bal(20, 2000)``: 20 cameras, 2 000 points, 10 000
-observations) a loss ``L(θ) = Σ w ⊙ X*(θ) + cost`` of the solution ``X*`` is
-differentiated with respect to a perturbation θ of every measurement (pose graphs:
-``Z ⊕ θ``; BAL: observations + θ). Each contestant runs in its own cold process:
+observations; both with cameras 0 and 1 fixed, BA's gauge) a loss
+``L(θ) = Σ w ⊙ X*(θ) + cost`` of the solution ``X*`` is differentiated with respect to a
+perturbation θ of every measurement (pose graphs: ``Z ⊕ θ``; BAL: observations + θ).
+Each contestant runs in its own cold process:
 
 * ``forward``: ``jit(L)`` — one LM solve (its iteration count k gives the time of one
   iteration, forward / k);
