@@ -56,10 +56,12 @@ from ._schur import reduced_solver, schur_step
 Array = jax.Array
 
 
-HESSIAN_CHUNK = 512
+HESSIAN_CHUNK = 1024
 """Factors per step of the exact Hessian's loop: its per-factor temporaries (dozens of
 (chunk, d, d) arrays from differentiating twice) stay this many factors deep instead of
-the whole graph's, which keeps the backward's peak memory near the forward's."""
+the whole graph's, which keeps the backward's peak memory near the forward's. Each step
+costs the dispatch of a few hundred small XLA kernels (~3.5 ms on XLA:CPU, parking-garage):
+512 doubled the Hessian's time (80 vs 37 ms), 1024 matches the unchunked one."""
 
 
 def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
