@@ -248,12 +248,14 @@ def test_backward_follows_the_forward_linear_solver():
     """The backward's linear solve is the forward's: dense Cholesky for small graphs
     (``auto``), CHOLMOD for ``sparse``, CG for ``pcg`` — the first and last never call
     CHOLMOD on the host, forward or backward (they run on an accelerator). All three give
-    the same gradient (CG to its 1e-10 backward tolerance)."""
+    the same gradient (CG to its 1e-10 backward tolerance; gradients of order 1)."""
     grads = {m: jax.jit(jax.grad(lambda n, m=m: loss(n, linear_solver=m)))(NOISE)
              for m in ("auto", "pcg")}
     grads["sparse"] = GRAD(NOISE)
-    np.testing.assert_allclose(grads["auto"], grads["sparse"], rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(grads["pcg"], grads["sparse"], rtol=1e-8, atol=1e-10)
+    # the issue's bar for the dense and sparse paths: 1e-9 (each forward solve converges
+    # to its own rounding; 4e-10 apart here with OpenBLAS under CHOLMOD)
+    np.testing.assert_allclose(grads["auto"], grads["sparse"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(grads["pcg"], grads["sparse"], rtol=0, atol=1e-8)
     for method, host in (("pcg", False), ("auto", False), ("sparse", True)):
         text = str(jax.make_jaxpr(jax.grad(lambda n, m=method: loss(n, linear_solver=m)))(NOISE))
         assert ("function _cholmod_solve" in text) == host, method
