@@ -264,11 +264,13 @@ def _ba_loss(linear_solver: str, theta):
     return jnp.sum(w * sol.variables["point"]) + sol.cost
 
 
-@pytest.mark.parametrize("order", ["grad", pytest.param("hessian", marks=pytest.mark.slow)])
+# slow tier: compiles two BA gradients (~20 s; the default run is over its ~6 min budget)
+@pytest.mark.slow
+@pytest.mark.parametrize("order", ["grad", "hessian"])
 def test_schur_backward_equals_the_sparse_backward(order):
     """The implicit rule's solve by Schur elimination of the exact Hessian (the forward's
     ``linear_solver="schur"``) gives the derivatives of the full sparse solve, at first
-    and (slow tier) second order, with fixed variables of every type."""
+    and second order, with fixed variables of every type."""
     graph, _ = _schur_graph()
     theta = jnp.zeros_like(graph.factors[0].data)
     d = jax.grad if order == "grad" else (lambda f: jax.jacfwd(jax.grad(f)))
