@@ -21,14 +21,20 @@ poses with pose 0 held (GTSAM: a prior with σ = 1e-6, a known inlier):
   oracle's APE is the floor any robust method can reach on that draw.
 
 Error: APE = translation RMSE against the clean graph's optimum (jaxpose LM on the
-uncorrupted graph, from the same start), after aligning the first poses (the gauge);
-``APE %`` divides by the RMS distance of the clean optimum's positions from their
-centroid. Inlier recall / precision are over the loop closures. Times are wall clock of
-one call, jaxpose's including compilation (each rate changes the sparsity pattern).
+uncorrupted graph, from the same start), two ways: after aligning the first poses (the
+gauge every solver holds), and after the rigid alignment of the whole trajectory that
+minimises it (Kabsch/Horn: the ATE of the TUM RGB-D benchmark, ``evo_ape -a``;
+:func:`jaxpose.geometry.ape` with ``align="se3"``, SE(2) poses embedded in the plane
+z = 0). The first-pose APE also counts the drift a different loop-closure set leaves
+between the two ends of a trajectory: on sphere2500 at 50 %, even the oracle's is 3.9 %
+of the extent, its aligned APE 0.47 %. ``APE %`` divides by the RMS distance of the
+clean optimum's positions from their centroid. Inlier recall / precision are over the
+loop closures. Times are wall clock of one call, jaxpose's including compilation (each
+rate changes the sparsity pattern).
 
 The ``Result:`` line checks the issue's bar: jaxpose GNC's APE ≤ GTSAM GNC's at every
-rate, and at 50 % APE ≤ 1 % on sphere2500 and intel. Differences below 1 % of GTSAM's
-APE (or 1e-6 of the extent) count as ties and are marked so: with the same inlier set
+rate (both APEs), and at 50 % the aligned APE (the standard one) ≤ 1 % on sphere2500 and
+intel. Differences below 1 % of GTSAM's APE (or 1e-6 of the extent) count as ties and are marked so: with the same inlier set
 both solve the same weighted problem, and the APEs then differ only by where the inner
 solvers stop (GTSAM's LM at a relative decrease of 1e-5, restarted from the initial
 poses each time; jaxpose's at 1e-10).
@@ -98,6 +104,25 @@ def ape(kind: str, ref: np.ndarray, est: np.ndarray) -> float:
     est = _align_first(kind, ref, est)
     diff = est[:, :dim] - ref[:, :dim]
     return float(np.sqrt(np.mean(np.sum(diff * diff, axis=1))))
+
+
+def ape_aligned(kind: str, ref: np.ndarray, est: np.ndarray) -> float:
+    """Translation RMSE of ``est`` against ``ref`` after the rigid alignment of the whole
+    trajectory that minimises it (:func:`jaxpose.geometry.ape`, ``align="se3"``); SE(2)
+    poses ``[x, y, cos, sin]`` are embedded as SE(3) poses in the plane z = 0."""
+    from jaxpose.geometry import ape as trajectory_ape
+    from jaxpose.lie import SE3
+
+    def se3(p: np.ndarray) -> SE3:
+        p = np.asarray(p, np.float64)
+        if kind == "SE3":
+            return SE3(p)
+        half = 0.5 * np.arctan2(p[:, 3], p[:, 2])
+        zeros = np.zeros_like(half)
+        return SE3(np.stack([p[:, 0], p[:, 1], zeros, zeros, zeros, np.sin(half),
+                             np.cos(half)], -1))
+
+    return float(trajectory_ape(se3(ref), se3(est), align="se3").stats.rmse)
 
 
 def extent(kind: str, poses: np.ndarray) -> float:
@@ -285,13 +310,17 @@ def run_file(name: str, rates: Sequence[float], args: argparse.Namespace) -> dic
             except Exception as err:  # noqa: BLE001 - reported in the table
                 cells[c] = dict(failed=f"{type(err).__name__}: {err}"[:200])
                 continue
-            r["ape"] = ape(graph.kind, clean, r.pop("poses"))
+            poses = r.pop("poses")
+            r["ape"] = ape(graph.kind, clean, poses)
             r["ape_pct"] = 100.0 * r["ape"] / info["extent"]
+            r["ape_al"] = ape_aligned(graph.kind, clean, poses)
+            r["ape_al_pct"] = 100.0 * r["ape_al"] / info["extent"]
             if "weights" in r:
                 r["recall"], r["precision"] = inlier_scores(r.pop("weights"), loops, outliers)
             cells[c] = r
             print(
                 f"[{name} {rate:.0%} {c}] APE {r['ape']:.3e} ({r['ape_pct']:.3g} %), "
+                f"aligned {r['ape_al']:.3e} ({r['ape_al_pct']:.3g} %), "
                 f"{r['seconds']:.1f} s",
                 file=sys.stderr,
                 flush=True,
@@ -305,7 +334,8 @@ def _fmt_cell(r: dict[str, Any]) -> str:
         return f"skipped: {r['skipped']}"
     if "failed" in r:
         return f"failed: {r['failed']}"
-    return f"{r['ape']:.3g} ({r['ape_pct']:.2g} %)"
+    return (f"{r['ape']:.3g} ({r['ape_pct']:.2g} %) / "
+            f"{r['ape_al']:.3g} ({r['ape_al_pct']:.2g} %)")
 
 
 def report(results: dict[str, Any], args: argparse.Namespace, load: tuple) -> str:
@@ -322,15 +352,16 @@ def report(results: dict[str, Any], args: argparse.Namespace, load: tuple) -> st
         f"{' '.join(f'{x:.2f}' for x in load[1])} at the end. jax {jax.__version__} "
         f"({jax.default_backend()}, float64); {gt.label()}; seed {args.seed}.",
         "",
-        "APE: translation RMSE against the clean optimum after aligning the first poses "
-        "(in the graph's units; % of the clean trajectory's RMS extent). Recall/precision: "
+        "APE: translation RMSE against the clean optimum after aligning the first poses / "
+        "after the best rigid alignment of the whole trajectory (TUM ATE, `evo_ape -a`), in "
+        "the graph's units (% of the clean trajectory's RMS extent). Recall/precision: "
         "loop closures kept as inliers. Times: one call (jaxpose's includes compilation).",
         "",
     ]
     header = [
         "graph",
         "outliers",
-        *[f"APE {c}" for c in args.contestants],
+        *[f"APE {c}: first pose / aligned" for c in args.contestants],
         "recall / precision (jaxpose, GTSAM)",
         "time (jaxpose GNC, GTSAM GNC)",
         "jaxpose GNC iterations",
@@ -360,27 +391,30 @@ def report(results: dict[str, Any], args: argparse.Namespace, load: tuple) -> st
                 ]
             )
             if "ape" in jp and "ape" in g:
-                tie = max(TIE * info["extent"], TIE_REL * g["ape"])
-                ok = jp["ape"] <= g["ape"] + tie
-                kind = "lower" if jp["ape"] < g["ape"] - tie else "tie" if ok else "higher"
+                verdicts = []
+                for key in ("ape", "ape_al"):
+                    tie = max(TIE * info["extent"], TIE_REL * g[key])
+                    ok = jp[key] <= g[key] + tie
+                    kind = "lower" if jp[key] < g[key] - tie else "tie" if ok else "higher"
+                    verdicts.append((ok, f"{jp[key]:.6g} vs {g[key]:.6g} ({kind})"))
                 checks.append(
                     (
                         f"{name} {rate:.0%} vs GTSAM",
-                        ok,
-                        f"{jp['ape']:.6g} vs {g['ape']:.6g} ({kind})",
+                        all(ok for ok, _ in verdicts),
+                        "first pose " + verdicts[0][1] + "; aligned " + verdicts[1][1],
                     )
                 )
             elif "ape" in jp:
                 checks.append((f"{name} {rate:.0%} vs GTSAM", None, "GTSAM not run"))
             if name in BAR_FILES and abs(rate - 0.5) < 1e-9 and "ape" in jp:
                 oracle = cells.get("oracle", {})
-                floor = (f" (oracle, outliers known: {oracle['ape_pct']:.3g} %)"
-                         if "ape_pct" in oracle else "")
+                floor = (f"; oracle, outliers known: {oracle['ape_al_pct']:.3g} % / "
+                         f"{oracle['ape_pct']:.3g} %" if "ape_pct" in oracle else "")
                 checks.append(
                     (
-                        f"{name} 50% ≤ {BAR_APE_PERCENT:g} % APE",
-                        jp["ape_pct"] <= BAR_APE_PERCENT,
-                        f"{jp['ape_pct']:.3g} %{floor}",
+                        f"{name} 50% ≤ {BAR_APE_PERCENT:g} % APE (aligned)",
+                        jp["ape_al_pct"] <= BAR_APE_PERCENT,
+                        f"{jp['ape_al_pct']:.3g} % (first pose {jp['ape_pct']:.3g} %{floor})",
                     )
                 )
     lines.append(markdown_table(header, rows))

@@ -195,3 +195,54 @@ def test_timeout_keeps_what_the_script_printed(monkeypatch):
     o = run.run_one("optim", False, timeout=3)
     assert o.status == "timeout after 3 s"
     assert "row 1 | 0.9x" in o.tail
+
+
+def _kabsch_rmse(ref, est):
+    """Independent reference: RMSE after the best rotation + translation (Horn/Kabsch)."""
+    import numpy as np
+
+    a, b = est - est.mean(0), ref - ref.mean(0)
+    u, _, vt = np.linalg.svd(b.T @ a)
+    d = np.ones(a.shape[1])
+    d[-1] = np.sign(np.linalg.det(u @ vt))
+    moved = a @ (u * d @ vt).T
+    return float(np.sqrt(np.mean(np.sum((moved - b) ** 2, 1))))
+
+
+@pytest.mark.parametrize("kind", ["SE2", "SE3"])
+def test_outlier_bench_aligned_ape(kind):
+    # the standard (whole-trajectory aligned) APE of bench/pgo_outliers.py: zero for a
+    # rigidly moved copy, and the closed-form Kabsch RMSE for a deformed one, while the
+    # first-pose APE also counts the drift
+    import jax
+    import numpy as np
+
+    from jaxpose.lie import SO3
+
+    jax.config.update("jax_enable_x64", True)
+    pgo_outliers = pytest.importorskip("bench.pgo_outliers")
+    rng = np.random.default_rng(0)
+    n, dim = 40, 3 if kind == "SE3" else 2
+    pos = np.cumsum(rng.normal(size=(n, dim)), 0)
+    if kind == "SE3":
+        q = rng.normal(size=(n, 4))
+        ref = np.concatenate([pos, q / np.linalg.norm(q, axis=1, keepdims=True)], 1)
+        c, s = np.cos(0.7), np.sin(0.7)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        qz = [0.0, 0.0, np.sin(0.35), np.cos(0.35)]
+        moved_q = np.asarray(SO3(np.asarray(qz)).compose(SO3(ref[:, 3:])).data)
+        moved = np.concatenate([pos @ rot.T + [1.0, -2.0, 3.0], moved_q], 1)
+    else:
+        th = rng.uniform(-np.pi, np.pi, n)
+        ref = np.concatenate([pos, np.cos(th)[:, None], np.sin(th)[:, None]], 1)
+        c, s = np.cos(0.7), np.sin(0.7)
+        rot = np.array([[c, -s], [s, c]])
+        moved = np.concatenate([pos @ rot.T + [1.0, -2.0], np.cos(th + 0.7)[:, None],
+                                np.sin(th + 0.7)[:, None]], 1)
+    assert pgo_outliers.ape_aligned(kind, ref, moved) < 1e-9
+    assert pgo_outliers.ape(kind, ref, moved) < 1e-9
+    est = moved.copy()
+    est[:, :dim] += np.linspace(0.0, 1.0, n)[:, None] * rng.normal(size=dim)  # drift
+    expected = _kabsch_rmse(ref[:, :dim], est[:, :dim])
+    assert pgo_outliers.ape_aligned(kind, ref, est) == pytest.approx(expected, rel=1e-9)
+    assert pgo_outliers.ape(kind, ref, est) > expected

@@ -119,7 +119,7 @@ def _masked_hessians(graph: FactorGraph, k: int, variables: Variables,
     type_of = {n: t for t, n in enumerate(st.names)}
     vals = [_gather(variables[s], i) for s, i in zip(f.slots, idx, strict=True)]
     hess = _factor_hessian(f, vals)(vals, data, sqrt)
-    free = [st.free[type_of[s]][i] for s, i in zip(f.slots, idx, strict=True)]
+    free = [jnp.asarray(st.free[type_of[s]])[i] for s, i in zip(f.slots, idx, strict=True)]
     return [[h * (free[s] * free[t])[:, None, None].astype(h.dtype) for t, h in enumerate(row)]
             for s, row in enumerate(hess)]
 
