@@ -34,10 +34,10 @@ rate changes the sparsity pattern).
 
 The ``Result:`` line checks the issue's bar: jaxpose GNC's APE ≤ GTSAM GNC's at every
 rate (both APEs), and at 50 % the aligned APE (the standard one) ≤ 1 % on sphere2500 and
-intel. Differences below 1 % of GTSAM's APE (or 1e-6 of the extent) count as ties and are marked so: with the same inlier set
-both solve the same weighted problem, and the APEs then differ only by where the inner
-solvers stop (GTSAM's LM at a relative decrease of 1e-5, restarted from the initial
-poses each time; jaxpose's at 1e-10).
+intel. Differences below 1 % of GTSAM's APE (or 1e-6 of the extent) count as ties and
+are marked so: with the same inlier set both solve the same weighted problem, and the
+APEs then differ only by where the inner solvers stop (GTSAM's LM at a relative decrease
+of 1e-5, restarted from the initial poses each time; jaxpose's at 1e-10).
 
 Usage::
 
