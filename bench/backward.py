@@ -11,7 +11,11 @@ Each contestant runs in its own cold process:
 * ``forward``: ``jit(L)`` — one LM solve (its iteration count k gives the time of one
   iteration, forward / k);
 * ``grad``: ``jit(grad(L))`` — the same solve plus the backward pass (exact Hessian at
-  the solution, one sparse factorisation and solve, the cross-derivative product).
+  the solution, one solve by the forward's linear solver, the cross-derivative product).
+
+Every solve uses ``graph.solve``'s default linear solver (``auto``: CHOLMOD for the pose
+graphs, Schur elimination of the points for BA — what a user gets; the table names it) or
+the one ``--solver`` names.
 
 Backward = the median of grad − forward over alternating pairs of runs in the grad process
 (the difference of the two processes' medians drifted by more than the backward itself);
@@ -25,7 +29,7 @@ bar: backward ≤ one forward iteration, peak memory ≤ 1.5× the forward's (XL
 Usage::
 
     python bench/backward.py [--only garage,sphere2500,bal,bal-synthetic] [--quick]
-                             [--out F.md]
+                             [--solver auto|sparse|schur|pcg|dense] [--out F.md]
 """
 
 from __future__ import annotations
@@ -76,8 +80,9 @@ def _source(name: str) -> Path | str | None:
     return path if path.exists() else None
 
 
-def _problem(name: str) -> tuple[Any, Any]:
-    """(loss(θ) -> (scalar, iterations), θ0) for problem ``name``."""
+def _problem(name: str, solver: str) -> tuple[Any, Any, str]:
+    """(loss(θ) -> (scalar, iterations), θ0, resolved linear solver) for problem ``name``
+    solved with ``linear_solver=solver``."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -107,20 +112,20 @@ def _problem(name: str) -> tuple[Any, Any]:
     def loss(theta: Any) -> Any:
         new = data.retract(theta) if isinstance(data, LieGroup) else data + theta
         sol = jg.solve(eqx.tree_at(lambda g: g.factors[0].data, graph, new),
-                       linear_solver="sparse")
+                       linear_solver=solver)
         value = sum(jnp.sum(w * x) for w, x in zip(weights, jax.tree.leaves(sol.variables),
                                                    strict=True))
         return value + sol.cost, sol.iterations
 
-    return loss, theta0
+    return loss, theta0, jg.GraphLinearSolver(solver).resolve(graph)
 
 
-def worker(name: str, mode: str) -> None:
+def worker(name: str, mode: str, solver: str) -> None:
     import jax
     import numpy as np
 
     jax.config.update("jax_enable_x64", True)
-    loss, theta0 = _problem(name)
+    loss, theta0, method = _problem(name, solver)
     f = loss if mode == "forward" else jax.grad(loss, has_aux=True)
     t0 = time.perf_counter()
     compiled = jax.jit(f).lower(theta0).compile()  # kept: its memory_analysis() below
@@ -132,7 +137,7 @@ def worker(name: str, mode: str) -> None:
     xla_mb = (mem.temp_size_in_bytes + mem.argument_size_in_bytes + mem.output_size_in_bytes
               ) / 2**20 if mem is not None else float("nan")
     result = {"compile_s": compile_s, "run_s": timing.median, "iterations": int(out[1]),
-              "peak_mb": peak_mb, "xla_mb": xla_mb}
+              "peak_mb": peak_mb, "xla_mb": xla_mb, "method": method}
     if mode == "grad":
         # the backward's time: grad − forward in alternating pairs in this process (the
         # difference of two processes' medians drifted by more than the backward itself)
@@ -154,7 +159,9 @@ def worker(name: str, mode: str) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     ap = parser(__doc__, quick="parking-garage only", threads=False, workers=True)
     ap.add_argument("--only", default=None, help=f"comma-separated of {','.join(PROBLEMS)}")
-    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: NAME:MODE
+    ap.add_argument("--solver", default="auto",
+                    help="graph.solve's linear_solver for every problem (default: auto)")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # NAME:MODE:SOLVER
     args = ap.parse_args(argv)
     if args.worker:
         worker(*args.worker.split(":"))
@@ -164,16 +171,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name in names:
         src = _source(name)
         if src is None:
-            rows.append([name, "—", "—", "—", "—", "—", "—", "—", "—", "skipped: data missing"])
+            rows.append([name] + ["—"] * 9 + ["skipped: data missing"])
             continue
         res = {}
         for mode in ("forward", "grad"):
-            res[mode] = spawn_worker([__file__, "--worker", f"{name}:{mode}"],
+            res[mode] = spawn_worker([__file__, "--worker", f"{name}:{mode}:{args.solver}"],
                                      timeout=args.timeout)
         fw, gr = res["forward"], res["grad"]
         if "failed" in fw or "failed" in gr:
             why = fw.get("failed") or gr.get("failed")
-            rows.append([name, "—", "—", "—", "—", "—", "—", "—", "—", f"failed: {why}"])
+            rows.append([name] + ["—"] * 9 + [f"failed: {why}"])
             verdicts.append(False)
             continue
         per_iter = fw["run_s"] / max(fw["iterations"], 1)
@@ -186,7 +193,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         ok = (backward <= per_iter or not resolved) and mem <= 1.5
         verdicts.append(ok)
         rows.append([
-            f"{name} ({getattr(src, 'name', src)})", f"{fw['iterations']}",
+            f"{name} ({getattr(src, 'name', src)})", fw["method"], f"{fw['iterations']}",
             fmt_seconds(fw["run_s"]),
             fmt_seconds(per_iter),
             fmt_seconds(backward) if resolved else f"< {fmt_seconds(noise)} (noise)",
@@ -196,15 +203,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{fmt_seconds(fw['compile_s'])} / {fmt_seconds(gr['compile_s'])}",
             "yes" if ok else "no",
         ])
-    header = ["problem", "LM iterations", "forward", "per iteration", "backward",
+    header = ["problem", "linear solver", "LM iterations", "forward", "per iteration", "backward",
               "backward / iteration", "XLA buffers forward / grad", "peak RSS forward / grad",
               "compile forward / grad",
               "bar met"]
     text = "\n".join([
         "## Backward pass through graph.solve vs one forward LM iteration (float64)",
         "",
-        f"{environment()}. Sparse direct solver (CHOLMOD); steady state, median of the "
-        "repeats; each contestant in a cold process.",
+        f"{environment()}. linear_solver={args.solver!r} (resolved per problem in the "
+        "table); steady state, median of the repeats; each contestant in a cold process.",
         "",
         markdown_table(header, rows),
         "",

@@ -49,9 +49,8 @@ from ._problem import (
     cost,
     free_flat,
     retract_all,
-    split,
 )
-from ._schur import reduced_solver, schur_step
+from ._schur import SchurParts, reduced_solver, schur_step, sort_entries, upper_pairs
 
 Array = jax.Array
 
@@ -84,21 +83,14 @@ def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
 def _add_factor_hessians(graph: FactorGraph, k: int, variables: Variables,
                          blocks: list[Array]) -> list[Array]:
     """``blocks`` plus the exact per-factor Hessians of factor group ``k`` (their blocks
-    of fixed variables zeroed), :data:`HESSIAN_CHUNK` factors per loop step. The last
-    chunk ends at the last factor and overlaps its predecessor; its overlapping rows are
-    dropped from the scatter."""
+    of fixed variables zeroed), in chunks (:func:`_over_chunks`)."""
     st = graph.structure
     f = graph.factors[k]
-    size = min(HESSIAN_CHUNK, f.count)
     pairs = list(zip(slot_pairs(len(f.slots)), st.block_class[k], st.block_index[k],
                      strict=True))
 
-    def step(i: Array, blocks: list[Array]) -> list[Array]:
-        start = jnp.minimum(i * size, f.count - size)
-        new = jnp.arange(size) + start >= i * size  # rows the previous step did not add
-        take = partial(jax.tree.map, lambda a: jax.lax.dynamic_slice_in_dim(a, start, size))
-        hess = _masked_hessians(graph, k, variables, take(f.indices), take(f.data),
-                                take(f.sqrt_info))
+    def add(blocks: list[Array], hess: Any, take: Callable[[Any], Any], new: Array,
+            start: Array) -> list[Array]:
         blocks = list(blocks)
         for (s, t), c, where in pairs:
             rows = jnp.where(new, take(where), blocks[c].shape[0])  # out of range: dropped
@@ -106,7 +98,29 @@ def _add_factor_hessians(graph: FactorGraph, k: int, variables: Variables,
                                                mode="drop")
         return blocks
 
-    return jax.lax.fori_loop(0, -(-f.count // size), step, blocks)
+    return _over_chunks(graph, k, variables, blocks, add)
+
+
+def _over_chunks(graph: FactorGraph, k: int, variables: Variables, carry: Any,
+                 consume: Callable[..., Any]) -> Any:
+    """Fold ``consume(carry, hess, take, new, start)`` over factor group ``k``'s exact
+    per-factor Hessian blocks (:func:`_masked_hessians`), :data:`HESSIAN_CHUNK` factors
+    per loop step: ``hess[s][t]`` (chunk, d_s, d_t) of the factors ``start + i``,
+    ``take(a)`` the chunk's rows of a per-factor array, ``new`` (chunk,) the rows no
+    earlier step held. The last chunk ends at the last factor and overlaps its
+    predecessor: sums must drop the rows that are not ``new``."""
+    f = graph.factors[k]
+    size = min(HESSIAN_CHUNK, f.count)
+
+    def step(i: Array, carry: Any) -> Any:
+        start = jnp.minimum(i * size, f.count - size)
+        new = jnp.arange(size) + start >= i * size
+        take = partial(jax.tree.map, lambda a: jax.lax.dynamic_slice_in_dim(a, start, size))
+        hess = _masked_hessians(graph, k, variables, take(f.indices), take(f.data),
+                                take(f.sqrt_info))
+        return consume(carry, hess, take, new, start)
+
+    return jax.lax.fori_loop(0, -(-f.count // size), step, carry)
 
 
 def _masked_hessians(graph: FactorGraph, k: int, variables: Variables,
@@ -299,31 +313,63 @@ def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
 
 def _schur_solve(graph: FactorGraph, xs: Variables, rhs: Array, dense_max: int) -> Array:
     """H⁻¹·rhs by Schur elimination (:func:`~jaxpose.graph._schur.schur_step` on the
-    exact per-factor Hessian blocks, the reduced system solved like the forward's) inside
-    ``jax.lax.custom_linear_solve`` with the block product as its operator."""
-    st = graph.structure
-    hess = [_masked_hessians(graph, k, xs, f.indices, f.data, f.sqrt_info)
-            for k, f in enumerate(graph.factors)]
+    exact Hessian's :func:`_exact_schur_parts`, the reduced system solved like the
+    forward's) inside ``jax.lax.custom_linear_solve``, whose operator is the exact
+    Hessian-vector product (used only by higher derivatives)."""
     add = 1.0 - free_flat(graph, rhs.dtype)  # fixed variables: identity rows
+    parts = _exact_schur_parts(graph, xs)
+    zero = jnp.zeros((graph.structure.size,), rhs.dtype)
 
-    def block(k: int, s: int, t: int) -> Array:
-        return hess[k][s][t]
+    def phi(delta: Array) -> Array:
+        return cost(graph, retract_all(graph, xs, delta, "retract_quadratic"))
 
     def matvec(v: Array) -> Array:
-        parts = split(graph, v)
-        out = [jnp.zeros_like(p) for p in parts]
-        type_of = {n: t for t, n in enumerate(st.names)}
-        for k, f in enumerate(graph.factors):
-            for s, t in slot_pairs(len(f.slots)):
-                a, b = type_of[f.slots[s]], type_of[f.slots[t]]
-                prod = jnp.einsum("mij,mj->mi", block(k, s, t), parts[b][f.indices[t]])
-                out[a] = out[a].at[f.indices[s]].add(prod)
-        return jnp.concatenate([o.reshape(-1) for o in out]) + add * v
+        return jax.jvp(jax.grad(phi), (zero,), (v,))[1] + add * v
 
     def inner(_: object, b: Array) -> Array:
-        return schur_step(graph, block, -b, add, reduced_solver(graph, dense_max))
+        return schur_step(graph, parts, -b, add, reduced_solver(graph, dense_max))
 
     return jax.lax.custom_linear_solve(matvec, rhs, inner, symmetric=True)
+
+
+def _exact_schur_parts(graph: FactorGraph, xs: Variables) -> SchurParts:
+    """:class:`~jaxpose.graph._schur.SchurParts` of the exact Hessian at ``xs``, from the
+    per-factor Hessians in chunks (:func:`_over_chunks`): U's and V's blocks are summed
+    as they come, only the entries B (one (d_k, d_e) block per factor and kept slot) are
+    kept per factor — the per-factor blocks of the whole graph at once cost 4x the
+    forward solve's memory on a 10 000-observation BA problem."""
+    st = graph.structure
+    sc = st.schur
+    e, kept = sc.eliminated, sc.kept
+    dtype = jax.tree.leaves(xs)[0].dtype
+    zero = 0.0 * jax.tree.leaves(xs)[0].reshape(-1)[0]  # see exact_hessian_csr
+    u = [b + zero.astype(b.dtype) for b in sc.pattern.zeros(dtype)]
+    v = jnp.zeros((st.counts[e], st.dims[e], st.dims[e]), dtype) + zero
+    w_parts: list[list[Array]] = [[] for _ in kept]
+    for n, f in enumerate(graph.factors):
+        q, upper = sc.e_slot[n], upper_pairs(graph, n)
+        ws = sc.w_slots[n] if q >= 0 else ()
+        w = [jnp.zeros((f.count, st.dims[kept[k]], st.dims[e]), dtype) + zero for _, k in ws]
+
+        def add(carry: Any, hess: Any, take: Callable[[Any], Any], new: Array,
+                start: Array, q: int = q, ws: Any = ws, upper: Any = upper,
+                f: Any = f) -> Any:
+            u, v, w = carry
+            u = list(u)
+            for (s, t), c, idx in upper:
+                rows = jnp.where(new, take(idx), u[c].shape[0])  # out of range: dropped
+                u[c] = u[c].at[rows].add(hess[s][t].astype(dtype), mode="drop")
+            if q >= 0:
+                rows = jnp.where(new, take(f.indices[q]), v.shape[0])
+                v = v.at[rows].add(hess[q][q].astype(dtype), mode="drop")
+            w = [jax.lax.dynamic_update_slice_in_dim(wk, hess[s][q].astype(dtype), start, 0)
+                 for wk, (s, _) in zip(w, ws, strict=True)]  # overlap: same values again
+            return u, v, w
+
+        u, v, w = _over_chunks(graph, n, xs, (u, v, w), add)
+        for wk, (_, k) in zip(w, ws, strict=True):
+            w_parts[k].append(wk)
+    return SchurParts(u, v, sort_entries(graph, w_parts, dtype))
 
 
 def _diagonal_blocks(graph: FactorGraph, values: Array) -> tuple[Array, ...]:

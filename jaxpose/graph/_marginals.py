@@ -345,9 +345,9 @@ def _entries(graph: FactorGraph, values: Any, plan: _Plan) -> list[Array]:
 
 
 def _reduced(graph: FactorGraph, lin: Any, free: Array) -> Any:
-    from ._schur import jtj_blocks, reduced_system
+    from ._schur import jtj_blocks, reduced_system, schur_parts
 
-    return reduced_system(graph, jtj_blocks(lin), 1.0 - free)
+    return reduced_system(graph, schur_parts(graph, jtj_blocks(lin), free.dtype), 1.0 - free)
 
 
 def _dense_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,

@@ -24,7 +24,7 @@ it with CHOLMOD at 50 cameras × 10 000 points (see ``bench/ba.py``).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,16 +47,68 @@ def jtj_blocks(lin: Any) -> PairBlock:
     return lambda k, s, t: small_matmul(lin.jacobians[k][s].mT, lin.jacobians[k][t])
 
 
+class SchurParts(NamedTuple):
+    """The pieces of H that elimination reads (module docstring): ``u`` the kept–kept
+    blocks as class arrays of the reduced pattern (upper classes filled, lower ones
+    zero), ``v`` (n_e, d_e, d_e) the eliminated variables' diagonal blocks, ``w`` per
+    kept type the entries B (n_k, d_k, d_e), sorted by kept variable. No damping."""
+
+    u: list[Array]
+    v: Array
+    w: list[Array]
+
+
+def schur_parts(graph: Any, block: PairBlock, dtype: Any) -> SchurParts:
+    """:class:`SchurParts` of H = Σ of the per-factor ``block``s (:func:`jtj_blocks`
+    for the damped normal equations)."""
+    st = graph.structure
+    sc: SchurStructure = st.schur
+    e, kept = sc.eliminated, sc.kept
+    n_e, d_e = st.counts[e], st.dims[e]
+    v = jnp.zeros((n_e, d_e, d_e), dtype)
+    u_contrib = []
+    w_parts: list[list[Array]] = [[] for _ in kept]
+    for n, (f, q, ws) in enumerate(zip(graph.factors, sc.e_slot, sc.w_slots, strict=True)):
+        for (s, t), c, idx in upper_pairs(graph, n):
+            u_contrib.append((c, idx, block(n, s, t)))
+        if q >= 0:
+            v = v.at[f.indices[q]].add(block(n, q, q))
+            for s, k in ws:
+                w_parts[k].append(block(n, s, q))
+    return SchurParts(scatter_blocks(sc.pattern.zeros(dtype), u_contrib), v,
+                      sort_entries(graph, w_parts, dtype))
+
+
+def upper_pairs(graph: Any, n: int) -> list[tuple[tuple[int, int], int, Array]]:
+    """``((s, t), class, (m,) block index)`` of factor group n's kept–kept slot pairs whose
+    class lies in the upper triangle of the reduced pattern (the lower ones are mirrored)."""
+    sc: SchurStructure = graph.structure.schur
+    return [(pair, c, idx) for pair, c, idx in zip(sc.u_pairs[n], sc.u_class[n],
+                                                    sc.u_index[n], strict=True)
+            if sc.pattern.classes[c][0] <= sc.pattern.classes[c][1]]
+
+
+def sort_entries(graph: Any, w_parts: list[list[Array]], dtype: Any) -> list[Array]:
+    """Per kept type, the entries B of every factor group (``w_parts[k]``: (m, d_k, d_e)
+    per group with an eliminated slot, in factor order) concatenated and sorted by kept
+    variable."""
+    st = graph.structure
+    sc: SchurStructure = st.schur
+    d_e = st.dims[sc.eliminated]
+    return [jnp.concatenate(p)[o] if p else jnp.zeros((0, st.dims[t], d_e), dtype)
+            for p, t, o in zip(w_parts, sc.kept, sc.w_order, strict=True)]
+
+
 def schur_step(
     graph: Any,
-    block: PairBlock,
+    parts: SchurParts,
     g: Array,
     diag_add: Array,
     solve_reduced: Callable[[Array, Array, Array, Array], Array],
 ) -> Array:
-    """Solve ``(H + diag(diag_add)) δ = −g`` by elimination, H = Σ of the per-factor
-    ``block``s (:func:`jtj_blocks` for the damped normal equations, the exact Hessian's
-    blocks in the implicit rule).
+    """Solve ``(H + diag(diag_add)) δ = −g`` by elimination, H given by its
+    :class:`SchurParts` (:func:`schur_parts` of :func:`jtj_blocks` for the damped normal
+    equations; the exact Hessian's, assembled in chunks, in the implicit rule).
 
     ``diag_add`` (N,), in the graph's tangent layout, holds everything added to the
     diagonal of H (damping, and 1 for fixed variables, whose blocks are zero).
@@ -65,7 +117,7 @@ def schur_step(
     st = graph.structure
     sc: SchurStructure = st.schur
     e, kept = sc.eliminated, sc.kept
-    data, v_inv, w, y = reduced_system(graph, block, diag_add)
+    data, v_inv, w, y = reduced_system(graph, parts, diag_add)
 
     # reduced right-hand side and back-substitution
     g_blocks = split_tangent(st, g)
@@ -93,38 +145,19 @@ def schur_step(
 
 
 def reduced_system(
-    graph: Any, block: PairBlock, diag_add: Array
+    graph: Any, parts: SchurParts, diag_add: Array
 ) -> tuple[Array, Array, list[Array], list[Array]]:
     """The reduced matrix S = U − W V⁻¹ Wᵀ of ``H + diag(diag_add)`` (module docstring),
-    H the sum of the per-factor ``block``s.
+    H given by its :class:`SchurParts`.
 
     Returns (S as CSR values in ``graph.structure.schur.pattern``, V⁻¹ (n_e, d, d), the
     entries B per kept type, Y = B V⁻¹ per kept type)."""
     st = graph.structure
     sc: SchurStructure = st.schur
     e, kept = sc.eliminated, sc.kept
-    dtype = diag_add.dtype
-    n_e, d_e = st.counts[e], st.dims[e]
-
-    # V (n_e, d, d), U (reduced class arrays) and the entries B per kept type
-    v = jnp.zeros((n_e, d_e, d_e), dtype)
-    u_contrib = []
-    w_parts: list[list[Array]] = [[] for _ in kept]
-    for n, (f, q, pairs, classes, indices, ws) in enumerate(zip(
-        graph.factors, sc.e_slot, sc.u_pairs, sc.u_class, sc.u_index, sc.w_slots,
-        strict=True,
-    )):
-        for (s, t), c, idx in zip(pairs, classes, indices, strict=True):
-            ka, kb, _ = sc.pattern.classes[c]
-            if ka <= kb:  # lower classes are mirrored from the upper ones below
-                u_contrib.append((c, idx, block(n, s, t)))
-        if q >= 0:
-            v = v.at[f.indices[q]].add(block(n, q, q))
-            for s, k in ws:
-                w_parts[k].append(block(n, s, q))
-    u = scatter_blocks(sc.pattern.zeros(dtype), u_contrib)
-    w = [jnp.concatenate(p)[o] if p else jnp.zeros((0, st.dims[t], d_e), dtype)
-         for p, t, o in zip(w_parts, kept, sc.w_order, strict=True)]
+    d_e = st.dims[e]
+    u, v, w = parts
+    u = list(u)
 
     # damping (and the identity rows of fixed variables) on the diagonals of V and U
     add = split_tangent(st, diag_add)

@@ -56,7 +56,7 @@ from ._problem import (
     split,
     zero_linearization,
 )
-from ._schur import jtj_blocks, reduced_solver, schur_step
+from ._schur import jtj_blocks, reduced_solver, schur_parts, schur_step
 
 Array = jax.Array
 
@@ -200,7 +200,7 @@ class _SparseLinear:
             self.iterations = self.iterations + jnp.asarray(its, jnp.int32)
             return x
         if self.kind == "schur":
-            return schur_step(graph, jtj_blocks(lin), grad, add,
+            return schur_step(graph, schur_parts(graph, jtj_blocks(lin), grad.dtype), grad, add,
                               reduced_solver(graph, self.dense_max))
         data = csr_values(graph, lin).at[st.diag_pos].add(add)
         direct = linear.solve_sparse_direct if self.kind == "sparse" else linear.solve_dense

@@ -31,7 +31,7 @@ from jaxpose.graph import (
 from jaxpose.graph import _ba as bal_graph
 from jaxpose.graph import _linear as linear
 from jaxpose.graph._problem import gradient, hessian_diagonal, linearize
-from jaxpose.graph._schur import jtj_blocks, schur_step
+from jaxpose.graph._schur import jtj_blocks, schur_parts, schur_step
 from jaxpose.io import BALProblem, read_bal
 from jaxpose.lie import SE3
 from jaxpose.optim import Nielsen
@@ -133,8 +133,10 @@ def test_schur_step_equals_the_dense_solve_of_the_full_system():
         zero = jnp.zeros(graph.size)
         return dict(
             lin=lin, g=g, add=add, free=free, J_ref=jax.jacfwd(ref)(zero), r_ref=ref(zero),
-            dense=schur_step(graph, jtj_blocks(lin), g, add, linear.solve_dense),
-            sparse=schur_step(graph, jtj_blocks(lin), g, add, linear.solve_sparse_direct),
+            dense=schur_step(graph, schur_parts(graph, jtj_blocks(lin), g.dtype), g, add,
+                             linear.solve_dense),
+            sparse=schur_step(graph, schur_parts(graph, jtj_blocks(lin), g.dtype), g, add,
+                              linear.solve_sparse_direct),
         )
 
     out = run(graph)
@@ -262,6 +264,49 @@ def _ba_loss(linear_solver: str, theta):
     sol = solve(graph, linear_solver=linear_solver, **BA_OPTIONS)
     w = jnp.asarray(np.random.default_rng(4).normal(size=sol.variables["point"].shape))
     return jnp.sum(w * sol.variables["point"]) + sol.cost
+
+
+@pytest.mark.parametrize("chunk", [7, 1000])
+def test_exact_schur_parts_in_chunks_give_the_dense_schur_complement(monkeypatch, chunk):
+    """The backward's Schur pieces of the exact Hessian, assembled HESSIAN_CHUNK factors
+    at a time (120 reprojections: 17 chunks of 7 and an overlapping last one; or one
+    chunk), reduce to the Schur complement of the dense ``jax.hessian`` of the cost
+    (fixed variables: identity rows), and their eliminated blocks to its point block."""
+    import scipy.sparse as sp
+
+    from jaxpose.graph import _implicit
+    from jaxpose.graph._problem import cost, free_flat, retract_all
+    from jaxpose.graph._schur import reduced_system
+
+    monkeypatch.setattr(_implicit, "HESSIAN_CHUNK", chunk)
+    graph, _ = _schur_graph()
+    st, sc = graph.structure, graph.structure.schur
+    xs = graph.variables
+    add = 1.0 - free_flat(graph, jnp.float64)
+
+    # a fresh function: jit's cache does not see the patched chunk size
+    @jax.jit
+    def reduced(graph, xs):
+        data, v_inv, _, _ = reduced_system(graph, _implicit._exact_schur_parts(graph, xs), add)
+        return data, v_inv
+
+    data, v_inv = reduced(graph, xs)
+    got = sp.csr_matrix((np.asarray(data), sc.pattern.indices, sc.pattern.indptr)).toarray()
+    zero = jnp.zeros(st.size)
+    h = np.array(jax.hessian(lambda d: cost(graph, retract_all(graph, xs, d,
+                                                                "retract_quadratic")))(zero))
+    h += np.diag(np.asarray(add))
+    spans = [np.arange(o, o + n * d) for o, n, d in
+             zip(st.offsets[:-1], st.counts, st.dims, strict=True)]
+    e = spans[sc.eliminated]
+    k = np.concatenate([spans[t] for t in sc.kept])
+    want = h[np.ix_(k, k)] - h[np.ix_(k, e)] @ np.linalg.solve(h[np.ix_(e, e)], h[np.ix_(e, k)])
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-10 * np.abs(want).max())
+    v = np.linalg.inv(np.asarray(v_inv))
+    d = st.dims[sc.eliminated]
+    np.testing.assert_allclose(
+        v, [h[np.ix_(e[d * i:d * i + d], e[d * i:d * i + d])] for i in range(v.shape[0])],
+        rtol=0, atol=1e-9 * np.abs(h).max())
 
 
 # slow tier: compiles two BA gradients (~20 s; the default run is over its ~6 min budget)
