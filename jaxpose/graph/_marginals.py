@@ -345,7 +345,8 @@ def _entries(graph: FactorGraph, values: Any, plan: _Plan) -> list[Array]:
 
 
 def _reduced(graph: FactorGraph, lin: Any, free: Array) -> Any:
-    from ._schur import jtj_blocks, reduced_system, schur_parts
+    from ._problem import jtj_blocks
+    from ._schur import reduced_system, schur_parts
 
     return reduced_system(graph, schur_parts(graph, jtj_blocks(lin), free.dtype), 1.0 - free)
 

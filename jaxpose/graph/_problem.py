@@ -300,19 +300,24 @@ def assemble_blocks(
     return scatter_blocks(st.pattern.zeros(dtype), contributions)
 
 
-def hessian_blocks(graph: FactorGraph, lin: GraphLinearization) -> list[Array]:
-    """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``."""
+def jtj_blocks(lin: GraphLinearization) -> Any:
+    """The Gauss–Newton blocks ``block(k, s, t)`` = J_sᵀJ_t (m, d_s, d_t) of factor group
+    k's slots s and t; a block (t, s) asked for after (s, t) is its transpose."""
     cache: dict[tuple[int, int, int], Array] = {}
 
     def jtj(k: int, s: int, t: int) -> Array:
-        # J_sᵀJ_t; the block (t, s) below the diagonal is the transpose of (s, t)
         if (k, t, s) in cache:
             return cache[k, t, s].mT
         jac = lin.jacobians[k]
         cache[k, s, t] = small_matmul(jac[s].mT, jac[t])
         return cache[k, s, t]
 
-    return assemble_blocks(graph, jtj, lin.cost.dtype)
+    return jtj
+
+
+def hessian_blocks(graph: FactorGraph, lin: GraphLinearization) -> list[Array]:
+    """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``."""
+    return assemble_blocks(graph, jtj_blocks(lin), lin.cost.dtype)
 
 
 def csr_values(graph: FactorGraph, lin: GraphLinearization) -> Array:

@@ -29,7 +29,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..lie._base import small_matmul
 from ._analysis import SchurStructure, split_tangent
 from ._linear import solve_dense, solve_sparse_direct
 from ._pattern import scatter_blocks
@@ -40,11 +39,6 @@ Array = jax.Array
 PairBlock = Callable[[int, int, int], Array]
 """``block(k, s, t)``: factor group k's (m, d_s, d_t) blocks of H for its slots (s, t)
 (blocks of fixed variables zero)."""
-
-
-def jtj_blocks(lin: Any) -> PairBlock:
-    """The Gauss–Newton blocks J_sᵀJ_t of the linearisation ``lin``."""
-    return lambda k, s, t: small_matmul(lin.jacobians[k][s].mT, lin.jacobians[k][t])
 
 
 class SchurParts(NamedTuple):
@@ -59,8 +53,8 @@ class SchurParts(NamedTuple):
 
 
 def schur_parts(graph: Any, block: PairBlock, dtype: Any) -> SchurParts:
-    """:class:`SchurParts` of H = Σ of the per-factor ``block``s (:func:`jtj_blocks`
-    for the damped normal equations)."""
+    """:class:`SchurParts` of H = Σ of the per-factor ``block``s
+    (:func:`~jaxpose.graph._problem.jtj_blocks` for the damped normal equations)."""
     st = graph.structure
     sc: SchurStructure = st.schur
     e, kept = sc.eliminated, sc.kept
@@ -107,8 +101,9 @@ def schur_step(
     solve_reduced: Callable[[Array, Array, Array, Array], Array],
 ) -> Array:
     """Solve ``(H + diag(diag_add)) δ = −g`` by elimination, H given by its
-    :class:`SchurParts` (:func:`schur_parts` of :func:`jtj_blocks` for the damped normal
-    equations; the exact Hessian's, assembled in chunks, in the implicit rule).
+    :class:`SchurParts` (:func:`schur_parts` of
+    :func:`~jaxpose.graph._problem.jtj_blocks` for the damped normal equations; the exact
+    Hessian's, assembled in chunks, in the implicit rule).
 
     ``diag_add`` (N,), in the graph's tangent layout, holds everything added to the
     diagonal of H (damping, and 1 for fixed variables, whose blocks are zero).

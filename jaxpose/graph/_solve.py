@@ -50,13 +50,14 @@ from ._problem import (
     gradient,
     hessian_diagonal,
     hessian_vector,
+    jtj_blocks,
     linearize,
     residual_cost,
     retract_all,
     split,
     zero_linearization,
 )
-from ._schur import jtj_blocks, reduced_solver, schur_parts, schur_step
+from ._schur import reduced_solver, schur_parts, schur_step
 
 Array = jax.Array
 

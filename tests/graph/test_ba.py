@@ -30,8 +30,8 @@ from jaxpose.graph import (
 )
 from jaxpose.graph import _ba as bal_graph
 from jaxpose.graph import _linear as linear
-from jaxpose.graph._problem import gradient, hessian_diagonal, linearize
-from jaxpose.graph._schur import jtj_blocks, schur_parts, schur_step
+from jaxpose.graph._problem import gradient, hessian_diagonal, jtj_blocks, linearize
+from jaxpose.graph._schur import schur_parts, schur_step
 from jaxpose.io import BALProblem, read_bal
 from jaxpose.lie import SE3
 from jaxpose.optim import Nielsen
