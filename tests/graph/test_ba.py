@@ -266,6 +266,16 @@ def _ba_loss(linear_solver: str, theta):
     return jnp.sum(w * sol.variables["point"]) + sol.cost
 
 
+@jax.jit(compiler_options=FAST_COMPILE)
+def _dense_cost_hessian(graph):
+    """``jax.hessian`` of the graph's cost in its tangent chart at its variables."""
+    from jaxpose.graph._problem import cost, retract_all
+
+    return jax.hessian(lambda d: cost(graph, retract_all(graph, graph.variables, d,
+                                                         "retract_quadratic")))(
+        jnp.zeros(graph.structure.size))
+
+
 @pytest.mark.parametrize("chunk", [7, 1000])
 def test_exact_schur_parts_in_chunks_give_the_dense_schur_complement(monkeypatch, chunk):
     """The backward's Schur pieces of the exact Hessian, assembled HESSIAN_CHUNK factors
@@ -275,7 +285,7 @@ def test_exact_schur_parts_in_chunks_give_the_dense_schur_complement(monkeypatch
     import scipy.sparse as sp
 
     from jaxpose.graph import _implicit
-    from jaxpose.graph._problem import cost, free_flat, retract_all
+    from jaxpose.graph._problem import free_flat
     from jaxpose.graph._schur import reduced_system
 
     monkeypatch.setattr(_implicit, "HESSIAN_CHUNK", chunk)
@@ -285,17 +295,14 @@ def test_exact_schur_parts_in_chunks_give_the_dense_schur_complement(monkeypatch
     add = 1.0 - free_flat(graph, jnp.float64)
 
     # a fresh function: jit's cache does not see the patched chunk size
-    @jax.jit
+    @jax.jit(compiler_options=FAST_COMPILE)
     def reduced(graph, xs):
         data, v_inv, _, _ = reduced_system(graph, _implicit._exact_schur_parts(graph, xs), add)
         return data, v_inv
 
     data, v_inv = reduced(graph, xs)
     got = sp.csr_matrix((np.asarray(data), sc.pattern.indices, sc.pattern.indptr)).toarray()
-    zero = jnp.zeros(st.size)
-    h = np.array(jax.hessian(lambda d: cost(graph, retract_all(graph, xs, d,
-                                                                "retract_quadratic")))(zero))
-    h += np.diag(np.asarray(add))
+    h = np.array(_dense_cost_hessian(graph)) + np.diag(np.asarray(add))
     spans = [np.arange(o, o + n * d) for o, n, d in
              zip(st.offsets[:-1], st.counts, st.dims, strict=True)]
     e = spans[sc.eliminated]
