@@ -278,6 +278,18 @@ def _compile(lowered, extra=None):
     return lowered.compile(compiler_options={**compile_options(), **(extra or {})})
 
 
+def _note_slow_blas(prog: str) -> None:
+    """One line on stderr when the sparse factorisations ran on the reference BLAS for want
+    of an optimised one (:func:`jaxpose.graph._cholmod.slow_blas`)."""
+    from .graph import _cholmod
+
+    why = _cholmod.slow_blas()
+    if why is not None:
+        print(f"{prog}: note: CHOLMOD ran on the {why} BLAS; large sparse factorisations "
+              "are about 3x slower than with OpenBLAS (apt-get install libopenblas0, or "
+              "JAXPOSE_BLAS=PATH of an LP64 BLAS)", file=sys.stderr)
+
+
 def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, poses=None):
     """Solve a PoseGraph, print the table and summary; returns (poses, solution)."""
     import jax
@@ -299,6 +311,7 @@ def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, poses=None):
     print(f"initial cost {float(sol.initial_cost):.6e}  final cost {float(sol.cost):.6e}  "
           f"iterations {int(sol.iterations)}  status {sol.status_name}")
     print(f"time: solve {solve_s:.3f} s, compile {compile_s:.2f} s")
+    _note_slow_blas("jaxpose pgo")
     return sol.variables["pose"].data, sol
 
 
@@ -331,6 +344,7 @@ def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
           f"rejected" + (f" (edges {', '.join(map(str, rejected[:10]))}"
                          f"{', ...' if rejected.size > 10 else ''})" if rejected.size else ""))
     print(f"time: {total_s:.3f} s (including compilation)")
+    _note_slow_blas("jaxpose pgo")
     return poses, sol
 
 
@@ -482,6 +496,7 @@ def ba_command(args: argparse.Namespace) -> int:
     print(f"reprojection RMSE {ba.reprojection_rmse(problem):.4g} -> "
           f"{ba.reprojection_rmse(out):.4g} px")
     print(f"time: solve {solve_s:.3f} s, compile {compile_s:.2f} s")
+    _note_slow_blas("jaxpose ba")
     if not (np.isfinite(out.cameras).all() and np.isfinite(out.points).all()):
         raise CLIError("the optimised cameras or points are not finite; nothing written")
     if args.out:

@@ -258,6 +258,17 @@ def blas() -> str:
     return _BLAS
 
 
+def slow_blas() -> str | None:
+    """When CHOLMOD has been loaded (a sparse solve ran) on the reference BLAS without the
+    user asking for it (``JAXPOSE_BLAS=reference``): the reason, for a one-line notice
+    (large supernodal factorisations are about 3x slower); else None."""
+    if not _LOADED or _LIB is None:
+        return None
+    if _BLAS.startswith("reference") and "JAXPOSE_BLAS=reference" not in _BLAS:
+        return _BLAS
+    return None
+
+
 def unavailable_reason() -> str | None:
     """Why :func:`available` is False (None when it is True)."""
     _load()

@@ -105,3 +105,22 @@ def test_jaxpose_blas_environment_variable():
     assert result.startswith("True \"reference ('/nonexistent/") and result.endswith(" True")
     assert "JAXPOSE_BLAS='/nonexistent/libblas-missing.so' could not be loaded" in warned
     assert "'reference'" in warned
+
+
+def test_the_cli_notes_a_reference_blas_unless_asked_for(monkeypatch, capsys):
+    """`jaxpose pgo` / `ba` say on stderr when CHOLMOD ran on the reference BLAS for want
+    of OpenBLAS (3x slower factorisations), not when the user chose it."""
+    _require_cholmod()
+    from jaxpose.cli import _note_slow_blas
+
+    monkeypatch.setattr(cholmod, "_BLAS", "reference (no system OpenBLAS found)")
+    assert cholmod.slow_blas() == "reference (no system OpenBLAS found)"
+    _note_slow_blas("jaxpose pgo")
+    err = capsys.readouterr().err
+    assert err.startswith("jaxpose pgo: note: CHOLMOD ran on the reference (no system "
+                          "OpenBLAS found) BLAS") and "libopenblas0" in err
+    for chosen in ("reference (JAXPOSE_BLAS=reference)", "libopenblas.so.0"):
+        monkeypatch.setattr(cholmod, "_BLAS", chosen)
+        assert cholmod.slow_blas() is None
+        _note_slow_blas("jaxpose pgo")
+        assert capsys.readouterr().err == ""
