@@ -108,8 +108,11 @@ def _over_chunks(graph: FactorGraph, k: int, variables: Variables, carry: Any,
     per loop step: ``hess[s][t]`` (chunk, d_s, d_t) of the factors ``start + i``,
     ``take(a)`` the chunk's rows of a per-factor array, ``new`` (chunk,) the rows no
     earlier step held. The last chunk ends at the last factor and overlaps its
-    predecessor: sums must drop the rows that are not ``new``."""
+    predecessor: sums must drop the rows that are not ``new``. An empty group adds
+    nothing."""
     f = graph.factors[k]
+    if f.count == 0:
+        return carry
     size = min(HESSIAN_CHUNK, f.count)
 
     def step(i: Array, carry: Any) -> Any:

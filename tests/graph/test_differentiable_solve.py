@@ -244,6 +244,22 @@ def test_exact_hessian_in_chunks_equals_the_dense_hessian_of_the_cost(monkeypatc
     np.testing.assert_array_equal(diag, [got[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(N)])
 
 
+def test_an_empty_factor_group_adds_nothing_to_the_exact_hessian():
+    """A factor group with no factors (a valid graph) divided by zero in the chunk loop of
+    every derivative; it now adds nothing."""
+    from jaxpose.graph import _implicit
+
+    between = G.Factor(between_residual, [("pose", EDGES[:, 0]), ("pose", EDGES[:, 1])],
+                       data=Z_TRUE.retract(NOISE), information=INFO)
+    empty = G.Factor(between_residual, [("pose", np.zeros(0, int)), ("pose", np.zeros(0, int))],
+                     data=SE2(jnp.zeros((0, 4))))
+    fixed = {"pose": np.array([0])}
+    hess = jax.jit(lambda g: _implicit.exact_hessian_csr(g, g.variables))
+    with_empty = hess(G.FactorGraph([between, empty], {"pose": X0}, fixed=fixed))
+    alone = hess(G.FactorGraph([between], {"pose": X0}, fixed=fixed))
+    np.testing.assert_array_equal(with_empty, alone)
+
+
 def test_backward_follows_the_forward_linear_solver():
     """The backward's linear solve is the forward's: dense Cholesky for small graphs
     (``auto``), CHOLMOD for ``sparse``, CG for ``pcg`` — the first and last never call
