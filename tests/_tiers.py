@@ -10,9 +10,14 @@ by default.
 Regenerate after adding or renaming many tests (a test missing from the file runs by
 default, so a stale file only costs time)::
 
-    COVERAGE_FILE=/tmp/cov/.coverage python -m pytest -n auto -m "not slow and not integration" \
-        --cov=jaxpose --cov-context=test --cov-report= --junitxml=/tmp/cov/junit.xml
+    JAXPOSE_ALL_TIERS=1 COVERAGE_FILE=/tmp/cov/.coverage python -m pytest -n auto \
+        -m "not slow and not integration" --cov=jaxpose --cov-context=test --cov-report= \
+        --junitxml=/tmp/cov/junit.xml
     python tests/_tiers.py /tmp/cov/.coverage /tmp/cov/junit.xml
+
+``JAXPOSE_ALL_TIERS=1`` keeps tests/conftest.py from marking this file's tests ``slow``:
+without it the run sees only the current default tier, and the file written from it
+would drop every test it lists now (they would all run by default again).
 
 The selection is a weighted greedy set cover (gain in uncovered lines and test functions
 per second of the test's measured duration) followed by a pass that drops, longest first,
