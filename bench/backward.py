@@ -160,7 +160,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = parser(__doc__, quick="parking-garage only", threads=False, workers=True)
     ap.add_argument("--only", default=None, help=f"comma-separated of {','.join(PROBLEMS)}")
     ap.add_argument("--solver", default="auto",
-                    help="graph.solve's linear_solver for every problem (default: auto)")
+                    choices=("auto", "sparse", "schur", "pcg", "dense"),
+                    help="graph.solve's linear_solver for every problem (default: auto; "
+                    "schur needs a BA problem)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # NAME:MODE:SOLVER
     args = ap.parse_args(argv)
     if args.worker:
