@@ -243,12 +243,10 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     zero = jnp.zeros((graph.structure.size,), dtype)
     free = free_flat(graph, dtype)
 
-    def phi(delta: Array, g: FactorGraph) -> Array:
-        return cost(g, retract_all(g, xs, delta, "retract_quadratic"))
-
     # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost) and
     # b = ∂(∇_δφ)/∂θ · θ̇
-    grad0, b = jvp_where(lambda g: jax.grad(phi)(zero, g), graph, t_graph)
+    grad0, b = jvp_where(lambda g: jax.grad(_chart_cost, argnums=2)(g, xs, zero), graph,
+                         t_graph)
     eps_dot = -_tangent_solve(graph, options, xs, b * free)
     x_dot = jax.jvp(lambda d: retract_all(graph, xs, d, "retract_quadratic"), (zero,),
                     (eps_dot,))[1]
@@ -257,6 +255,12 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     _, dinit = jvp_where(lambda gx: cost(*gx), (graph, x0), (t_graph, t_x0))
     t_sol = type(sol)(x_dot, dcost, dinit, None, None, None, None)  # None: no tangent
     return sol, t_sol
+
+
+def _chart_cost(graph: FactorGraph, xs: Variables, delta: Array) -> Array:
+    """φ(δ) = cost(X ⊕ δ): the graph's cost in the tangent chart at ``xs`` (the quadratic
+    retraction, exact to second order; fixed variables do not move), δ (N,)."""
+    return cost(graph, retract_all(graph, xs, delta, "retract_quadratic"))
 
 
 def _refuse_open_gauge(graph: FactorGraph) -> None:
@@ -323,11 +327,9 @@ def _schur_solve(graph: FactorGraph, xs: Variables, rhs: Array, dense_max: int) 
     parts = _exact_schur_parts(graph, xs)
     zero = jnp.zeros((graph.structure.size,), rhs.dtype)
 
-    def phi(delta: Array) -> Array:
-        return cost(graph, retract_all(graph, xs, delta, "retract_quadratic"))
-
     def matvec(v: Array) -> Array:
-        return jax.jvp(jax.grad(phi), (zero,), (v,))[1] + add * v
+        hvp = jax.jvp(jax.grad(partial(_chart_cost, graph, xs)), (zero,), (v,))[1]
+        return hvp + add * v
 
     def inner(_: object, b: Array) -> Array:
         return schur_step(graph, parts, -b, add, reduced_solver(graph, dense_max))
