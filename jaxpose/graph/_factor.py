@@ -221,7 +221,7 @@ def between_jacobian(xi: LieGroup, xj: LieGroup, z: LieGroup) -> tuple[Array, Ar
     With E = Z⁻¹Xi⁻¹Xj and r = Log(E): ∂r/∂δj = Jr⁻¹(r) and ∂r/∂δi = −Jr⁻¹(r)·Adj(Xj⁻¹Xi)."""
     rel = xi.inv().compose(xj)
     r = z.inv().compose(rel).log()
-    jr_inv = r.jr_inv()
+    jr_inv = r.group._jl_inv_principal(-r.data)  # Jr⁻¹(r) = Jl⁻¹(−r), |r's angle| ≤ π
     return r.data, -small_matmul(jr_inv, rel.inv().adj_matrix()), jr_inv
 
 

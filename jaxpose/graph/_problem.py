@@ -160,15 +160,16 @@ def residual_cost(graph: FactorGraph, residuals: Any) -> Array:
 
 
 def zero_linearization(graph: FactorGraph, residuals: Any) -> GraphLinearization:
-    """Zeros in the layout of :func:`linearize`, from the per-factor residuals (m, r)
-    (a loop carry's placeholder, without tracing the Jacobians)."""
+    """Zeros in the layout of :func:`linearize`, from the per-factor residuals (m, r) or
+    their shapes (``jax.eval_shape``): a loop carry's placeholder, without tracing the
+    Jacobians."""
     st = graph.structure
     dims = dict(zip(st.names, st.dims, strict=True))
     jac = tuple(
         tuple(jnp.zeros((*r.shape, dims[s]), r.dtype) for s in f.slots)
         for f, r in zip(graph.factors, residuals, strict=True)
     )
-    res = tuple(jnp.zeros_like(r) for r in residuals)
+    res = tuple(jnp.zeros(r.shape, r.dtype) for r in residuals)
     return GraphLinearization(res, jac, jnp.zeros((), residuals[0].dtype))
 
 

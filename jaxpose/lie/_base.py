@@ -682,6 +682,12 @@ class LieGroup(_Element):
         eye = jnp.broadcast_to(jnp.eye(cls.tangent_dim, dtype=a.dtype), jl.shape)
         return jnp.linalg.solve(jl, eye)
 
+    @classmethod
+    def _jl_inv_principal(cls, a: Array) -> Array:
+        """``_jl_inv`` for a tangent from ``_log`` (rotation angle ≤ π): groups whose
+        coefficients have a shorter form on that range (SO3, SE3) override it."""
+        return cls._jl_inv(a)
+
 
 def _shape_args(shape: tuple[Any, ...]) -> tuple[int, ...]:
     """Accept reshape(2, 3) and reshape((2, 3))."""

@@ -235,10 +235,11 @@ def jl(phi: Array) -> Array:
     return _poly_skew(phi, t, a, b)
 
 
-def jl_inv(phi: Array) -> Array:
-    """SO(3) inverse left Jacobian I − ½[φ]× + C[φ]×² (..., 3, 3)."""
+def jl_inv(phi: Array, *, principal: bool = False) -> Array:
+    """SO(3) inverse left Jacobian I − ½[φ]× + C[φ]×² (..., 3, 3). ``principal=True``
+    promises |φ| ≤ π (as :func:`jl_inv_apply`)."""
     t = series.safe_norm_sq(phi)
-    c = series.jinv_coeff(t)[..., None, None]
+    c = (series.jinv_coeff_principal if principal else series.jinv_coeff)(t)[..., None, None]
     return _poly_skew(phi, t, jnp.full_like(c, -0.5), c)
 
 

@@ -28,6 +28,25 @@ def _v_coeffs(theta: Array) -> tuple[Array, Array]:
     return series.sinc(t), theta * series.one_minus_cos_over_t(t)
 
 
+def _jl_column(xi: Array, *, principal: bool) -> Array:
+    """The translation column w of Jl(ξ) = [[V, w], [0, 1]] (..., 2): w = [[B, A], [−A, B]]·ρ
+    with A = (1 − cos θ)/θ², B = (θ − sin θ)/θ². ``principal=True`` promises |θ| ≤ π."""
+    rho, th = xi[..., :2], xi[..., 2]
+    t = th * th
+    fns = (series.one_minus_cos_over_t, series.theta_minus_sin_over_theta3)
+    if principal:
+        fns = tuple(series.PRINCIPAL[f] for f in fns)
+    a, b = fns[0](t), th * fns[1](t)
+    return jnp.stack([b * rho[..., 0] + a * rho[..., 1], -a * rho[..., 0] + b * rho[..., 1]], -1)
+
+
+def _with_column(block: Array, col: Array) -> Array:
+    """[[block, col], [0, 1]] (..., 3, 3) from a (..., 2, 2) block and a (..., 2) column."""
+    top = jnp.concatenate([block, col[..., None]], -1)
+    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], col.dtype), (*col.shape[:-1], 1, 3))
+    return jnp.concatenate([top, bottom], -2)
+
+
 def _perp(v: Array) -> Array:
     """[vy, −vx]: the SE(2) adjoint column, J·v with J = [[0, 1], [−1, 0]]."""
     return jnp.stack([v[..., 1], -v[..., 0]], -1)
@@ -110,27 +129,21 @@ class SE2(LieGroup):
 
     @staticmethod
     def _jl(xi: Array) -> Array:
-        rho, th = xi[..., :2], xi[..., 2]
-        t = th * th
-        a, b = _v_coeffs(th)
-        A = series.one_minus_cos_over_t(t)
-        B = th * series.theta_minus_sin_over_theta3(t)  # (θ − sinθ)/θ²
-        col = jnp.stack([B * rho[..., 0] + A * rho[..., 1], -A * rho[..., 0] + B * rho[..., 1]], -1)
+        a, b = _v_coeffs(xi[..., 2])
         v = jnp.stack([jnp.stack([a, -b], -1), jnp.stack([b, a], -1)], -2)
-        top = jnp.concatenate([v, col[..., None]], -1)
-        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], xi.dtype), (*xi.shape[:-1], 1, 3))
-        return jnp.concatenate([top, bottom], -2)
+        return _with_column(v, _jl_column(xi, principal=False))
 
     @staticmethod
-    def _jl_inv(xi: Array) -> Array:
+    def _jl_inv(xi: Array, principal: bool = False) -> Array:
         # [[V, w], [0, 1]]⁻¹ = [[V⁻¹, −V⁻¹w], [0, 1]] with V⁻¹ = [[h, θ/2], [−θ/2, h]].
         th = xi[..., 2]
-        jl = SE2._jl(xi)
-        h = series.half_cot_half(th * th)
+        h = (series.half_cot_half_principal if principal else series.half_cot_half)(th * th)
         vinv = jnp.stack([jnp.stack([h, 0.5 * th], -1), jnp.stack([-0.5 * th, h], -1)], -2)
-        col = -matvec(vinv, jl[..., :2, 2])
-        top = jnp.concatenate([vinv, col[..., None]], -1)
-        return jnp.concatenate([top, jl[..., 2:, :]], -2)
+        return _with_column(vinv, -matvec(vinv, _jl_column(xi, principal=principal)))
+
+    @staticmethod
+    def _jl_inv_principal(xi: Array) -> Array:
+        return SE2._jl_inv(xi, principal=True)
 
     @staticmethod
     def _hat(xi: Array) -> Array:

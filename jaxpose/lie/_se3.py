@@ -27,12 +27,14 @@ def _split(x: Array) -> tuple[Array, Array]:
     return x[..., :3], x[..., 3:]
 
 
-def q_block(rho: Array, phi: Array) -> Array:
-    """Barfoot's Q(ρ, φ) (…, 3, 3): the off-diagonal block of the SE(3) left Jacobian."""
+def q_block(rho: Array, phi: Array, *, principal: bool = False) -> Array:
+    """Barfoot's Q(ρ, φ) (…, 3, 3): the off-diagonal block of the SE(3) left Jacobian.
+    ``principal=True`` promises |φ| ≤ π (one polynomial per coefficient)."""
     t = series.safe_norm_sq(phi)
-    c1 = series.theta_minus_sin_over_theta3(t)[..., None, None]
-    c2 = series.se3_q_c2(t)[..., None, None]
-    c3 = series.se3_q_c3(t)[..., None, None]
+    fns = (series.theta_minus_sin_over_theta3, series.se3_q_c2, series.se3_q_c3)
+    if principal:
+        fns = tuple(series.PRINCIPAL[f] for f in fns)
+    c1, c2, c3 = (f(t)[..., None, None] for f in fns)
     P, R = skew(phi), skew(rho)
     PR, RP = small_matmul(P, R), small_matmul(R, P)
     PRP = small_matmul(PR, P)
@@ -125,10 +127,10 @@ class SE3(LieGroup):
         )
 
     @staticmethod
-    def _jl_inv(xi: Array) -> Array:
+    def _jl_inv(xi: Array, principal: bool = False) -> Array:
         rho, phi = _split(xi)
-        ji = quat.jl_inv(phi)
-        q = q_block(rho, phi)
+        ji = quat.jl_inv(phi, principal=principal)
+        q = q_block(rho, phi, principal=principal)
         z = jnp.zeros_like(ji)
         return jnp.concatenate(
             # J⁻¹QJ⁻¹ by matmul: the unrolled small_matmul of two long fused chains made its
@@ -137,6 +139,10 @@ class SE3(LieGroup):
                                               precision=FULL)], -1),
              jnp.concatenate([z, ji], -1)], -2
         )
+
+    @staticmethod
+    def _jl_inv_principal(xi: Array) -> Array:
+        return SE3._jl_inv(xi, principal=True)
 
     @staticmethod
     def _hat(xi: Array) -> Array:

@@ -56,6 +56,11 @@ class SO3(LieGroup):
     _adj_matrix = staticmethod(quat.to_matrix)
     _jl = staticmethod(quat.jl)
     _jl_inv = staticmethod(quat.jl_inv)
+
+    @staticmethod
+    def _jl_inv_principal(phi: Array) -> Array:
+        return quat.jl_inv(phi, principal=True)
+
     _hat = staticmethod(skew)
     _normalize = staticmethod(quat.normalize)
 

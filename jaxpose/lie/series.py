@@ -378,6 +378,35 @@ se3_q_c3 = _Fn.even(
     "(2θ − 3 sin θ + θ cos θ) / (2θ⁵): a coefficient of the SE(3) Jacobian's Q block.",
 )
 
+# The SO(3)/SE(3)/SE(2) Jacobian coefficients on the logarithms' range θ ≤ π as one
+# polynomial each: they are entire functions, so 10-16 terms in t reach float64 precision
+# at π² (a third of the operations of the switched form, which also evaluates the closed
+# form's sin and cos).
+one_minus_cos_over_t_principal = _Fn.even(
+    "one_minus_cos_over_t_principal", _shift(_add(_ONE, _scale(_COS, -1)), 2),
+    math.pi**2 * 1.001, None,
+    "one_minus_cos_over_t for θ ≤ π as one polynomial in t.",
+)
+theta_minus_sin_over_theta3_principal = _Fn.even(
+    "theta_minus_sin_over_theta3_principal", _shift(_add(_THETA, _scale(_SIN, -1)), 3),
+    math.pi**2 * 1.001, None,
+    "theta_minus_sin_over_theta3 for θ ≤ π as one polynomial in t.",
+)
+se3_q_c2_principal = _Fn.even(
+    "se3_q_c2_principal",
+    _scale(_shift(_add(_mono(2), _scale(_COS, 2), _mono(0, -2)), 4), Fraction(1, 2)),
+    math.pi**2 * 1.001, None,
+    "se3_q_c2 for θ ≤ π as one polynomial in t.",
+)
+se3_q_c3_principal = _Fn.even(
+    "se3_q_c3_principal",
+    _scale(
+        _shift(_add(_mono(1, 2), _scale(_SIN, -3), _mul(_THETA, _COS)), 5), Fraction(1, 2)
+    ),
+    math.pi**2 * 1.001, None,
+    "se3_q_c3 for θ ≤ π as one polynomial in t.",
+)
+
 # atan(x)/x as a function of s = x²: the series converges for s < 1, and is kept to
 # s < 0.04 (≥ 1e-18 relative in 13 terms); larger arguments are brought there by the
 # half-angle identity atan(x) = 2·atan(x / (1 + √(1 + x²))), branch-free.
@@ -471,4 +500,11 @@ ALL = (
     half_cot_half, se3_q_c2, se3_q_c3,
 )
 # the same functions as polynomials on the logarithms' range θ ≤ π
-PRINCIPAL = {jinv_coeff: jinv_coeff_principal, half_cot_half: half_cot_half_principal}
+PRINCIPAL = {
+    jinv_coeff: jinv_coeff_principal,
+    half_cot_half: half_cot_half_principal,
+    one_minus_cos_over_t: one_minus_cos_over_t_principal,
+    theta_minus_sin_over_theta3: theta_minus_sin_over_theta3_principal,
+    se3_q_c2: se3_q_c2_principal,
+    se3_q_c3: se3_q_c3_principal,
+}

@@ -111,7 +111,8 @@ def init(rule: Rule, params: PyTree, system: Any, cost: Array, stopping: Stoppin
     """Initial state at ``params`` with cost ``cost``.
 
     ``status=None``: ``system`` is a placeholder of the right layout and the first
-    :func:`trial` only linearises (it does not count as an iteration). Otherwise
+    :func:`trial` only linearises (it does not count as an iteration) and sets the costs
+    from that linearisation (``cost`` may then be a placeholder of its dtype). Otherwise
     ``system`` is the linearisation at ``params`` and ``status`` its :func:`start_status`.
     """
     dtype = cost.dtype
@@ -197,11 +198,14 @@ def trial(rule: Rule, path: Path, state: SolverState, stopping: Stopping, *,
     accepted = jnp.where(fresh, finite, rule._accept(finite, actual, ratio))
 
     system = select(accepted, system_new, state.system)
-    params = select(accepted, trial_params, state.params)
-    cost = jnp.where(accepted, cost_new, state.cost)
-    better = accepted & (cost_new < state.best_cost)
+    # the fresh trial's linearisation at the start gives the initial cost (what init was
+    # given may be a placeholder: graph.solve evaluates the residuals only in the loop)
+    params = select(accepted & ~fresh, trial_params, state.params)
+    cost = jnp.where(accepted | fresh, cost_new, state.cost)
+    better = accepted & ~fresh & (cost_new < state.best_cost)
     best_params = select(better, trial_params, state.best_params)
-    best_cost = jnp.where(better, cost_new, state.best_cost)
+    best_cost = jnp.where(better | fresh, cost_new, state.best_cost)
+    initial_cost = jnp.where(fresh, cost_new, state.initial_cost)
     sstate = select(
         fresh, state.strategy_state, rule._strategy_update(state.strategy_state, ratio, step_norm)
     )
@@ -246,7 +250,7 @@ def trial(rule: Rule, path: Path, state: SolverState, stopping: Stopping, *,
         best_params=best_params,
         cost=cost,
         best_cost=best_cost,
-        initial_cost=state.initial_cost,
+        initial_cost=initial_cost,
         system=system,
         strategy_state=sstate,
         num_steps=num_steps,

@@ -422,6 +422,19 @@ def test_jacobian_accuracy(G, dtype, op):
     assert err.max() <= TOL[dtype], _report(f"{_gid(G)}.{op}", th, err, TOL[dtype])
 
 
+@pytest.mark.parametrize("G,dtype", _params(groups=(SO3, SE3, SE2)))
+def test_principal_jr_inv_accuracy(G, dtype):
+    """``_jl_inv_principal`` (one polynomial per coefficient, valid for angles ≤ π; the
+    between factor's analytic Jacobian Jr⁻¹(r) = Jl⁻¹(−r) at r = Log(·)) is as accurate as
+    jr_inv on the samples, whose angles run from 0 to π − 1e-9."""
+    th, a, _, jacs = tangent_refs(G, np.dtype(dtype).name)
+    assert th.max() < np.pi
+    out = np.asarray(jax.jit(lambda v: G._jl_inv_principal(-v))(jnp.asarray(a)))
+    assert out.dtype == dtype
+    err = rel_errors(out, jacs["jr_inv"])
+    assert err.max() <= TOL[dtype], _report(f"{_gid(G)}.jr_inv principal", th, err, TOL[dtype])
+
+
 def test_references_are_consistent():
     """Self-check of the reference machinery: Log(Exp(a)) = a for every group, Jr = Jlᵀ on
     SO3, and Exp(a + δ) = Exp(a)·Exp(Jr δ) + O(δ²) on Sim3 (δ ~ 1e-20)."""

@@ -67,7 +67,8 @@ _RADIUS = {"jinv_coeff": 2 * np.pi, "half_cot_half": 2 * np.pi, "atanc": 1.0}
 _T_MAX = {"jinv_coeff": 30.0, "half_cot_half": 30.0, "atanc": 1e4,
           **{fn.name: fn.t0 for fn in series.PRINCIPAL.values()}}
 for _general, _principal in series.PRINCIPAL.items():
-    _RADIUS[_principal.name] = _RADIUS[_general.name]
+    if _general.name in _RADIUS:  # the others are entire
+        _RADIUS[_principal.name] = _RADIUS[_general.name]
 
 F64_TOL = 1e-14
 F32_TOL = 2e-6
