@@ -37,9 +37,10 @@ import numpy as np
 from .._precision import full_precision
 from ..lie import LieGroup
 from ..optim._implicit import jvp_where
-from ._analysis import slot_pairs, tangent_dim
+from ._analysis import tangent_dim
 from ._factor import between_residual
 from ._linear import block_jacobi, pcg_spd, solve_dense, solve_sparse_spd
+from ._pattern import scatter_blocks
 from ._problem import (
     FactorGraph,
     Variables,
@@ -48,9 +49,16 @@ from ._problem import (
     _rho,
     cost,
     free_flat,
+    group_blocks,
     retract_all,
 )
-from ._schur import SchurParts, reduced_solver, schur_step, sort_entries, upper_pairs
+from ._schur import (
+    SchurParts,
+    add_group,
+    reduced_solver,
+    schur_parts_by_group,
+    schur_step,
+)
 
 Array = jax.Array
 
@@ -84,19 +92,10 @@ def _add_factor_hessians(graph: FactorGraph, k: int, variables: Variables,
                          blocks: list[Array]) -> list[Array]:
     """``blocks`` plus the exact per-factor Hessians of factor group ``k`` (their blocks
     of fixed variables zeroed), in chunks (:func:`_over_chunks`)."""
-    st = graph.structure
-    f = graph.factors[k]
-    pairs = list(zip(slot_pairs(len(f.slots)), st.block_class[k], st.block_index[k],
-                     strict=True))
-
     def add(blocks: list[Array], hess: Any, take: Callable[[Any], Any], new: Array,
             start: Array) -> list[Array]:
-        blocks = list(blocks)
-        for (s, t), c, where in pairs:
-            rows = jnp.where(new, take(where), blocks[c].shape[0])  # out of range: dropped
-            blocks[c] = blocks[c].at[rows].add(hess[s][t].astype(blocks[c].dtype),
-                                               mode="drop")
-        return blocks
+        return scatter_blocks(blocks, group_blocks(graph, k, lambda _, s, t: hess[s][t], take),
+                              keep=new)
 
     return _over_chunks(graph, k, variables, blocks, add)
 
@@ -343,38 +342,17 @@ def _exact_schur_parts(graph: FactorGraph, xs: Variables) -> SchurParts:
     as they come, only the entries B (one (d_k, d_e) block per factor and kept slot) are
     kept per factor — the per-factor blocks of the whole graph at once cost 4x the
     forward solve's memory on a 10 000-observation BA problem."""
-    st = graph.structure
-    sc = st.schur
-    e, kept = sc.eliminated, sc.kept
     dtype = jax.tree.leaves(xs)[0].dtype
     zero = 0.0 * jax.tree.leaves(xs)[0].reshape(-1)[0]  # see exact_hessian_csr
-    u = [b + zero.astype(b.dtype) for b in sc.pattern.zeros(dtype)]
-    v = jnp.zeros((st.counts[e], st.dims[e], st.dims[e]), dtype) + zero
-    w_parts: list[list[Array]] = [[] for _ in kept]
-    for n, f in enumerate(graph.factors):
-        q, upper = sc.e_slot[n], upper_pairs(graph, n)
-        ws = sc.w_slots[n] if q >= 0 else ()
-        w = [jnp.zeros((f.count, st.dims[kept[k]], st.dims[e]), dtype) + zero for _, k in ws]
 
-        def add(carry: Any, hess: Any, take: Callable[[Any], Any], new: Array,
-                start: Array, q: int = q, ws: Any = ws, upper: Any = upper,
-                f: Any = f) -> Any:
-            u, v, w = carry
-            u = list(u)
-            for (s, t), c, idx in upper:
-                rows = jnp.where(new, take(idx), u[c].shape[0])  # out of range: dropped
-                u[c] = u[c].at[rows].add(hess[s][t].astype(dtype), mode="drop")
-            if q >= 0:
-                rows = jnp.where(new, take(f.indices[q]), v.shape[0])
-                v = v.at[rows].add(hess[q][q].astype(dtype), mode="drop")
-            w = [jax.lax.dynamic_update_slice_in_dim(wk, hess[s][q].astype(dtype), start, 0)
-                 for wk, (s, _) in zip(w, ws, strict=True)]  # overlap: same values again
-            return u, v, w
+    def fill(n: int, acc: Any) -> Any:
+        def add(acc: Any, hess: Any, take: Callable[[Any], Any], new: Array,
+                start: Array) -> Any:  # overlapping chunks write the same B again
+            return add_group(graph, n, acc, lambda s, t: hess[s][t], take, new, start)
 
-        u, v, w = _over_chunks(graph, n, xs, (u, v, w), add)
-        for wk, (_, k) in zip(w, ws, strict=True):
-            w_parts[k].append(wk)
-    return SchurParts(u, v, sort_entries(graph, w_parts, dtype))
+        return _over_chunks(graph, n, xs, acc, add)
+
+    return schur_parts_by_group(graph, dtype, fill, zero)
 
 
 def _diagonal_blocks(graph: FactorGraph, values: Array) -> tuple[Array, ...]:

@@ -136,10 +136,14 @@ def build_pattern(
 
 
 def scatter_blocks(
-    blocks: list[Array], contributions: Sequence[tuple[int, Array, Array]]
+    blocks: list[Array], contributions: Sequence[tuple[int, Array, Array]],
+    keep: Array | None = None,
 ) -> list[Array]:
-    """Add ``values`` (m, da, db) at block indices ``idx`` (m,) of class ``c``."""
+    """Add ``values`` (m, da, db) at block indices ``idx`` (m,) of class ``c``; with
+    ``keep`` (m,) only the rows where it is True (a chunk overlapping its predecessor)."""
     blocks = list(blocks)
     for c, idx, values in contributions:
-        blocks[c] = blocks[c].at[idx].add(values.astype(blocks[c].dtype))
+        if keep is not None:
+            idx = jnp.where(keep, idx, blocks[c].shape[0])  # out of range: dropped
+        blocks[c] = blocks[c].at[idx].add(values.astype(blocks[c].dtype), mode="drop")
     return blocks

@@ -291,14 +291,21 @@ def assemble_blocks(
     """A matrix with H's block pattern from per-factor blocks: ``pair_block(k, s, t)``
     gives factor group k's (m, d_s, d_t) blocks of slot pair (s, t). Returns the class
     arrays of ``graph.structure.pattern``."""
+    contributions = [contribution for k in range(len(graph.factors))
+                     for contribution in group_blocks(graph, k, pair_block)]
+    return scatter_blocks(graph.structure.pattern.zeros(dtype), contributions)
+
+
+def group_blocks(graph: FactorGraph, k: int, pair_block: Any,
+                 take: Any = None) -> list[tuple[int, Array, Array]]:
+    """Factor group k's ``(class, block index, pair_block(k, s, t))`` for every slot pair
+    (:func:`~jaxpose.graph._pattern.scatter_blocks`'s contributions); ``take`` selects the
+    rows of a chunk from the per-factor block indices (default: all rows)."""
     st = graph.structure
-    contributions = []
-    for k, (f, classes, indices) in enumerate(
-        zip(graph.factors, st.block_class, st.block_index, strict=True)
-    ):
-        for (s, t), c, idx in zip(slot_pairs(len(f.slots)), classes, indices, strict=True):
-            contributions.append((c, idx, pair_block(k, s, t)))
-    return scatter_blocks(st.pattern.zeros(dtype), contributions)
+    take = (lambda a: a) if take is None else take
+    return [(c, take(idx), pair_block(k, s, t)) for (s, t), c, idx in
+            zip(slot_pairs(len(graph.factors[k].slots)), st.block_class[k], st.block_index[k],
+                strict=True)]
 
 
 def jtj_blocks(lin: GraphLinearization) -> Any:

@@ -24,6 +24,7 @@ it with CHOLMOD at 50 cameras × 10 000 points (see ``bench/ba.py``).
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -55,22 +56,57 @@ class SchurParts(NamedTuple):
 def schur_parts(graph: Any, block: PairBlock, dtype: Any) -> SchurParts:
     """:class:`SchurParts` of H = Σ of the per-factor ``block``s
     (:func:`~jaxpose.graph._problem.jtj_blocks` for the damped normal equations)."""
+    return schur_parts_by_group(
+        graph, dtype, lambda n, acc: add_group(graph, n, acc, partial(block, n)))
+
+
+def schur_parts_by_group(graph: Any, dtype: Any, fill: Callable[[int, Any], Any],
+                         zero: Array | None = None) -> SchurParts:
+    """:class:`SchurParts` summed factor group by factor group: ``fill(n, (u, v, w))``
+    returns the accumulators with group n's blocks added (:func:`add_group`); ``w`` holds
+    the group's entries B, one zero (m, d_k, d_e) array per kept slot. A traced ``zero``
+    is added to every accumulator (it keeps them from being program constants)."""
     st = graph.structure
     sc: SchurStructure = st.schur
     e, kept = sc.eliminated, sc.kept
-    n_e, d_e = st.counts[e], st.dims[e]
-    v = jnp.zeros((n_e, d_e, d_e), dtype)
-    u_contrib = []
+
+    def zeros(shape: tuple[int, ...]) -> Array:
+        z = jnp.zeros(shape, dtype)
+        return z if zero is None else z + zero.astype(dtype)
+
+    u = [zeros(b.shape) for b in sc.pattern.zeros(dtype)]
+    v = zeros((st.counts[e], st.dims[e], st.dims[e]))
     w_parts: list[list[Array]] = [[] for _ in kept]
-    for n, (f, q, ws) in enumerate(zip(graph.factors, sc.e_slot, sc.w_slots, strict=True)):
-        for (s, t), c, idx in upper_pairs(graph, n):
-            u_contrib.append((c, idx, block(n, s, t)))
-        if q >= 0:
-            v = v.at[f.indices[q]].add(block(n, q, q))
-            for s, k in ws:
-                w_parts[k].append(block(n, s, q))
-    return SchurParts(scatter_blocks(sc.pattern.zeros(dtype), u_contrib), v,
-                      sort_entries(graph, w_parts, dtype))
+    for n, f in enumerate(graph.factors):
+        ws = sc.w_slots[n] if sc.e_slot[n] >= 0 else ()
+        w = [zeros((f.count, st.dims[kept[k]], st.dims[e])) for _, k in ws]
+        u, v, w = fill(n, (u, v, w))
+        for wk, (_, k) in zip(w, ws, strict=True):
+            w_parts[k].append(wk)
+    return SchurParts(u, v, sort_entries(graph, w_parts, dtype))
+
+
+def add_group(graph: Any, n: int, acc: Any, block: Callable[[int, int], Array],
+              take: Callable[[Any], Any] | None = None, keep: Array | None = None,
+              start: Array | None = None) -> Any:
+    """``acc = (u, v, w)`` plus factor group n's blocks ``block(s, t)`` (m, d_s, d_t):
+    kept–kept pairs into U, the eliminated diagonal into V, the entries B written into
+    ``w``. For a chunk of the group: ``take`` selects its rows of a per-factor array,
+    ``keep`` (m,) the rows to sum (see :func:`~jaxpose.graph._pattern.scatter_blocks`)
+    and ``start`` its first factor (where its entries B go); by default the whole group."""
+    sc: SchurStructure = graph.structure.schur
+    take = (lambda a: a) if take is None else take
+    u, v, w = acc
+    u = scatter_blocks(u, [(c, take(idx), block(s, t))
+                           for (s, t), c, idx in upper_pairs(graph, n)], keep)
+    q = sc.e_slot[n]
+    if q >= 0:
+        v = scatter_blocks([v], [(0, take(graph.factors[n].indices[q]), block(q, q))], keep)[0]
+        ws = sc.w_slots[n]
+        w = [block(s, q).astype(wk.dtype) if start is None
+             else jax.lax.dynamic_update_slice_in_dim(wk, block(s, q).astype(wk.dtype), start, 0)
+             for wk, (s, _) in zip(w, ws, strict=True)]
+    return u, v, w
 
 
 def upper_pairs(graph: Any, n: int) -> list[tuple[tuple[int, int], int, Array]]:
