@@ -70,16 +70,15 @@ def schur_parts_by_group(graph: Any, dtype: Any, fill: Callable[[int, Any], Any]
     sc: SchurStructure = st.schur
     e, kept = sc.eliminated, sc.kept
 
-    def zeros(shape: tuple[int, ...]) -> Array:
-        z = jnp.zeros(shape, dtype)
+    def traced(z: Array) -> Array:
         return z if zero is None else z + zero.astype(dtype)
 
-    u = [zeros(b.shape) for b in sc.pattern.zeros(dtype)]
-    v = zeros((st.counts[e], st.dims[e], st.dims[e]))
+    u = [traced(b) for b in sc.pattern.zeros(dtype)]
+    v = traced(jnp.zeros((st.counts[e], st.dims[e], st.dims[e]), dtype))
     w_parts: list[list[Array]] = [[] for _ in kept]
     for n, f in enumerate(graph.factors):
         ws = sc.w_slots[n] if sc.e_slot[n] >= 0 else ()
-        w = [zeros((f.count, st.dims[kept[k]], st.dims[e])) for _, k in ws]
+        w = [traced(jnp.zeros((f.count, st.dims[kept[k]], st.dims[e]), dtype)) for _, k in ws]
         u, v, w = fill(n, (u, v, w))
         for wk, (_, k) in zip(w, ws, strict=True):
             w_parts[k].append(wk)

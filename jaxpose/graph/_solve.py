@@ -344,9 +344,12 @@ def _run(
     method = linear_solver.resolve(graph)
     # the residuals are evaluated in the loop only (its first trial linearises at x0): a
     # second copy of them before the loop made the compiled program ~15 % larger
-    res0 = jax.eval_shape(lambda x: [factor_residuals(f, x) for f in graph.factors], x0)
-    dtype = jax.eval_shape(lambda: residual_cost(graph, [jnp.zeros(r.shape, r.dtype)
-                                                         for r in res0])).dtype
+    def residuals_and_cost(x: Variables) -> tuple[list[Array], Array]:
+        res = [factor_residuals(f, x) for f in graph.factors]
+        return res, residual_cost(graph, res)
+
+    res0, cost0 = jax.eval_shape(residuals_and_cost, x0)
+    dtype = cost0.dtype
     stopping = default_stopping(dtype=dtype) if stopping is None else stopping
     free = free_flat(graph, dtype)
     rule = LevenbergMarquardt(strategy=strategy)

@@ -685,7 +685,7 @@ class LieGroup(_Element):
     @classmethod
     def _jl_inv_principal(cls, a: Array) -> Array:
         """``_jl_inv`` for a tangent from ``_log`` (rotation angle ≤ π): groups whose
-        coefficients have a shorter form on that range (SO3, SE3) override it."""
+        coefficients have a shorter form on that range (SO3, SE3, SE2) override it."""
         return cls._jl_inv(a)
 
 

@@ -239,7 +239,7 @@ def jl_inv(phi: Array, *, principal: bool = False) -> Array:
     """SO(3) inverse left Jacobian I − ½[φ]× + C[φ]×² (..., 3, 3). ``principal=True``
     promises |φ| ≤ π (as :func:`jl_inv_apply`)."""
     t = series.safe_norm_sq(phi)
-    c = (series.jinv_coeff_principal if principal else series.jinv_coeff)(t)[..., None, None]
+    c = series.select(series.jinv_coeff, principal)(t)[..., None, None]
     return _poly_skew(phi, t, jnp.full_like(c, -0.5), c)
 
 
@@ -265,7 +265,6 @@ def jl_inv_apply(phi: Array, v: Array, *, principal: bool = False) -> Array:
     """Jl⁻¹(φ) v without forming the matrix. ``principal=True`` promises |φ| ≤ π (φ from
     :func:`log`) and evaluates the coefficient as one polynomial (smaller programs)."""
     t = series.safe_norm_sq(phi)
-    coeff = series.jinv_coeff_principal if principal else series.jinv_coeff
-    c = coeff(t)[..., None]
+    c = series.select(series.jinv_coeff, principal)(t)[..., None]
     pv = cross(phi, v)
     return v - 0.5 * pv + c * cross(phi, pv)

@@ -33,10 +33,8 @@ def _jl_column(xi: Array, *, principal: bool) -> Array:
     with A = (1 − cos θ)/θ², B = (θ − sin θ)/θ². ``principal=True`` promises |θ| ≤ π."""
     rho, th = xi[..., :2], xi[..., 2]
     t = th * th
-    fns = (series.one_minus_cos_over_t, series.theta_minus_sin_over_theta3)
-    if principal:
-        fns = tuple(series.PRINCIPAL[f] for f in fns)
-    a, b = fns[0](t), th * fns[1](t)
+    a = series.select(series.one_minus_cos_over_t, principal)(t)
+    b = th * series.select(series.theta_minus_sin_over_theta3, principal)(t)
     return jnp.stack([b * rho[..., 0] + a * rho[..., 1], -a * rho[..., 0] + b * rho[..., 1]], -1)
 
 
@@ -137,7 +135,7 @@ class SE2(LieGroup):
     def _jl_inv(xi: Array, principal: bool = False) -> Array:
         # [[V, w], [0, 1]]⁻¹ = [[V⁻¹, −V⁻¹w], [0, 1]] with V⁻¹ = [[h, θ/2], [−θ/2, h]].
         th = xi[..., 2]
-        h = (series.half_cot_half_principal if principal else series.half_cot_half)(th * th)
+        h = series.select(series.half_cot_half, principal)(th * th)
         vinv = jnp.stack([jnp.stack([h, 0.5 * th], -1), jnp.stack([-0.5 * th, h], -1)], -2)
         return _with_column(vinv, -matvec(vinv, _jl_column(xi, principal=principal)))
 

@@ -31,10 +31,8 @@ def q_block(rho: Array, phi: Array, *, principal: bool = False) -> Array:
     """Barfoot's Q(ρ, φ) (…, 3, 3): the off-diagonal block of the SE(3) left Jacobian.
     ``principal=True`` promises |φ| ≤ π (one polynomial per coefficient)."""
     t = series.safe_norm_sq(phi)
-    fns = (series.theta_minus_sin_over_theta3, series.se3_q_c2, series.se3_q_c3)
-    if principal:
-        fns = tuple(series.PRINCIPAL[f] for f in fns)
-    c1, c2, c3 = (f(t)[..., None, None] for f in fns)
+    c1, c2, c3 = (series.select(f, principal)(t)[..., None, None] for f in
+                  (series.theta_minus_sin_over_theta3, series.se3_q_c2, series.se3_q_c3))
     P, R = skew(phi), skew(rho)
     PR, RP = small_matmul(P, R), small_matmul(R, P)
     PRP = small_matmul(PR, P)

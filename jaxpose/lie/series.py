@@ -508,3 +508,9 @@ PRINCIPAL = {
     se3_q_c2: se3_q_c2_principal,
     se3_q_c3: se3_q_c3_principal,
 }
+
+
+def select(fn: _Fn, principal: bool) -> _Fn:
+    """``fn``, or with ``principal=True`` (the caller promises θ ≤ π) its polynomial form
+    ``PRINCIPAL[fn]``."""
+    return PRINCIPAL[fn] if principal else fn
