@@ -71,7 +71,9 @@ class Factor(eqx.Module):
             √ρ'(s); ``Triggs()`` adds the ρ'' curvature term).
         jacobian: optional analytic Jacobian ``jacobian(*variables, data) -> (r, J_1, …)``
             for ONE factor, J_s of shape (r, tangent_dim_s) with respect to the right
-            perturbation X_s ⊕ δ_s. Default: forward-mode autodiff of ``residual``.
+            perturbation X_s ⊕ δ_s. Default: :func:`between_jacobian` for
+            :func:`between_residual` (smaller, faster programs than autodiff), else
+            forward-mode autodiff of ``residual``.
         name: label used in messages and progress output.
     """
 
@@ -150,6 +152,8 @@ class Factor(eqx.Module):
         self.corrector = FastTriggs() if corrector is None else corrector
         if jacobian is not None and not callable(jacobian):
             raise TypeError(f"Factor(jacobian): expected a callable, got {type(jacobian).__name__}")
+        if jacobian is None and residual is between_residual:
+            jacobian = between_jacobian
         self.jacobian = jacobian
         self.name = name or getattr(residual, "__name__", "factor")
         self.count = int(count)

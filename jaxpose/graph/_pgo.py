@@ -24,7 +24,7 @@ import numpy as np
 
 from ..io._g2o import _apply_policy
 from ..lie import SE2, SE3
-from ._factor import Factor, between_jacobian, between_residual
+from ._factor import Factor, between_residual
 from ._init import gauge_anchors, initial_poses
 from ._problem import FactorGraph
 from ._solve import solve
@@ -92,7 +92,6 @@ def pose_graph_problem(
         ),
         kernel=kernel,
         name=f"between_{graph.kind}",
-        jacobian=between_jacobian,
     )
     fixed: dict[str, Any] = {}
     if fix != "none":

@@ -41,7 +41,6 @@ from jaxpose.geometry import ape
 from jaxpose.graph import (
     Factor,
     FactorGraph,
-    between_jacobian,
     between_residual,
     optimize_pose_graph,
     solve,
@@ -72,8 +71,10 @@ print("poses", graph.poses.shape, "edges", graph.edges.shape,
 #
 # A `Factor` describes *m* factors of one type at once: a residual written for ONE factor
 # (vmapped inside), the variable slots it touches (a type name and an index array per
-# slot), per-factor data and information matrices. `between_jacobian` is the optional
-# analytic Jacobian (autodiff is the default). Fixing pose 0 removes the gauge freedom.
+# slot), per-factor data and information matrices. `between_residual` comes with its
+# analytic Jacobian (`between_jacobian`, used automatically); other residuals are
+# differentiated by autodiff unless you pass `jacobian=`. Fixing pose 0 removes the gauge
+# freedom.
 
 # %%
 def build(graph, kernel=None):
@@ -83,7 +84,6 @@ def build(graph, kernel=None):
         data=jp.SE3(graph.measurements),
         information=graph.information,
         kernel=kernel,
-        jacobian=between_jacobian,
     )
     return FactorGraph([factor], {"pose": jp.SE3(graph.poses)}, fixed={"pose": [0]})
 

@@ -26,7 +26,7 @@ from jaxpose.graph import (
 from jaxpose.graph import _pgo as pgo
 from jaxpose.graph import solve as graph_solve
 from jaxpose.graph._problem import gradient, hessian_blocks, hessian_diagonal
-from jaxpose.lie import SE2, SE3, Sim3
+from jaxpose.lie import SE2, SE3, SO2, SO3, RxSO3, Sim3
 from jaxpose.optim import (
     Adaptive,
     Cauchy,
@@ -170,11 +170,37 @@ def test_kernels_and_correctors_on_the_sparse_path():
         graph_solve(problem, linear_solver="pcg", cg=PCG(rtol="exact"))
 
 
-@pytest.mark.parametrize("names", [("SE3", "SE2"), pytest.param(("Sim3",), marks=pytest.mark.slow)])
+def _random_elements(rng: np.random.Generator, name: str, n: int) -> np.ndarray:
+    """Storage of n random elements of SE3, SE2, Sim3 or (from those) SO3, SO2, RxSO3."""
+    if name in ("SE3", "SE2", "Sim3"):
+        return random_poses(rng, name, n)
+    if name == "SO3":
+        return random_poses(rng, "SE3", n)[:, 3:]
+    if name == "SO2":
+        return random_poses(rng, "SE2", n)[:, 2:]
+    return random_poses(rng, "Sim3", n)[:, 3:]  # RxSO3: [q, s]
+
+
+def test_between_factor_takes_the_analytic_jacobian_unless_given_one():
+    e = np.array([0, 1])
+    z = SE3(jnp.asarray(random_poses(np.random.default_rng(0), "SE3", 2)))
+    assert Factor(between_residual, [("p", e), ("p", e)], data=z).jacobian is between_jacobian
+
+    def own(xi, xj, zz):
+        return between_jacobian(xi, xj, zz)
+
+    assert Factor(between_residual, [("p", e), ("p", e)], data=z, jacobian=own).jacobian is own
+    # any other residual (even one that calls between_residual) is differentiated by autodiff
+    wrapped = Factor(lambda a, b, c: between_residual(a, b, c), [("p", e), ("p", e)], data=z)
+    assert wrapped.jacobian is None
+
+
+@pytest.mark.parametrize("names", [("SE3", "SE2"), pytest.param(("Sim3", "SO3", "SO2", "RxSO3"),
+                                                                marks=pytest.mark.slow)])
 def test_between_jacobians_match_autodiff(names):
     rng = np.random.default_rng(4)
-    groups = {"SE3": SE3, "SE2": SE2, "Sim3": Sim3}
-    data = {k: [groups[k](jnp.asarray(random_poses(rng, k, 20))) for _ in range(3)]
+    groups = {"SE3": SE3, "SE2": SE2, "Sim3": Sim3, "SO3": SO3, "SO2": SO2, "RxSO3": RxSO3}
+    data = {k: [groups[k](jnp.asarray(_random_elements(rng, k, 20))) for _ in range(3)]
             for k in names}
 
     @jax.jit(compiler_options=FAST_COMPILE)
