@@ -84,14 +84,14 @@ def _exp_smooth(phi: Array) -> Array:
     return jnp.concatenate([phi * s[..., None], w[..., None]], -1)
 
 
-def _exp_value(phi: Array) -> Array:
-    """The exponential written for values: sin(h)/h and cos(h) at h = θ/2 are accurate
-    to the dtype for every h > 0 (h = 0 gives the limit), so no series is needed.
+def half_angle_terms(phi: Array) -> tuple[Array, Array]:
+    """(sin(θ/2)/θ, cos(θ/2)) (...,) of rotation vectors (..., 3), θ = |φ|, for values
+    (not derivatives): libm's sin and cos at h = θ/2 are accurate to the dtype for every
+    h > 0 (h = 0 gives the limit), so no series is needed.
 
     h is computed as m·|φ/m|/2 with m = max |φᵢ|, so it does not overflow for any finite
-    φ (|φ| ≳ 1e154 in float64, 1e19 in float32): the result is a unit quaternion for every
-    finite input, although beyond |φ| ≈ 1/eps the angle modulo 2π is not determined by
-    the input's digits."""
+    φ (|φ| ≳ 1e154 in float64, 1e19 in float32); beyond |φ| ≈ 1/eps the angle modulo 2π
+    is not determined by the input's digits."""
     x, y, z = _parts(phi)
     m = max_abs([x, y, z])
     r = 1.0 / jnp.where(m > 0, m, 1.0)
@@ -99,8 +99,14 @@ def _exp_value(phi: Array) -> Array:
     h = m * jnp.sqrt(0.25 * (xs * xs + ys * ys + zs * zs))
     positive = h > 0
     h_safe = jnp.where(positive, h, 1.0)
-    s = jnp.where(positive, 0.5 * jnp.sin(h_safe) / h_safe, 0.5)
-    return jnp.concatenate([phi * s[..., None], jnp.cos(h)[..., None]], -1)
+    return jnp.where(positive, 0.5 * jnp.sin(h_safe) / h_safe, 0.5), jnp.cos(h)
+
+
+def _exp_value(phi: Array) -> Array:
+    """The exponential written for values (:func:`half_angle_terms`): a unit quaternion
+    for every finite input."""
+    s, w = half_angle_terms(phi)
+    return jnp.concatenate([phi * s[..., None], w[..., None]], -1)
 
 
 def _log_smooth(q: Array) -> Array:
@@ -127,7 +133,7 @@ def _log_value(q: Array) -> Array:
     return q[..., :3] * jnp.where(w < 0, -f, f)[..., None]
 
 
-def _with_derivatives_of(smooth: Callable[[Array], Array]):
+def with_derivatives_of(smooth: Callable[[Array], Array]):
     """Values from the decorated function, derivatives of every order from ``smooth``.
 
     Why two formulas: a series switch has to evaluate both branches, and XLA:CPU's cost
@@ -154,13 +160,13 @@ def _with_derivatives_of(smooth: Callable[[Array], Array]):
     return wrap
 
 
-@_with_derivatives_of(_exp_smooth)
+@with_derivatives_of(_exp_smooth)
 def exp(phi: Array) -> Array:
     """SO(3) exponential of a rotation vector (..., 3) → unit quaternion (..., 4)."""
     return _exp_value(phi)
 
 
-@_with_derivatives_of(_log_smooth)
+@with_derivatives_of(_log_smooth)
 def log(q: Array) -> Array:
     """SO(3) logarithm (..., 4) → rotation vector (..., 3) with angle in [0, π].
 

@@ -27,6 +27,33 @@ def _split(x: Array) -> tuple[Array, Array]:
     return x[..., :3], x[..., 3:]
 
 
+def _exp_smooth(xi: Array) -> Array:
+    """Exp written for derivatives (series switches: NaN-free at every order)."""
+    rho, phi = _split(xi)
+    return jnp.concatenate([quat.jl_apply(phi, rho), quat.exp(phi)], -1)
+
+
+# (θ − sin θ)/θ³ below t = θ² = 4; above, its closed form loses at most a few ulp
+_THETA_MINUS_SIN_SERIES = series.Series(series.theta_minus_sin_over_theta3.exact_coeffs, 4.0)
+
+
+@quat.with_derivatives_of(_exp_smooth)
+def _exp_value(xi: Array) -> Array:
+    """Exp written for values from the half-angle terms s = sin(θ/2)/θ and c = cos(θ/2)
+    the quaternion needs anyway: Jl(φ)ρ = ρ + a·φ×ρ + b·φ×(φ×ρ) with
+    a = (1 − cos θ)/θ² = 2s² and b = (θ − sin θ)/θ³ = (1 − 2sc)/θ² (a polynomial below
+    θ = 2). A third of the switched form's operations (both branches of two series
+    switches), in every solver's retraction."""
+    rho, phi = _split(xi)
+    s, c = quat.half_angle_terms(phi)
+    x, y, z = quat._parts(phi)
+    t = x * x + y * y + z * z
+    b = series.switched(_THETA_MINUS_SIN_SERIES, lambda tt: (1.0 - 2.0 * s * c) / tt)(t)
+    pv = quat.cross(phi, rho)
+    trans = rho + (2.0 * s * s)[..., None] * pv + b[..., None] * quat.cross(phi, pv)
+    return jnp.concatenate([trans, phi * s[..., None], c[..., None]], -1)
+
+
 def q_block(rho: Array, phi: Array, *, principal: bool = False) -> Array:
     """Barfoot's Q(ρ, φ) (…, 3, 3): the off-diagonal block of the SE(3) left Jacobian.
     ``principal=True`` promises |φ| ≤ π (one polynomial per coefficient)."""
@@ -61,8 +88,7 @@ class SE3(LieGroup):
 
     @staticmethod
     def _exp(xi: Array) -> Array:
-        rho, phi = _split(xi)
-        return jnp.concatenate([quat.jl_apply(phi, rho), quat.exp(phi)], -1)
+        return _exp_value(xi)
 
     @staticmethod
     def _exp_linear(xi: Array) -> Array:

@@ -168,9 +168,11 @@ class Series:
         return horner(self.by_dtype[dtype_key(t)], t)
 
 
-def _switched(
+def switched(
     series: Series, direct: Callable[[Array], Array]
 ) -> Callable[[Array], Array]:
+    """t ↦ ``series(t)`` below ``series.t0``, ``direct(t)`` from there on; neither branch
+    sees the other's arguments (no overflow or 0/0 in the branch not taken)."""
     t0 = series.t0
 
     def f(t: Array) -> Array:
@@ -203,8 +205,8 @@ class _Fn:
         self.coeffs = self.series.by_dtype["float64"]
         self.direct = direct
         self._derivative: _Fn | None = None
-        switched = self.series if direct is None else _switched(self.series, direct)
-        self._f = jax.custom_jvp(switched)
+        switched_fn = self.series if direct is None else switched(self.series, direct)
+        self._f = jax.custom_jvp(switched_fn)
         self._f.defjvp(self._jvp)
         self.__doc__ = doc
 
