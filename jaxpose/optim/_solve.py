@@ -15,7 +15,7 @@ from ._correctors import Corrector
 from ._implicit import ImplicitAdjoint, UnrolledAdjoint, implicit_solve
 from ._problem import Problem, as_problem
 from ._solution import Solution
-from ._solver import AbstractSolver, LevenbergMarquardt, SolverState
+from ._solver import INITIAL_NOT_FINITE, AbstractSolver, LevenbergMarquardt, SolverState
 from ._stopping import StopOnPlateau, Stopping
 
 PyTree = Any
@@ -38,7 +38,11 @@ def _runner(
     solver: AbstractSolver, stopping: Stopping, *, verbose: bool, history: bool, unrolled: bool
 ) -> Callable[[Problem, PyTree, PyTree], Solution]:
     def run(problem: Problem, params: PyTree, args: PyTree) -> Solution:
-        state = solver.init(problem, params, args, stopping=stopping, history=history)
+        # with a loop, the residuals are evaluated in it only (its first trial linearises
+        # at params); their initial NaN/Inf check is attached to the solution instead
+        loop = stopping.budget > 0
+        state = solver._init(problem, params, args, stopping, history=history,
+                             evaluate=not loop)
 
         def body(s: SolverState) -> SolverState:
             return solver._step(problem, s, args, stopping, verbose)
@@ -53,6 +57,10 @@ def _runner(
                 )
             else:
                 state = jax.lax.while_loop(cond, body, state)
+            # on every output a caller may keep alone (XLA drops a check nothing uses)
+            outputs = lambda s: (s.best_params, s.best_cost, s.initial_cost)  # noqa: E731
+            state = eqx.tree_at(outputs, state, eqx.error_if(
+                outputs(state), ~jnp.isfinite(state.initial_cost), INITIAL_NOT_FINITE))
         return _to_solution(state, history)
 
     return run

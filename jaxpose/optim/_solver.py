@@ -48,6 +48,11 @@ def _setup(residual_fn: Callable[[PyTree, PyTree], PyTree] | Problem, stopping: 
     return as_problem(residual_fn, **options), Stopping() if stopping is None else stopping
 
 
+INITIAL_NOT_FINITE = (
+    "least_squares: residual_fn(params, args) returned NaN/Inf at the initial params"
+)
+
+
 class AbstractSolver(eqx.Module):
     """Shared machinery; subclasses define how a step is proposed and accepted (and
     declare a ``linear_solver`` field). They are the damping/acceptance rule of the one
@@ -108,15 +113,25 @@ class AbstractSolver(eqx.Module):
         compiled loop contains a single copy of the Jacobian computation."""
         problem, stopping = _setup(residual_fn, stopping, weights=weights, kernel=kernel,
                                    corrector=corrector, jacobian=jacobian)
+        return self._init(problem, params, args, stopping, history=history, evaluate=True)
+
+    def _init(self, problem: Problem, params: PyTree, args: PyTree, stopping: Stopping, *,
+              history: bool, evaluate: bool) -> SolverState:
+        """:meth:`init` of a set-up problem. ``evaluate=False`` (``least_squares``' loop,
+        whose first trial linearises at ``params`` and sets the initial cost) takes only
+        the residuals' shape: the caller checks the initial cost after the loop."""
         problem.check(params, args)
-        out = problem.residual_fn(params, args)
-        lin = problem._blocks(out, None)
-        bad = ~(jnp.isfinite(lin.cost) & jnp.all(jnp.isfinite(lin.res)))
-        cost = eqx.error_if(
-            lin.cost,
-            bad,
-            "least_squares: residual_fn(params, args) returned NaN/Inf at the initial params",
-        )
+
+        def blocks() -> Any:
+            return problem._blocks(problem.residual_fn(params, args), None)
+
+        if evaluate:
+            lin = blocks()
+            bad = ~(jnp.isfinite(lin.cost) & jnp.all(jnp.isfinite(lin.res)))
+            cost = eqx.error_if(lin.cost, bad, INITIAL_NOT_FINITE)
+        else:
+            lin = jax.eval_shape(blocks)
+            cost = jnp.full((), jnp.nan, lin.cost.dtype)  # set by the first trial
         dtype = cost.dtype
         m, n = lin.res.shape[0], manifold.tangent_size(params)
         mode, pattern = problem.jacobian_mode(params, args)

@@ -93,6 +93,11 @@ def test_vmap_solve_fixed_variables_and_nan_input():
     bad_poses[2, 1] = np.inf
     with pytest.raises(Exception, match="cost is not finite at the initial variables"):
         jax.block_until_ready(single(with_values(problem, poses=jnp.asarray(bad_poses))))
+    # also where the caller keeps only the cost (XLA drops checks on unused outputs)
+    cost_only = jax.jit(lambda p: graph_solve(p, linear_solver="dense").cost,
+                        compiler_options=FAST_COMPILE)
+    with pytest.raises(Exception, match="cost is not finite at the initial variables"):
+        jax.block_until_ready(cost_only(with_values(problem, poses=jnp.asarray(bad_poses))))
 
 
 @pytest.mark.slow
