@@ -380,10 +380,9 @@ se3_q_c3 = _Fn.even(
     "(2θ − 3 sin θ + θ cos θ) / (2θ⁵): a coefficient of the SE(3) Jacobian's Q block.",
 )
 
-# The SO(3)/SE(3)/SE(2) Jacobian coefficients on the logarithms' range θ ≤ π as one
-# polynomial each: they are entire functions, so 10-16 terms in t reach float64 precision
-# at π² (a third of the operations of the switched form, which also evaluates the closed
-# form's sin and cos).
+# The SE(2) Jacobian coefficients on the logarithm's range θ ≤ π as one polynomial each:
+# they are entire functions, so 10-16 terms in t reach float64 precision at π² (a third of
+# the operations of the switched form, which also evaluates the closed form's sin and cos).
 one_minus_cos_over_t_principal = _Fn.even(
     "one_minus_cos_over_t_principal", _shift(_add(_ONE, _scale(_COS, -1)), 2),
     math.pi**2 * 1.001, None,
@@ -394,19 +393,23 @@ theta_minus_sin_over_theta3_principal = _Fn.even(
     math.pi**2 * 1.001, None,
     "theta_minus_sin_over_theta3 for θ ≤ π as one polynomial in t.",
 )
-se3_q_c2_principal = _Fn.even(
-    "se3_q_c2_principal",
-    _scale(_shift(_add(_mono(2), _scale(_COS, 2), _mono(0, -2)), 4), Fraction(1, 2)),
+
+# SE(3)'s Jl⁻¹ for |φ| ≤ π as I − ½·ad + β·ad² + γ·ad⁴: ad's minimal polynomial
+# x(x² + θ²)² reduces the even part of the Bernoulli series x/(eˣ − 1) to degree 4 (matching
+# its value and derivative at ±iθ). With a(t) = (θ/2)cot(θ/2) − 1 = Σ aₖtᵏ:
+# β = (t·a′ − 2a)/t and γ = (t·a′ − a)/t² (poles at θ = 2π, like jinv_coeff).
+_HALF_COT_MINUS_ONE_T = _even_in_t(_add(_HALF_COT_LONG, _scale(_mono(0, 1, _LONG), -1)))
+se3_jinv_ad2_principal = _Fn(
+    "se3_jinv_ad2_principal",
+    [(k - 2) * c for k, c in enumerate(_HALF_COT_MINUS_ONE_T) if k >= 1],
     math.pi**2 * 1.001, None,
-    "se3_q_c2 for θ ≤ π as one polynomial in t.",
+    "β(θ), the ad² coefficient of SE(3)'s Jl⁻¹ for θ ≤ π, as one polynomial in t.",
 )
-se3_q_c3_principal = _Fn.even(
-    "se3_q_c3_principal",
-    _scale(
-        _shift(_add(_mono(1, 2), _scale(_SIN, -3), _mul(_THETA, _COS)), 5), Fraction(1, 2)
-    ),
+se3_jinv_ad4_principal = _Fn(
+    "se3_jinv_ad4_principal",
+    [(k - 1) * c for k, c in enumerate(_HALF_COT_MINUS_ONE_T) if k >= 2],
     math.pi**2 * 1.001, None,
-    "se3_q_c3 for θ ≤ π as one polynomial in t.",
+    "γ(θ), the ad⁴ coefficient of SE(3)'s Jl⁻¹ for θ ≤ π, as one polynomial in t.",
 )
 
 # atan(x)/x as a function of s = x²: the series converges for s < 1, and is kept to
@@ -483,6 +486,19 @@ def expm1c(x: Array) -> Array:
     return jnp.where(small, _EXPM1C(x_series), jnp.expm1(x_direct) / x_direct)
 
 
+def computed_once(*xs: Array) -> tuple[Array, ...]:
+    """The arrays ``xs`` (same shape) unchanged, each computed once. XLA:CPU fuses a cheap
+    elementwise chain (a Horner polynomial) into each consumer and evaluates it once per
+    element: a coefficient broadcast over a 6×6 block ran 36 times (SE(3)'s Jr⁻¹ 7x slower).
+    A product with the identity is a dot, which XLA neither fuses nor simplifies away
+    (``jax.lax.optimization_barrier`` is removed before fusion on CPU); it is exact for
+    finite values."""
+    stacked = jnp.stack(xs, -1)
+    out = jnp.matmul(stacked, jnp.eye(len(xs), dtype=stacked.dtype),
+                     precision=jax.lax.Precision.HIGHEST)
+    return tuple(out[..., i] for i in range(len(xs)))
+
+
 def safe_norm_sq(v: Array, axis: int = -1) -> Array:
     """Σ v² along ``axis`` (smooth everywhere, unlike the norm). Short axes are summed
     component by component: XLA:CPU emits a slow reduction loop for a 3- or 4-wide axis."""
@@ -507,9 +523,11 @@ PRINCIPAL = {
     half_cot_half: half_cot_half_principal,
     one_minus_cos_over_t: one_minus_cos_over_t_principal,
     theta_minus_sin_over_theta3: theta_minus_sin_over_theta3_principal,
-    se3_q_c2: se3_q_c2_principal,
-    se3_q_c3: se3_q_c3_principal,
 }
+
+
+# polynomials on θ ≤ π without a general (switched) form
+AD_PRINCIPAL = (se3_jinv_ad2_principal, se3_jinv_ad4_principal)
 
 
 def select(fn: _Fn, principal: bool) -> _Fn:
