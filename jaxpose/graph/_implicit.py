@@ -36,6 +36,7 @@ import numpy as np
 
 from .._precision import full_precision
 from ..lie import LieGroup
+from ..lie._base import small_matmul
 from ..optim._implicit import jvp_where
 from ._analysis import tangent_dim
 from ._factor import between_residual
@@ -173,33 +174,49 @@ def _between_hessian(kernel: Any, xi: LieGroup, xj: LieGroup, z: LieGroup,
                      sqrt: Any) -> tuple[tuple[Array, Array], tuple[Array, Array]]:
     """Exact Hessian blocks of ``½ρ(|S·Log(Z⁻¹(Xi·Exp δi)⁻¹(Xj·Exp δj))|²)`` at δ = 0,
     from a Hessian in the 6 (3) dimensions of the relative motion instead of the 12 (6)
-    of the two poses.
+    of the two poses, in closed form from first derivatives of Jr⁻¹.
 
     With T = Xi⁻¹Xj, (Xi·Exp δi)⁻¹(Xj·Exp δj) = T·Exp(a)·Exp(b), a = −Ad(T⁻¹)·δi = A·δi,
     b = δj, and by Baker–Campbell–Hausdorff Exp(a)·Exp(b) = Exp(u),
-    u = a + b + ½[a, b] + O(3). The cost is h(u) = ½ρ(|S·Log(Z⁻¹·T·Exp u)|²), so with
-    g = ∇h(0), G = ∇²h(0) and M_pq = gᵀ[e_p, e_q]: H_ii = AᵀGA, H_ij = AᵀG + ½AᵀM,
-    H_jj = G. Exact at every (X, θ), hence differentiable again like the generic rule.
+    u = a + b + ½[a, b] + O(3). The cost is h(u) = ½ρ(s), s = |S·r(u)|²,
+    r(u) = Log(Z⁻¹·T·Exp u), so with g = ∇h(0), G = ∇²h(0) and M_pq = gᵀ[e_p, e_q]:
+    H_ii = AᵀGA, H_ij = AᵀG + ½AᵀM, H_jj = G. From Exp r(u) = Z⁻¹T·Exp u,
+    ∂r/∂u = Jr⁻¹(r(u))·Jr(u), so at u = 0 (J = Jr⁻¹(r), Jr(u) = I − ½ad(u) + …)
+    yᵀ∂²r[v, w] = wᵀK·J·v − ½(Jᵀy)ᵀ[v, w] with K = ∂(Jr⁻¹(r)ᵀy)/∂r; the bracket term is
+    antisymmetric, so Σ yₖ∇²rₖ = sym(K·J), and with y = Sᵀ(S·r):
+    G = ρ′·(JᵀSᵀSJ + sym(K·J)) + 2ρ″·(Jᵀy)(Jᵀy)ᵀ, g = ρ′·Jᵀy. Exact at every (X, θ)
+    and built from differentiable operations, hence differentiable again like the
+    generic rule (K is one forward-mode Jacobian of Jr⁻¹, not a second-order pass through
+    Log, Exp and the products: a third fewer operations and half the time on
+    parking-garage).
     """
     group = type(xi)
     rel = xi.inv().compose(xj)
-    base = z.inv().compose(rel)
-    dim = group.tangent_dim
+    r = z.inv().compose(rel).log().data
+    jac = group._jl_inv_principal(-r)  # Jr⁻¹(r) = Jl⁻¹(−r), |r's angle| ≤ π
+    if sqrt is None:
+        sjac, sr, y = jac, r, r
+    else:  # products by elements: batched 6×6 dots are slow on XLA:CPU
+        sqrt = sqrt.astype(r.dtype)
+        sjac, sr = small_matmul(sqrt, jac), jnp.sum(sqrt * r, -1)
+        y = jnp.sum(sqrt * sr[:, None], 0)  # Sᵀ·S·r
+    jty = jnp.sum(jac * y[:, None], 0)
 
-    def h(u: Array) -> Array:
-        r = base.retract_quadratic(u).log().data
-        if sqrt is not None:
-            r = sqrt.astype(r.dtype) @ r
-        return 0.5 * _rho(kernel, r)
+    def jr_inv_t_y(rr: Array) -> Array:
+        return jnp.sum(group._jl_inv_principal(-rr) * y[:, None], 0)
 
-    zero = jnp.zeros((dim,), rel.dtype)
-    eye = jnp.eye(dim, dtype=rel.dtype)
-    g, hh = jax.vmap(lambda e: jax.jvp(jax.grad(h), (zero,), (e,)), out_axes=(None, 0))(eye)
-    hh = 0.5 * (hh + hh.T)
+    kj = small_matmul(jax.jacfwd(jr_inv_t_y)(r), jac)
+    hh = small_matmul(sjac.T, sjac) + 0.5 * (kj + kj.T)
+    if kernel is not None:
+        s = jnp.sum(sr * sr)
+        d1, d2 = kernel.derivative(s), kernel.second_derivative(s)
+        hh = d1 * hh + 2.0 * d2 * jty[:, None] * jty[None, :]
+        jty = d1 * jty
     a = -rel.inv().adj_matrix()
-    m = jnp.einsum("k,kqp->pq", g, _structure_constants(group, rel.dtype))
-    hij = a.T @ hh + 0.5 * a.T @ m
-    return ((a.T @ hh @ a, hij), (hij.T, hh))
+    m = jnp.einsum("k,kqp->pq", jty, _structure_constants(group, rel.dtype))
+    at_hh = small_matmul(a.T, hh)
+    hij = at_hh + 0.5 * small_matmul(a.T, m)
+    return ((small_matmul(at_hh, a), hij), (hij.T, hh))
 
 
 def _structure_constants(group: type, dtype: Any) -> Array:
