@@ -175,17 +175,18 @@ def test_structure_constants_are_the_derivative_of_the_adjoint(name):
                          ids=["value", "derivative"])  # derivative: third order, ~70 s
 # SE2 in the slow tier: in the default tier the solution Jacobian of the SE2 loop graph is
 # already checked against the dense least_squares rule (generic Hessian) above
-@pytest.mark.parametrize("group", [pytest.param("SE2", marks=pytest.mark.slow), "SE3"])
+@pytest.mark.parametrize("group", [*(pytest.param(g, marks=pytest.mark.slow)
+                                     for g in ("SE2", "Sim3", "SO3", "RxSO3", "SO2")), "SE3"])
 def test_between_hessian_equals_the_generic_hessian_and_its_derivative(group, derivative):
     """The between factor's exact Hessian from the relative motion (Baker–Campbell–
     Hausdorff, ``_between_hessian``) equals ``jax.hessian`` of the factor's cost in the
     two poses' charts, with a kernel and a full square-root information; and so does its
     derivative with respect to the measurement (what higher-order derivatives use)."""
     from jaxpose.graph._implicit import _between_hessian
-    from jaxpose.lie import SE3
+    from jaxpose.lie import SE3, SO2, SO3, RxSO3, Sim3
     from jaxpose.optim import Cauchy
 
-    cls = {"SE2": SE2, "SE3": SE3}[group]
+    cls = {"SE2": SE2, "SE3": SE3, "Sim3": Sim3, "SO3": SO3, "RxSO3": RxSO3, "SO2": SO2}[group]
     d = cls.tangent_dim
     rng = np.random.default_rng(1)
     xi, xj = (cls.exp(jnp.asarray(rng.normal(size=d))) for _ in range(2))
@@ -193,24 +194,28 @@ def test_between_hessian_equals_the_generic_hessian_and_its_derivative(group, de
     sqrt = jnp.asarray(np.triu(rng.normal(size=(d, d))) + 3 * np.eye(d))
     kernel = Cauchy(0.7)
 
-    def generic(zt):
+    def generic(zt, kernel, sqrt):
         z = z0.retract(zt)
 
         def c(e):
             r = between_residual(xi.retract(e[:d]), xj.retract(e[d:]), z)
-            return 0.5 * kernel(jnp.sum((sqrt @ r) ** 2))
+            s = jnp.sum((r if sqrt is None else sqrt @ r) ** 2)
+            return 0.5 * (s if kernel is None else kernel(s))
 
         return jax.hessian(c)(jnp.zeros(2 * d))
 
-    def reduced(zt):
+    def reduced(zt, kernel, sqrt):
         (hii, hij), (hji, hjj) = _between_hessian(kernel, xi, xj, z0.retract(zt), sqrt)
         return jnp.block([[hii, hij], [hji, hjj]])
 
     zt = jnp.zeros(d)
     if derivative:
         reduced, generic = jax.jacfwd(reduced), jax.jacfwd(generic)
-    got, want = jax.jit(lambda z: (reduced(z), generic(z)))(zt)
-    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+    # with a kernel and a full square-root information, and with neither
+    pairs = jax.jit(lambda z: [(reduced(z, k, q), generic(z, k, q))
+                               for k, q in ((kernel, sqrt), (None, None))])(zt)
+    for got, want in pairs:
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
 
 
 @pytest.mark.parametrize("chunk", [3, 4, 100], ids=["overlapping", "even", "one"])
