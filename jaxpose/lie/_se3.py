@@ -46,8 +46,7 @@ def _exp_value(xi: Array) -> Array:
     switches), in every solver's retraction."""
     rho, phi = _split(xi)
     s, c = quat.half_angle_terms(phi)
-    x, y, z = quat._parts(phi)
-    t = x * x + y * y + z * z
+    t = series.safe_norm_sq(phi)
     b = series.switched(_THETA_MINUS_SIN_SERIES, lambda tt: (1.0 - 2.0 * s * c) / tt)(t)
     pv = quat.cross(phi, rho)
     trans = rho + (2.0 * s * s)[..., None] * pv + b[..., None] * quat.cross(phi, pv)
