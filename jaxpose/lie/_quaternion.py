@@ -143,10 +143,11 @@ def with_derivatives_of(smooth: Callable[[Array], Array]):
     which the smooth formulas handle. Both agree to a few ulp."""
 
     def wrap(value: Callable[[Array], Array]) -> Callable[[Array], Array]:
-        # The optimization barriers make each result one materialised array: without them
-        # XLA:CPU copies the whole producer (exp's polynomials, say) into every consumer
-        # of every component downstream (log, compose, ...), measured 4x slower for the
-        # Jacobian of Log(Exp(x)) and 2x for the value of Log(Exp(x)·Exp(y)).
+        # The optimization barriers were added to make each result one materialised array
+        # (XLA:CPU copies a cheap producer, exp's polynomials say, into every consumer;
+        # measured then 4x slower for the Jacobian of Log(Exp(x))). XLA:CPU in jax 0.10
+        # removes barriers before fusion (none is left in the compiled program), so on the
+        # CPU they no longer separate anything; series.computed_once does, where it pays.
         barrier = jax.lax.optimization_barrier
         f = jax.custom_jvp(lambda x: barrier(value(x)))
 
