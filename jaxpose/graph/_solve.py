@@ -368,16 +368,13 @@ def _run(
         lambda s: _iterate.trial(rule, path, s, stopping, verbose=verbose, label="graph.solve"),
         state,
     )
-    variables, cost, initial_cost = eqx.error_if(  # on every output a caller may keep alone
-        (out.params, out.cost, out.initial_cost),
-        ~jnp.isfinite(out.initial_cost),
-        "solve: the cost is not finite at the initial variables (check measurements, "
-        "information matrices and initial values)",
-    )
+    out = _iterate.check_initial_cost(
+        out, "solve: the cost is not finite at the initial variables (check measurements, "
+        "information matrices and initial values)")
     return GraphSolution(
-        variables=variables,
-        cost=cost,
-        initial_cost=initial_cost,
+        variables=out.params,
+        cost=out.cost,
+        initial_cost=out.initial_cost,
         iterations=out.num_steps,
         status=out.status,
         history=out.history[1:],

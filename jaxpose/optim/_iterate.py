@@ -106,6 +106,18 @@ def start_status(finite: Array, grad_inf: Array, stopping: Stopping) -> Array:
     ).astype(jnp.int32)
 
 
+def check_initial_cost(state: SolverState, message: str) -> SolverState:
+    """``state`` after a loop whose first trial set the initial cost: ``message`` is raised
+    (``eqx.error_if``) where that cost is not finite, from the params, best params and
+    every cost, so a caller keeping any one of them alone still gets it (XLA drops a check
+    nothing uses)."""
+    def outputs(s: SolverState) -> tuple[Any, ...]:
+        return s.params, s.best_params, s.cost, s.best_cost, s.initial_cost
+
+    checked = eqx.error_if(outputs(state), ~jnp.isfinite(state.initial_cost), message)
+    return eqx.tree_at(outputs, state, checked)
+
+
 def init(rule: Rule, params: PyTree, system: Any, cost: Array, stopping: Stopping, *,
          history: bool, status: Array | None = None) -> SolverState:
     """Initial state at ``params`` with cost ``cost``.

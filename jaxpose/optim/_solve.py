@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from .._precision import full_precision
+from . import _iterate
 from ._correctors import Corrector
 from ._implicit import ImplicitAdjoint, UnrolledAdjoint, implicit_solve
 from ._problem import Problem, as_problem
@@ -57,10 +58,7 @@ def _runner(
                 )
             else:
                 state = jax.lax.while_loop(cond, body, state)
-            # on every output a caller may keep alone (XLA drops a check nothing uses)
-            outputs = lambda s: (s.best_params, s.best_cost, s.initial_cost)  # noqa: E731
-            state = eqx.tree_at(outputs, state, eqx.error_if(
-                outputs(state), ~jnp.isfinite(state.initial_cost), INITIAL_NOT_FINITE))
+            state = _iterate.check_initial_cost(state, INITIAL_NOT_FINITE)
         return _to_solution(state, history)
 
     return run
