@@ -193,19 +193,22 @@ def _between_hessian(kernel: Any, xi: LieGroup, xj: LieGroup, z: LieGroup,
     group = type(xi)
     rel = xi.inv().compose(xj)
     r = z.inv().compose(rel).log().data
-    jac = group._jl_inv_principal(-r)  # Jr⁻¹(r) = Jl⁻¹(−r), |r's angle| ≤ π
     if sqrt is None:
-        sjac, sr, y = jac, r, r
+        sr, y = r, r
     else:  # products by elements: batched 6×6 dots are slow on XLA:CPU
         sqrt = sqrt.astype(r.dtype)
-        sjac, sr = small_matmul(sqrt, jac), jnp.sum(sqrt * r, -1)
+        sr = jnp.sum(sqrt * r, -1)
         y = jnp.sum(sqrt * sr[:, None], 0)  # Sᵀ·S·r
-    jty = jnp.sum(jac * y[:, None], 0)
 
-    def jr_inv_t_y(rr: Array) -> Array:
-        return jnp.sum(group._jl_inv_principal(-rr) * y[:, None], 0)
+    def jr_inv_t_y(rr: Array) -> tuple[Array, tuple[Array, Array]]:
+        jac = group._jl_inv_principal(-rr)  # Jr⁻¹(r) = Jl⁻¹(−r), |r's angle| ≤ π
+        jty = jnp.sum(jac * y[:, None], 0)
+        return jty, (jty, jac)
 
-    kj = small_matmul(jax.jacfwd(jr_inv_t_y)(r), jac)
+    # K and, from the same pass, Jᵀy and J itself
+    kmat, (jty, jac) = jax.jacfwd(jr_inv_t_y, has_aux=True)(r)
+    sjac = jac if sqrt is None else small_matmul(sqrt, jac)
+    kj = small_matmul(kmat, jac)
     hh = small_matmul(sjac.T, sjac) + 0.5 * (kj + kj.T)
     if kernel is not None:
         s = jnp.sum(sr * sr)
