@@ -52,6 +52,7 @@ from ._problem import (
     free_flat,
     group_blocks,
     retract_all,
+    stored_together,
 )
 from ._schur import (
     SchurParts,
@@ -85,14 +86,14 @@ def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
     blocks = [b + zero.astype(b.dtype) for b in st.pattern.zeros(dtype)]
     for k in range(len(graph.factors)):
         blocks = _add_factor_hessians(graph, k, variables, blocks)
-    values = st.pattern.csr(blocks)
+    values = st.pattern.csr(st.pattern.without_fixed(blocks, st.free))
     return values.at[st.diag_pos].add(1.0 - free_flat(graph, dtype))
 
 
 def _add_factor_hessians(graph: FactorGraph, k: int, variables: Variables,
                          blocks: list[Array]) -> list[Array]:
-    """``blocks`` plus the exact per-factor Hessians of factor group ``k`` (their blocks
-    of fixed variables zeroed), in chunks (:func:`_over_chunks`)."""
+    """``blocks`` plus the exact per-factor Hessians of factor group ``k`` (blocks of
+    fixed variables included), in chunks (:func:`_over_chunks`)."""
     def add(blocks: list[Array], hess: Any, take: Callable[[Any], Any], new: Array,
             start: Array) -> list[Array]:
         return scatter_blocks(blocks, group_blocks(graph, k, lambda _, s, t: hess[s][t], take),
@@ -104,7 +105,7 @@ def _add_factor_hessians(graph: FactorGraph, k: int, variables: Variables,
 def _over_chunks(graph: FactorGraph, k: int, variables: Variables, carry: Any,
                  consume: Callable[..., Any]) -> Any:
     """Fold ``consume(carry, hess, take, new, start)`` over factor group ``k``'s exact
-    per-factor Hessian blocks (:func:`_masked_hessians`), :data:`HESSIAN_CHUNK` factors
+    per-factor Hessian blocks (:func:`_factor_hessians`), :data:`HESSIAN_CHUNK` factors
     per loop step: ``hess[s][t]`` (chunk, d_s, d_t) of the factors ``start + i``,
     ``take(a)`` the chunk's rows of a per-factor array, ``new`` (chunk,) the rows no
     earlier step held. The last chunk ends at the last factor and overlaps its
@@ -119,26 +120,21 @@ def _over_chunks(graph: FactorGraph, k: int, variables: Variables, carry: Any,
         start = jnp.minimum(i * size, f.count - size)
         new = jnp.arange(size) + start >= i * size
         take = partial(jax.tree.map, lambda a: jax.lax.dynamic_slice_in_dim(a, start, size))
-        hess = _masked_hessians(graph, k, variables, take(f.indices), take(f.data),
+        hess = _factor_hessians(f, variables, take(f.indices), take(f.data),
                                 take(f.sqrt_info))
         return consume(carry, hess, take, new, start)
 
     return jax.lax.fori_loop(0, -(-f.count // size), step, carry)
 
 
-def _masked_hessians(graph: FactorGraph, k: int, variables: Variables,
-                     idx: tuple[Array, ...], data: Any, sqrt: Any) -> list[list[Array]]:
-    """``hess[s][t]`` (m, d_s, d_t): exact Hessian blocks of the factors of group ``k``
+def _factor_hessians(f: Any, variables: Variables, idx: tuple[Array, ...], data: Any,
+                     sqrt: Any) -> list[list[Array]]:
+    """``hess[s][t]`` (m, d_s, d_t): exact Hessian blocks of the factors of group ``f``
     with variable indices ``idx``, ``data`` and ``sqrt`` information, the blocks of fixed
-    variables zero."""
-    st = graph.structure
-    f = graph.factors[k]
-    type_of = {n: t for t, n in enumerate(st.names)}
+    variables included: consumers zero those after summing (a mask here is fused into
+    every block's computation by XLA:CPU, which doubled parking-garage's exact Hessian)."""
     vals = [_gather(variables[s], i) for s, i in zip(f.slots, idx, strict=True)]
-    hess = _factor_hessian(f, vals)(vals, data, sqrt)
-    free = [jnp.asarray(st.free[type_of[s]])[i] for s, i in zip(f.slots, idx, strict=True)]
-    return [[h * (free[s] * free[t])[:, None, None].astype(h.dtype) for t, h in enumerate(row)]
-            for s, row in enumerate(hess)]
+    return _factor_hessian(f, vals)(vals, data, sqrt)
 
 
 def _factor_hessian(f: Any, values: list[Any]) -> Callable[..., Any]:
@@ -146,8 +142,13 @@ def _factor_hessian(f: Any, values: list[Any]) -> Callable[..., Any]:
     ``hess[s][t]`` (batch, d_s, d_t) is the Hessian of the factor's ½ρ(|S·r|²) in the
     tangent charts of its slots s and t at δ = 0."""
     if _is_between(f, values):
-        return lambda vals, data, sqrt: jax.vmap(partial(_between_hessian, f.kernel))(
-            *vals, data, sqrt)
+        def between(vals: list[Any], data: Any, sqrt: Any) -> list[list[Array]]:
+            (hii, hij), (hji, hjj) = jax.vmap(partial(_between_hessian, f.kernel))(
+                *vals, data, sqrt)
+            hii, hij, hji, hjj = stored_together((hii, hij, hji, hjj))
+            return [[hii, hij], [hji, hjj]]
+
+        return between
 
     def local_cost(deltas: tuple[Array, ...], point: tuple[Any, ...], data: Any,
                    sqrt: Any) -> Array:
@@ -372,7 +373,19 @@ def _exact_schur_parts(graph: FactorGraph, xs: Variables) -> SchurParts:
 
         return _over_chunks(graph, n, xs, acc, add)
 
-    return schur_parts_by_group(graph, dtype, fill, zero)
+    return _schur_without_fixed(graph, schur_parts_by_group(graph, dtype, fill, zero))
+
+
+def _schur_without_fixed(graph: FactorGraph, parts: SchurParts) -> SchurParts:
+    """``parts`` with every block of a fixed variable zeroed (U's, V's and the entries B)."""
+    st = graph.structure
+    sc = st.schur
+    free, e = st.free, sc.eliminated
+    u = sc.pattern.without_fixed(parts.u, [free[k] for k in sc.kept])
+    v = parts.v * free[e].astype(parts.v.dtype)[:, None, None]
+    w = [b * (free[k][var] * free[e][point]).astype(b.dtype)[:, None, None]
+         for b, k, var, point in zip(parts.w, sc.kept, sc.w_var, sc.w_point, strict=True)]
+    return SchurParts(u, v, w)
 
 
 def _diagonal_blocks(graph: FactorGraph, values: Array) -> tuple[Array, ...]:

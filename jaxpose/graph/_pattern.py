@@ -52,6 +52,13 @@ class BlockPattern(eqx.Module):
         """Class arrays → CSR values (nnz,)."""
         return jnp.concatenate([b.reshape(-1) for b in blocks])[self.perm]
 
+    def without_fixed(self, blocks: Sequence[Array], free: Sequence[Array]) -> list[Array]:
+        """Class arrays with every block of a fixed variable (row or column) zeroed;
+        ``free[t]`` (counts[t],) is 1 for the free variables of type t, 0 for fixed ones."""
+        return [b * (free[a][r] * free[t][c]).astype(b.dtype)[:, None, None]
+                for b, (a, t, _), r, c in zip(blocks, self.classes, self.block_rows,
+                                              self.block_cols, strict=True)]
+
 
 def build_pattern(
     counts: Sequence[int],

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..lie import manifold
 from ..lie._base import LieGroup, small_matmul
+from ..lie.series import computed_once
 from ._analysis import (
     Structure,
     Variables,
@@ -215,10 +216,26 @@ def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
             j * st.free[type_of[slot]][idx][:, None, None].astype(j.dtype)
             for j, slot, idx in zip(jac, f.slots, f.indices, strict=True)
         )
+        jac = stored_together(jac)  # the slots' blocks share most of their computation
         residuals.append(r)
         jacobians.append(jac)
         total = total + 0.5 * jnp.sum(rho)
     return GraphLinearization(tuple(residuals), tuple(jacobians), jnp.asarray(total))
+
+
+def stored_together(arrays: Sequence[Array]) -> tuple[Array, ...]:
+    """``arrays`` unchanged, those of one shape and dtype computed by one fused loop and
+    stored (:func:`~jaxpose.lie.series.computed_once`). XLA:CPU otherwise fuses the work
+    they share into the consumer of each (a block product, a scatter-add) and repeats it
+    there: a between factor's two Jacobians, parking-garage's linearisation and H
+    assembly 8.4 → 5.7 ms; its four exact Hessian blocks, 19 → 12 ms."""
+    out = list(arrays)
+    for key in dict.fromkeys((a.shape, a.dtype) for a in arrays):
+        same = [i for i, a in enumerate(arrays) if (a.shape, a.dtype) == key]
+        if len(same) > 1:
+            for i, a in zip(same, computed_once(*(arrays[i] for i in same)), strict=True):
+                out[i] = a
+    return tuple(out)
 
 
 def _dtype(p: Any) -> Any:

@@ -492,9 +492,10 @@ def computed_once(*xs: Array) -> tuple[Array, ...]:
     element: a coefficient broadcast over a 6×6 block ran 36 times (SE(3)'s Jr⁻¹ 7x slower).
     A product with the identity is a dot, which XLA neither fuses nor simplifies away
     (``jax.lax.optimization_barrier`` is removed before fusion on CPU); it is exact for
-    finite values."""
-    stacked = jnp.stack(xs, -1)
-    out = jnp.matmul(stacked, jnp.eye(len(xs), dtype=stacked.dtype),
+    finite values. One array goes in twice (XLA simplifies a 1×1 dot into a product)."""
+    lanes = xs if len(xs) > 1 else (xs[0], xs[0])
+    stacked = jnp.stack(lanes, -1)
+    out = jnp.matmul(stacked, jnp.eye(len(lanes), dtype=stacked.dtype),
                      precision=jax.lax.Precision.HIGHEST)
     return tuple(out[..., i] for i in range(len(xs)))
 

@@ -372,3 +372,23 @@ def test_quat_log_coeff_derivatives_against_mpmath():
         assert np.abs(h - h_ref).max() <= 1e-11 * np.abs(h_ref).max(), (n2, w, h, h_ref)
     # at n = 0 the derivative in n² is the series' leading term −2/(3w³)
     np.testing.assert_allclose(float(grad(0.0, 0.5)[0]), -2.0 / (3 * 0.125), rtol=1e-15)
+
+
+@pytest.mark.parametrize("count", [1, 3])
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_computed_once_is_the_identity_through_a_dot(count, dtype):
+    """``computed_once`` returns its arrays bit for bit, with identity derivatives, under
+    jit and vmap, and the compiled program keeps the dot that stores them (a single
+    array's 1×1 dot used to be simplified into a product, which XLA fuses again)."""
+    rng = np.random.default_rng(count)
+    arrays = tuple(jnp.asarray(rng.normal(size=(5, 6, 6)), dtype) for _ in range(count))
+    fn = jax.jit(series.computed_once)
+    for out, a in zip(fn(*arrays), arrays, strict=True):
+        assert out.dtype == a.dtype and np.array_equal(np.asarray(out), np.asarray(a))
+    batched = jax.jit(jax.vmap(series.computed_once))(*arrays)
+    assert all(np.array_equal(np.asarray(o), np.asarray(a)) for o, a in zip(batched, arrays))
+    tangents = tuple(jnp.asarray(rng.normal(size=a.shape), dtype) for a in arrays)
+    _, t_out = jax.jvp(series.computed_once, arrays, tangents)
+    assert all(np.array_equal(np.asarray(o), np.asarray(t)) for o, t in zip(t_out, tangents))
+    hlo = fn.lower(*arrays).compile().as_text()
+    assert " dot(" in hlo, "computed_once's dot was simplified away"
