@@ -69,8 +69,9 @@ HESSIAN_CHUNK = 1024
 """Factors per step of the exact Hessian's loop: its per-factor temporaries (dozens of
 (chunk, d, d) arrays from differentiating twice) stay this many factors deep instead of
 the whole graph's, which keeps the backward's peak memory near the forward's. Each step
-costs the dispatch of a few hundred small XLA kernels (~3.5 ms on XLA:CPU, parking-garage):
-512 doubled the Hessian's time (80 vs 37 ms), 1024 matches the unchunked one."""
+costs the dispatch of its XLA kernels: on parking-garage the exact Hessian takes ~17 ms
+in steps of 1024 against ~14 ms in one step, whose temporaries are 3.7x larger (24.6 vs
+6.6 MB, more than the whole forward solve's 15.6 MB)."""
 
 
 def exact_hessian_csr(graph: FactorGraph, variables: Variables) -> Array:
