@@ -7,12 +7,12 @@ Each :meth:`FixedLagSmoother.update`:
 
 1. marginalises the oldest state, if the window is full: the factors touching slot 0
    (its unary factors, the motion factor to slot 1, loop factors ending in slot 0) and
-   the current prior are linearised at the linearisation point (below) and slot 0 is
-   eliminated (Schur complement). The result is the new prior, stored as information
-   ``H_p`` (n, n) and gradient ``g_p`` (n,) in the tangent chart at a linearisation point
-   ``x̄`` (the linearisation point at marginalisation time): ``cost_p(x) = g_pᵀδ +
-   ½δᵀH_pδ`` with ``δ = x ⊖ x̄`` per slot (``Log(x̄⁻¹x)`` for groups). Those factors
-   are dropped.
+   the current prior, linearised at the linearisation point (below) at the end of the
+   previous update, and slot 0 is eliminated (Schur complement). The result is the new
+   prior, stored as information ``H_p`` (n, n) and gradient ``g_p`` (n,) in the tangent
+   chart at a linearisation point ``x̄`` (the linearisation point at marginalisation
+   time): ``cost_p(x) = g_pᵀδ + ½δᵀH_pδ`` with ``δ = x ⊖ x̄`` per slot (``Log(x̄⁻¹x)``
+   for groups). Those factors are dropped.
 2. shifts the window by one slot and appends the new state (initial guess) and the
    step's factor data (a motion factor to the previous state, unary factors, up to
    ``M`` loop factors to older states still in the window; loop factors whose other end
@@ -21,22 +21,30 @@ Each :meth:`FixedLagSmoother.update`:
 3. solves the window by Gauss–Newton until the largest change of the estimate (tangent
    components) is below ``tol``: without loop factors the system is block tridiagonal
    and is eliminated oldest slot first in ``O(K·d³)`` (:meth:`_eliminate`, ``d`` the
-   tangent size of one state); with them it is dense (``n = K·d``, Cholesky).
+   tangent size of one state); with them it is dense (``n = K·d``, Cholesky). The
+   smoother keeps the linearisation its last step was computed from (a chain's
+   elimination, else the dense systems) and that point, ``lin``: the next
+   marginalisation and :meth:`FixedLagSmoother.marginal_covariances` read it, so an
+   update's program linearises the factors at one place (three before: 2.5x the
+   StableHLO operations for the IMU + GPS smoother with covariances). At convergence
+   the estimate is ``lin ⊕`` a last step below ``tol``, as in iSAM2, whose linearisation
+   point also trails its estimate.
 
 Incremental updates (``relinearize_threshold`` set; chains with first-estimate
 Jacobians only). The smoother keeps the oldest-first elimination of the window at its
-linearisation point ``lin``: the message into every slot (the information the older
-slots and the prior pass on) and the back-substitution ``Δ_s = a_s + M_s·Δ_{s+1}``.
-Eliminating slot 0 leaves exactly the message into slot 1, so marginalisation takes
-that message as the new prior, at no cost; a new state only needs its own factors
-linearised and the last two slots eliminated (``O(d³)``), then one back-substitution
-(``O(K·d²)``) gives the estimate ``lin ⊕ Δ``. The non-frozen states whose step ``Δ``
-exceeds the threshold (largest tangent component; or is not finite) are re-linearised
-at their estimate and the window is eliminated again from the oldest of them
-(``O((K − j)·d³)``; iSAM2 re-linearises lazily the same way). ``iterations`` is then 1,
-else 0. With ``relinearize_skip = n > 1`` the threshold is checked only at every n-th
-update (iSAM2's ``relinearizeSkip``, default 10 there); a step that is not finite
-re-linearises at any update.
+linearisation point ``lin`` (as every chain does): the message into every slot (the
+information the older slots and the prior pass on) and the back-substitution
+``Δ_s = a_s + M_s·Δ_{s+1}``. Eliminating slot 0 leaves exactly the message into
+slot 1, so marginalisation takes that message as the new prior, at no cost; a new
+state only needs its own factors linearised and the last two slots eliminated
+(``O(d³)``), then one back-substitution (``O(K·d²)``) gives the estimate ``lin ⊕ Δ``.
+The non-frozen states whose step ``Δ`` exceeds the threshold (largest tangent
+component; or is not finite) are re-linearised at their estimate and the window is
+eliminated again from the oldest of them (``O((K − j)·d³)``; iSAM2 re-linearises
+lazily the same way). ``iterations`` is then 1, else 0. With ``relinearize_skip =
+n > 1`` the threshold is checked only at every n-th update (iSAM2's
+``relinearizeSkip``, default 10 there); a step that is not finite re-linearises at any
+update.
 
 The prior's linearisation point ``x̄`` never moves while the prior exists. With
 ``first_estimate=True`` (default; GTSAM's ``BatchFixedLagSmoother``, whose
@@ -136,11 +144,18 @@ class FixedLagSmoother(eqx.Module):
     is solved with block-tridiagonal Cholesky in O(K·d³)), ``prior_point`` (K, ...)
     stacked linearisation point, ``frozen`` (K,) states in the prior,
     ``count`` () number of filled slots (≤ K), ``iterations`` () Gauss–Newton iterations of
-    the last update (incremental mode: 1 if it re-linearised, else 0). Incremental mode
-    only (else None): ``lin`` (K, ...) the linearisation point, ``msg_info`` (K, d, d)
-    and ``msg_grad`` (K, d) the message into each slot, ``back_a`` (K, d) and ``back_m``
-    (K, d, d) the back-substitution (module docstring), ``phase`` () the number of
-    updates modulo ``relinearize_skip`` (the threshold is checked when it returns to 0).
+    the last update (incremental mode: 1 if it re-linearised, else 0), ``lin`` (K, ...)
+    the linearisation point (:meth:`linearization_point`) of the kept linearisation:
+    for chains (``max_loops=0``; else None) the oldest-first elimination of the window
+    (module docstring), ``msg_info`` (K, d, d) and ``msg_grad`` (K, d) the message into
+    each slot, ``back_a`` (K, d), ``back_m`` (K, d, d) and ``back_chol`` (K, d, d) the
+    back-substitution ``Δ_s = a_s + M_s·Δ_{s+1}`` and the lower Cholesky factor of the
+    information of ``Δ_s`` given ``Δ_{s+1}``; with loop factors (else None) the window
+    systems, ``window_info`` (n, n) the Gauss–Newton information, ``first_info`` (n, n)
+    and ``first_grad`` (n,) the part of the factors touching slot 0 and the prior (what
+    the next marginalisation eliminates). Incremental mode only (else None): ``phase``
+    () the number of updates modulo ``relinearize_skip`` (the threshold is checked when
+    it returns to 0).
     """
 
     states: PyTree
@@ -159,6 +174,10 @@ class FixedLagSmoother(eqx.Module):
     msg_grad: Array | None
     back_a: Array | None
     back_m: Array | None
+    back_chol: Array | None
+    window_info: Array | None
+    first_info: Array | None
+    first_grad: Array | None
     phase: Array | None
     motion: Callable[..., Array] = eqx.field(static=True)
     unary: Callable[..., Array] | None = eqx.field(static=True)
@@ -284,15 +303,22 @@ class FixedLagSmoother(eqx.Module):
                     f"got {relinearize_threshold!r}"
                 )
             relinearize_threshold = float(relinearize_threshold)
-            self.lin = _stack(state, k)
+            self.phase = jnp.zeros((), jnp.int32)
+        else:
+            self.phase = None
+        self.lin = _stack(state, k)
+        if self.chain:
             self.msg_info = jnp.zeros((k, d, d), dtype)
             self.msg_grad = jnp.zeros((k, d), dtype)
             self.back_a = jnp.zeros((k, d), dtype)
             self.back_m = jnp.zeros((k, d, d), dtype)
-            self.phase = jnp.zeros((), jnp.int32)
+            self.back_chol = jnp.zeros((k, d, d), dtype)
+            self.window_info = self.first_info = self.first_grad = None
         else:
-            self.lin = self.msg_info = self.msg_grad = self.back_a = self.back_m = None
-            self.phase = None
+            self.msg_info = self.msg_grad = self.back_a = self.back_m = self.back_chol = None
+            self.window_info = jnp.zeros((p, p), dtype)
+            self.first_info = jnp.zeros((p, p), dtype)
+            self.first_grad = jnp.zeros((p,), dtype)
         self.relinearize_threshold = relinearize_threshold
         self.relinearize_skip = relinearize_skip
 
@@ -312,11 +338,12 @@ class FixedLagSmoother(eqx.Module):
         return _take(self.states, self.window - 1)
 
     def linearization_point(self) -> PyTree:
-        """(K, ...) where the factors are linearised: the prior's point for the states in
-        the prior (with first-estimate Jacobians), the estimate elsewhere."""
-        if self.relinearize_threshold is not None:
-            return self.lin
-        return _where(self.frozen, self.prior_point, self.states)
+        """(K, ...) where the kept linearisation was computed (``lin``): the prior's
+        point for the states in the prior (with first-estimate Jacobians); elsewhere the
+        Gauss–Newton iterate of the last step (the estimate is that point ⊕ the last
+        step, below ``tol`` at convergence), or in incremental mode the point of the
+        last re-linearisation."""
+        return self.lin
 
     def _unravel(self) -> Callable[[Array], PyTree]:
         return manifold.flat_tangent(_take(self.states, 0))[1]
@@ -420,20 +447,22 @@ class FixedLagSmoother(eqx.Module):
         """Eliminate one slot (see :meth:`_eliminate`): ``msg`` (info, grad) into it,
         its ``unary`` (info, grad), ``empty`` (d, d) identity if the slot is empty, the
         ``pair`` blocks of its motion factor to the next slot. Returns the message into
-        the next slot, ``a_s`` and ``M_s``."""
+        the next slot, ``a_s``, ``M_s`` and the lower Cholesky factor ``L_s`` of
+        ``Λ_s + AᵀA`` (``C_s = L_s⁻ᵀL_s⁻¹``)."""
         d = self.tangent_dim
         aa, ab, bb, ar, br = pair
-        lam = msg[0] + unary[0] + aa + empty
+        cf = jsl.cho_factor(msg[0] + unary[0] + aa + empty, lower=True)
         rhs = jnp.concatenate([ab, (msg[1] + unary[1] + ar)[:, None]], axis=1)
-        sol = -jsl.cho_solve(jsl.cho_factor(lam), rhs)
+        sol = -jsl.cho_solve(cf, rhs)
         m_s, a_s = sol[:, :d], sol[:, d]
-        return (bb + ab.T @ m_s, br + ab.T @ a_s), a_s, m_s
+        return (bb + ab.T @ m_s, br + ab.T @ a_s), a_s, m_s, cf[0]
 
     @staticmethod
-    def _newest_step(msg, unary, empty) -> Array:
-        """``a`` of the newest slot of an elimination (no factor to a next slot)."""
-        lam = msg[0] + unary[0] + empty
-        return -jsl.cho_solve(jsl.cho_factor(lam), msg[1] + unary[1])
+    def _newest_step(msg, unary, empty) -> tuple[Array, Array]:
+        """``a`` and ``L`` of the newest slot of an elimination (no factor to a next
+        slot): its step and the lower Cholesky factor of its information ``Λ``."""
+        cf = jsl.cho_factor(msg[0] + unary[0] + empty, lower=True)
+        return -jsl.cho_solve(cf, msg[1] + unary[1]), cf[0]
 
     def _empty_blocks(self, slots: Array) -> Array:
         """(n, d, d) identity for the empty slots among ``slots``, zero elsewhere."""
@@ -453,8 +482,13 @@ class FixedLagSmoother(eqx.Module):
         ``Δ_s = a_s + M_s·Δ_{s+1}`` with ``[M_s, a_s] = −(Λ_s + AᵀA)⁻¹[AᵀB, η_s + Aᵀr]``
         (``M_{hi−1} = 0``). Empty slots get an identity block (their Δ is 0).
 
+        The conditional covariance of ``Δ_s`` given ``Δ_{s+1}`` is ``C_s = (Λ_s +
+        AᵀA)⁻¹`` (``Λ⁻¹`` for the newest slot), so the marginal covariances follow from
+        ``Σ_s = C_s + M_s·Σ_{s+1}·M_sᵀ`` (:meth:`marginal_covariances`).
+
         Returns the messages (n, d, d), (n, d) into slots ``lo..hi−1`` (the first is the
-        input) and ``a`` (n, d), ``M`` (n, d, d), ``n = hi − lo``.
+        input), ``a`` (n, d), ``M`` (n, d, d) and ``L`` (n, d, d) the lower Cholesky
+        factors of ``C⁻¹``, ``n = hi − lo``.
         """
         slots = jnp.arange(lo, hi)
         info, grad, pairs = self._chain_terms(y, slots)
@@ -462,17 +496,18 @@ class FixedLagSmoother(eqx.Module):
 
         def step(msg, inp):
             u_info, u_grad, empty_s, pair = inp
-            nxt, a_s, m_s = self._elimination_step(msg, (u_info, u_grad), empty_s, pair)
-            return nxt, (nxt, a_s, m_s)
+            nxt, a_s, m_s, c_s = self._elimination_step(msg, (u_info, u_grad), empty_s, pair)
+            return nxt, (nxt, a_s, m_s, c_s)
 
         head = jax.tree.map(lambda v: v[:-1], (info, grad, empty, pairs))
-        last, ((infos, grads), a, m) = jax.lax.scan(step, (msg_info, msg_grad), head)
-        a_last = self._newest_step(last, (info[-1], grad[-1]), empty[-1])
+        last, ((infos, grads), a, m, c) = jax.lax.scan(step, (msg_info, msg_grad), head)
+        a_last, c_last = self._newest_step(last, (info[-1], grad[-1]), empty[-1])
         return (
             jnp.concatenate([msg_info[None], infos]),
             jnp.concatenate([msg_grad[None], grads]),
             jnp.concatenate([a, a_last[None]]),
             jnp.concatenate([m, jnp.zeros_like(empty[:1])]),
+            jnp.concatenate([c, c_last[None]]),
         )
 
     def _reeliminate(self, lo: Array) -> FixedLagSmoother:
@@ -485,29 +520,41 @@ class FixedLagSmoother(eqx.Module):
             return c[0] < k - 1
 
         def body(c):
-            s, info, grad, a, m = c
+            s, info, grad, a, m, cov = c
             u_info, u_grad, pair = self._chain_terms(self.lin, s[None])
-            (ni, ng), a_s, m_s = self._elimination_step(
+            (ni, ng), a_s, m_s, c_s = self._elimination_step(
                 (info[s], grad[s]),
                 (u_info[0], u_grad[0]),
                 self._empty_blocks(s[None])[0],
                 jax.tree.map(lambda v: v[0], pair),
             )
             info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
-            return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s)
+            return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s), cov.at[s].set(c_s)
 
-        cache = (self.msg_info, self.msg_grad, self.back_a, self.back_m)
-        _, info, grad, a, m = jax.lax.while_loop(cond, body, (jnp.asarray(lo), *cache))
+        _, info, grad, a, m, cov = jax.lax.while_loop(
+            cond, body, (jnp.asarray(lo), *self._linearization()))
         newest = jnp.arange(k - 1, k)
         u_info, u_grad, _ = self._chain_terms(self.lin, newest, pairs=False)
-        a_last = self._newest_step(
+        a_last, c_last = self._newest_step(
             (info[-1], grad[-1]), (u_info[0], u_grad[0]), self._empty_blocks(newest)[0]
         )
-        return eqx.tree_at(
-            lambda s: (s.msg_info, s.msg_grad, s.back_a, s.back_m),
-            self,
-            (info, grad, a.at[-1].set(a_last), m.at[-1].set(0.0)),
-        )
+        return self._with_linearization(
+            (info, grad, a.at[-1].set(a_last), m.at[-1].set(0.0), cov.at[-1].set(c_last)))
+
+    def _linearization(self) -> tuple[Array, ...]:
+        """The kept linearisation at the linearisation point: the elimination ``(msg_info,
+        msg_grad, back_a, back_m, back_chol)`` of a chain, else ``(window_info,
+        first_info, first_grad)``."""
+        if self.chain:
+            return self.msg_info, self.msg_grad, self.back_a, self.back_m, self.back_chol
+        return self.window_info, self.first_info, self.first_grad
+
+    def _with_linearization(self, cache: tuple[Array, ...]) -> FixedLagSmoother:
+        """This smoother keeping ``cache`` (as :meth:`_linearization` returns it)."""
+        if self.chain:
+            return eqx.tree_at(
+                lambda s: (s.msg_info, s.msg_grad, s.back_a, s.back_m, s.back_chol), self, cache)
+        return eqx.tree_at(lambda s: (s.window_info, s.first_info, s.first_grad), self, cache)
 
     @staticmethod
     def _back_substitute(a: Array, m: Array) -> Array:
@@ -521,42 +568,43 @@ class FixedLagSmoother(eqx.Module):
         _, xs = jax.lax.scan(step, jnp.zeros_like(a[0]), (a, m), reverse=True)
         return xs
 
-    def _system(self, x: PyTree, touching_first: bool) -> tuple[Array, Array, Array]:
-        """Gauss–Newton system (H (n, n), g (n,), cost) at ``x``; with
-        ``touching_first`` only the factors touching slot 0 (and the prior)."""
+    def _system(self, x: PyTree) -> tuple[tuple[Array, Array, Array], tuple[Array, Array]]:
+        """Gauss–Newton systems at ``x`` from one linearisation: ``(H (n, n), g (n,),
+        cost)`` of every factor and the prior, and ``(H, g)`` of the factors touching
+        slot 0 and the prior (what marginalisation eliminates)."""
         k, d = self.window, self.tangent_dim
         dtype = self.prior_grad.dtype
         valid = self.valid
-        h = jnp.zeros((k, d, k, d), dtype)
-        g = jnp.zeros((k, d), dtype)
-        cost = jnp.zeros((), dtype)
+        zero = (jnp.zeros((k, d, k, d), dtype), jnp.zeros((k, d), dtype))
+        acc = (*zero, jnp.zeros((), dtype)), zero
 
-        def add(h, g, cost, a, b, r, ja, jb, mask):
+        def add(acc, a, b, r, ja, jb, mask):
             mask = mask.astype(bool)
             r = jnp.where(mask[:, None], r, 0.0)
             ja = jnp.where(mask[:, None, None], ja, 0.0)
             jb = jnp.where(mask[:, None, None], jb, 0.0)
-            h = h.at[a, :, a, :].add(small_matmul(ja.mT, ja))
-            h = h.at[a, :, b, :].add(small_matmul(ja.mT, jb))
-            h = h.at[b, :, a, :].add(small_matmul(jb.mT, ja))
-            h = h.at[b, :, b, :].add(small_matmul(jb.mT, jb))
-            g = g.at[a].add(jnp.einsum("mra,mr->ma", ja, r))
-            g = g.at[b].add(jnp.einsum("mra,mr->ma", jb, r))
-            return h, g, cost + 0.5 * jnp.sum(r * r)
+            blocks = ((a, a, small_matmul(ja.mT, ja)), (a, b, small_matmul(ja.mT, jb)),
+                      (b, a, small_matmul(jb.mT, ja)), (b, b, small_matmul(jb.mT, jb)))
+            grads = ((a, jnp.einsum("mra,mr->ma", ja, r)), (b, jnp.einsum("mra,mr->ma", jb, r)))
+            first = (a == 0) | (b == 0)  # the factors touching slot 0
+            out = []
+            for (h, g), w in ((acc[0][:2], jnp.ones_like(first)), (acc[1], first)):
+                for i, j, blk in blocks:
+                    h = h.at[i, :, j, :].add(jnp.where(w[:, None, None], blk, 0.0))
+                for i, gr in grads:
+                    g = g.at[i].add(jnp.where(w[:, None], gr, 0.0))
+                out.append((h, g))
+            return (*out[0], acc[0][2] + 0.5 * jnp.sum(r * r)), out[1]
 
         slots = jnp.arange(k)
         # motion factors (s-1, s), s = 1..K-1
         a, b = slots[:-1], slots[1:]
         r, ja, jb = self._pair_terms(self.motion, _take(x, a), _take(x, b), _take(self.data, b), d)
-        mask = valid[a] & valid[b]
-        if touching_first:
-            mask = mask & (a == 0)
-        h, g, cost = add(h, g, cost, a, b, r, ja, jb, mask)
+        acc = add(acc, a, b, r, ja, jb, valid[a] & valid[b])
         # unary factors
         if self.unary is not None:
             r, ju = self._unary_terms(x, slots)
-            mask = valid if not touching_first else valid & (slots == 0)
-            h, g, cost = add(h, g, cost, slots, slots, r, ju, jnp.zeros_like(ju), mask)
+            acc = add(acc, slots, slots, r, ju, jnp.zeros_like(ju), valid)
         # loop factors (s - lag, s)
         m = self.loop_lag.shape[1]
         if self.loop is not None and m > 0:
@@ -566,13 +614,9 @@ class FixedLagSmoother(eqx.Module):
             ok = (a >= 0) & (lag >= 1) & self.loop_valid.reshape(-1)
             a = jnp.clip(a, 0, k - 1)
             ok = ok & valid[a] & valid[b]
-            if touching_first:
-                ok = ok & (a == 0)
             ld = jax.tree.map(lambda v: v.reshape(k * m, *v.shape[2:]), self.loop_data)
             r, ja, jb = self._pair_terms(self.loop, _take(x, a), _take(x, b), ld, d)
-            h, g, cost = add(h, g, cost, a, b, r, ja, jb, ok)
-        h = h.reshape(k * d, k * d)
-        g = g.reshape(k * d)
+            acc = add(acc, a, b, r, ja, jb, ok)
         # prior: g_pᵀδ + ½δᵀH_pδ, δ = x ⊖ x̄ per slot
         pinfo, pgrad = self._prior_dense()
         delta = jax.vmap(self._minus)(x, self.prior_point)  # (K, d)
@@ -586,12 +630,13 @@ class FixedLagSmoother(eqx.Module):
         else:
             jac = jnp.broadcast_to(jnp.eye(d, dtype=dtype), (k, d, d))
         dv = delta.reshape(-1)
-        hp4 = pinfo.reshape(k, d, k, d)
-        h = h + jnp.einsum("iab,iajc,jcd->ibjd", jac, hp4, jac).reshape(k * d, k * d)
-        grad_p = (pinfo @ dv + pgrad).reshape(k, d)
-        g = g + jnp.einsum("iab,ia->ib", jac, grad_p).reshape(-1)
-        cost = cost + pgrad @ dv + 0.5 * dv @ (pinfo @ dv)
-        return h, g, cost
+        hp = jnp.einsum("iab,iajc,jcd->ibjd", jac, pinfo.reshape(k, d, k, d), jac)
+        gp = jnp.einsum("iab,ia->ib", jac, (pinfo @ dv + pgrad).reshape(k, d))
+        (h, g, cost), (h1, g1) = acc
+        n = k * d
+        full = ((h + hp).reshape(n, n), (g + gp).reshape(n),
+                cost + pgrad @ dv + 0.5 * dv @ (pinfo @ dv))
+        return full, ((h1 + hp).reshape(n, n), (g1 + gp).reshape(n))
 
     def _regularised(self, h: Array) -> Array:
         """Identity on the diagonal blocks of empty slots (their step is then zero)."""
@@ -600,34 +645,37 @@ class FixedLagSmoother(eqx.Module):
         return h + jnp.diag(empty)
 
     def _optimize(self) -> FixedLagSmoother:
+        """Gauss–Newton on the window until the largest change of the estimate is below
+        ``tol`` (at most ``max_iterations`` steps). The smoother keeps the linearisation
+        the last step was computed from and its point ``lin`` (the chain's elimination or
+        the dense window systems): the next marginalisation and
+        :meth:`marginal_covariances` read it instead of linearising the factors again, so
+        an update's program traces them once and computes them once per iteration."""
         k, d = self.window, self.tangent_dim
 
-        def cond(c):
-            _, it, done = c
-            return (it < self.max_iterations) & ~done
-
         def body(c):
-            x, it, _ = c
+            x, it, _, _, _ = c
             y = _where(self.frozen, self.prior_point, x)
             if self.chain:
                 hp, gp, _ = self._prior_terms(_take(y, 0), _take(self.prior_point, 0))
-                _, _, a, m = self._eliminate(y, 0, k, hp, gp)
-                step = self._back_substitute(a, m)
+                cache = self._eliminate(y, 0, k, hp, gp)
+                step = self._back_substitute(cache[2], cache[3])
             else:
-                h, g, _ = self._system(y, False)
-                cf = jsl.cho_factor(self._regularised(h))
-                step = -jsl.cho_solve(cf, g)
+                (h, g, _), (h1, g1) = self._system(y)
+                cache = (h, h1, g1)
+                step = -jsl.cho_solve(jsl.cho_factor(self._regularised(h)), g)
             ok = jnp.all(jnp.isfinite(step))
             step = jnp.where(ok, step, 0.0).reshape(k, d)
             x_new = _where(ok, jax.vmap(self._plus)(y, step), x)
             change = jax.vmap(self._minus)(x_new, x)
-            done = ~ok | (jnp.max(jnp.abs(change)) < self.tol)
-            return x_new, it + 1, done
+            done = ~ok | (jnp.max(jnp.abs(change)) < self.tol) | (it + 1 >= self.max_iterations)
+            return x_new, it + 1, done, y, cache
 
-        x, it, _ = jax.lax.while_loop(
-            cond, body, (self.states, jnp.zeros((), jnp.int32), jnp.zeros((), bool))
-        )
-        return eqx.tree_at(lambda s: (s.states, s.iterations), self, (x, it))
+        start = (self.states, jnp.zeros((), jnp.int32), jnp.zeros((), bool), self.lin,
+                 self._linearization())
+        x, it, _, lin, cache = jax.lax.while_loop(lambda c: ~c[2], body, start)
+        return eqx.tree_at(lambda s: (s.states, s.iterations, s.lin),
+                           self._with_linearization(cache), (x, it, lin))
 
     def _marginalize_first(self) -> tuple[Array, Array, Array]:
         """Prior on slots 1..K-1 (shifted to 0..K-2, last slot empty) after eliminating
@@ -635,7 +683,7 @@ class FixedLagSmoother(eqx.Module):
         k, d = self.window, self.tangent_dim
         if self.chain:
             return self._marginalize_chain()
-        h, g, _ = self._system(self.linearization_point(), True)
+        h, g = self.first_info, self.first_grad
         coupled = jnp.any(h[:d].reshape(d, k, d) != 0, axis=(0, 2)) | self.frozen
         coupled = jnp.concatenate([coupled[1:], jnp.zeros((1,), bool)])
         h00, h0r, hrr = h[:d, :d], h[:d, d:], h[d:, d:]
@@ -650,15 +698,10 @@ class FixedLagSmoother(eqx.Module):
 
     def _marginalize_chain(self) -> tuple[Array, Array, Array]:
         """Chain case of :meth:`_marginalize_first`: the new prior lives on slot 1, the
-        message out of slot 0 (:meth:`_eliminate`) at the linearisation point."""
-        if self.relinearize_threshold is not None:  # cached elimination at `lin`
-            info, grad = self.msg_info, self.msg_grad
-        else:
-            y = self.linearization_point()
-            hp, gp, _ = self._prior_terms(_take(y, 0), _take(self.prior_point, 0))
-            info, grad, _, _ = self._eliminate(y, 0, 2, hp, gp)
+        message out of slot 0 of the cached elimination at the linearisation point."""
+        info, grad = self.msg_info[1], self.msg_grad[1]
         coupled = jnp.zeros((self.window,), bool).at[0].set(True)
-        return 0.5 * (info[1] + info[1].T), grad[1], coupled
+        return 0.5 * (info + info.T), grad, coupled
 
     def _step_from_cache(self, relinearized: int) -> tuple[FixedLagSmoother, Array]:
         """Incremental mode: back-substitute the cached elimination and move to
@@ -795,34 +838,48 @@ class FixedLagSmoother(eqx.Module):
                 ),
             )
         if self.relinearize_threshold is not None:
-            cache = (self.msg_info, self.msg_grad, self.back_a, self.back_m)
             new = eqx.tree_at(
-                lambda s: (s.lin, s.msg_info, s.msg_grad, s.back_a, s.back_m, s.phase),
-                new,
-                (
-                    _shift_in(self.lin, guess),
-                    *(_shift_in(v, jnp.zeros_like(v[0])) for v in cache),
-                    (self.phase + 1) % self.relinearize_skip,
-                ),
+                lambda s: (s.lin, s.phase),
+                new._with_linearization(tuple(_shift_in(v, jnp.zeros_like(v[0]))
+                                              for v in self._linearization())),
+                (_shift_in(self.lin, guess), (self.phase + 1) % self.relinearize_skip),
             )
             return new._incremental()
         return new._optimize()
 
     def information(self) -> Array:
-        """(n, n) Gauss–Newton information of the window at the current estimate
+        """(n, n) Gauss–Newton information of the window at the linearisation point
         (empty slots: identity blocks), tangent layout slot-major."""
-        h, _, _ = self._system(self.linearization_point(), False)
-        return self._regularised(h)
+        if self.chain:
+            return self._regularised(self._system(self.linearization_point())[0][0])
+        return self._regularised(self.window_info)
 
     def cost(self) -> Array:
         """Window cost ``½Σ‖r‖² + prior`` at the current estimate."""
-        return self._system(self.states, False)[2]
+        return self._system(self.states)[0][2]
 
+    @full_precision
     def marginal_covariances(self) -> Array:
         """(K, d, d) marginal covariances of the window states (blocks of the inverse
-        window information, in each state's right tangent chart; NaN for empty slots)."""
+        window information at the linearisation point, in each state's right tangent
+        chart; NaN for empty slots). Chains read them off the cached elimination,
+        newest first: ``Σ_s = C_s + M_s·Σ_{s+1}·M_sᵀ`` (:meth:`_eliminate`)."""
         k, d = self.window, self.tangent_dim
-        h = self.information()
-        cov = jsl.cho_solve(jsl.cho_factor(h), jnp.eye(k * d, dtype=h.dtype))
-        blocks = cov.reshape(k, d, k, d)[jnp.arange(k), :, jnp.arange(k), :]
+        if self.chain:
+            eye = jnp.eye(d, dtype=self.back_chol.dtype)
+            cond = jax.vmap(lambda low: jsl.cho_solve((low, True), eye))(self.back_chol)
+
+            def step(nxt, inp):
+                m_s, c_s = inp
+                cov = c_s + m_s @ nxt @ m_s.T
+                return cov, cov
+
+            _, older = jax.lax.scan(step, cond[-1], (self.back_m[:-1], cond[:-1]),
+                                    reverse=True)
+            blocks = jnp.concatenate([older, cond[-1:]])
+            blocks = 0.5 * (blocks + blocks.mT)
+        else:
+            h = self.information()
+            cov = jsl.cho_solve(jsl.cho_factor(h), jnp.eye(k * d, dtype=h.dtype))
+            blocks = cov.reshape(k, d, k, d)[jnp.arange(k), :, jnp.arange(k), :]
         return jnp.where(self.valid[:, None, None], blocks, jnp.nan)

@@ -232,7 +232,7 @@ def test_incremental_step_solves_the_window_system_at_its_linearization_point():
     def step(sm, dj):
         sm = sm.update({"pose": sm.latest()["pose"] @ SE2(dj["z"])}, dj)
         lin = sm.linearization_point()
-        h, g, _ = sm._system(lin, False)
+        (h, g, _), _ = sm._system(lin)
         delta = jnp.linalg.solve(sm._regularised(h), -g)
         return sm, jax.vmap(sm._minus)(sm.states, lin).reshape(-1), delta
 
@@ -282,3 +282,65 @@ def test_incremental_relinearising_tracks_gauss_newton():
         res = ex.run(make(relinearize_threshold=th), steps)
         err[th] = np.abs(np.asarray(res.trajectory["pose"].log().data) - ref).max()
     assert err[0.01] < 0.1 * err[float("inf")] and err[0.01] < 5e-3, err
+
+
+# ---------------------------------------------------------------- the kept linearisation
+@pytest.mark.parametrize("mode", ["chain", "dense", "incremental"])
+def test_kept_linearization_equals_a_fresh_one(mode):
+    """After every update of a nonlinear (SE2) stream, what the smoother keeps from its
+    last linearisation equals the window system assembled again at the linearisation
+    point: the marginal covariances (chains: the elimination's recursion) equal the
+    blocks of the inverse of the fresh information, and the dense mode's kept systems
+    (all factors; those touching slot 0) equal fresh ones."""
+    t, k = 12, 4
+    data = _se2_stream(t, seed=3)
+    d0 = jax.tree.map(lambda a: a[0], data)
+    kw = {"relinearize_threshold": 0.05} if mode == "incremental" else {}
+    if mode == "dense":  # one (never valid) loop slot: the dense window system
+        kw.update(loop=_se2_motion, loop_data=d0, max_loops=1)
+    sm = FixedLagSmoother({"pose": SE2.identity()}, d0, window=k, motion=_se2_motion,
+                          unary=_se2_unary, **kw)
+
+    @jax.jit
+    def step(sm, dj):
+        guess = {"pose": sm.latest()["pose"] @ SE2(dj["z"])}
+        if sm.chain:
+            sm = sm.update(guess, dj)
+        else:
+            ld = jax.tree.map(lambda a: a[None], dj)
+            sm = sm.update(guess, dj, jnp.ones(1, int), jnp.zeros(1, bool), ld)
+        (h, _, _), first = sm._system(sm.linearization_point())
+        return sm, sm._regularised(h), first, sm.marginal_covariances()
+
+    for j in range(t):
+        sm, h, (h1, g1), cov = step(sm, jax.tree.map(lambda a: a[j], data))
+        full = np.linalg.inv(np.asarray(h)).reshape(k, 3, k, 3)
+        blocks = np.stack([full[i, :, i, :] for i in range(k)])
+        valid = np.asarray(sm.valid)
+        assert np.isnan(np.asarray(cov)[~valid]).all()
+        np.testing.assert_allclose(cov[valid], blocks[valid], rtol=1e-8, atol=1e-14)
+        if mode == "dense":
+            np.testing.assert_allclose(sm.information(), h, rtol=1e-10, atol=1e-8)
+            np.testing.assert_allclose(sm.first_info, h1, rtol=1e-10, atol=1e-8)
+            np.testing.assert_allclose(sm.first_grad, g1, rtol=1e-10, atol=1e-8)
+
+
+@pytest.mark.parametrize("dense", [False, True])
+def test_an_update_with_covariances_linearizes_the_factors_once(dense):
+    """The traced program of ``update`` followed by ``marginal_covariances`` evaluates
+    the motion residual at one place only (its value and forward-mode Jacobian inside
+    the Gauss–Newton loop), not again for the marginalisation and the covariances."""
+    calls = []
+
+    def motion(xp, x, d):
+        calls.append(1)
+        return _motion(xp, x, d)
+
+    d0 = {"z": jnp.zeros(2), "w": jnp.zeros(())}
+    kw, loops = {}, ()
+    if dense:
+        kw = {"loop": _motion, "loop_data": d0, "max_loops": 1}
+        loops = (jnp.ones(1, int), jnp.zeros(1, bool), jax.tree.map(lambda a: a[None], d0))
+    sm = FixedLagSmoother({"p": jnp.zeros(2)}, d0, window=4, motion=motion, unary=_unary, **kw)
+    jax.make_jaxpr(lambda s: s.update({"p": jnp.ones(2)}, d0, *loops).marginal_covariances())(sm)
+    assert len(calls) == 2  # r = f(0) and jacfwd(f)(0), once each
