@@ -720,20 +720,22 @@ class FixedLagSmoother(eqx.Module):
         slots (the new motion and unary factors) from the cached message, back-substitute;
         then re-linearise the non-frozen states whose step exceeds the threshold (checked
         when ``phase`` is 0; a step that is not finite, at once) at their estimate and
-        eliminate again from the oldest of them."""
+        eliminate again from the oldest of them. Both passes are one loop body, so the
+        factors' linearisation is traced once."""
         k = self.window
-        new, delta = self._reeliminate(jnp.asarray(k - 2))._step_from_cache(0)
-        moving = new.valid & ~new.frozen
-        largest = jnp.max(jnp.abs(delta), axis=1)  # +inf where the step is not finite
-        check = (self.phase == 0) | ~jnp.isfinite(largest)
-        exceed = moving & check & ~(largest <= self.relinearize_threshold)
+        moving = self.valid & ~self.frozen
 
-        def relinearize(s: FixedLagSmoother) -> FixedLagSmoother:
+        def body(c):
+            s, lo, passes, _ = c
+            s, delta = s._reeliminate(lo)._step_from_cache(passes)
+            largest = jnp.max(jnp.abs(delta), axis=1)  # +inf where the step is not finite
+            check = (self.phase == 0) | ~jnp.isfinite(largest)
+            exceed = moving & check & ~(largest <= self.relinearize_threshold) & (passes == 0)
             s = eqx.tree_at(lambda t: t.lin, s, _where(exceed, s.states, s.lin))
-            lo = jnp.maximum(jnp.argmax(exceed) - 1, 0)
-            return s._reeliminate(lo)._step_from_cache(1)[0]
+            return s, jnp.maximum(jnp.argmax(exceed) - 1, 0), passes + 1, jnp.any(exceed)
 
-        return jax.lax.cond(jnp.any(exceed), relinearize, lambda s: s, new)
+        start = (self, jnp.asarray(k - 2), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+        return jax.lax.while_loop(lambda c: (c[2] == 0) | c[3], body, start)[0]
 
     # ------------------------------------------------------------------ public
     @full_precision
