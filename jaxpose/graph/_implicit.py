@@ -264,14 +264,14 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     zero = jnp.zeros((graph.structure.size,), dtype)
     free = free_flat(graph, dtype)
 
-    # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost) and
-    # b = ∂(∇_δφ)/∂θ · θ̇
-    grad0, b = jvp_where(lambda g: jax.grad(_chart_cost, argnums=2)(g, xs, zero), graph,
-                         t_graph)
+    # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost),
+    # b = ∂(∇_δφ)/∂θ · θ̇ and the cost's partial derivative ∂φ/∂θ · θ̇, from one trace of
+    # the residuals (φ(0) is the cost at the solution)
+    (_, grad0), (dcost, b) = jvp_where(
+        lambda g: jax.value_and_grad(_chart_cost, argnums=2)(g, xs, zero), graph, t_graph)
     eps_dot = -_tangent_solve(graph, options, xs, b * free)
     x_dot = jax.jvp(lambda d: retract_all(graph, xs, d, "retract_quadratic"), (zero,),
                     (eps_dot,))[1]
-    _, dcost = jvp_where(lambda g: cost(g, xs), graph, t_graph)
     dcost = dcost + jnp.dot(grad0, eps_dot)
     _, dinit = jvp_where(lambda gx: cost(*gx), (graph, x0), (t_graph, t_x0))
     t_sol = type(sol)(x_dot, dcost, dinit, None, None, None, None)  # None: no tangent

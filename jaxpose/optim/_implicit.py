@@ -143,9 +143,11 @@ def _implicit_jvp(
         a, prob = th
         return prob.cost(lift(eps), a)
 
-    # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost) and
-    # b = ∂(∇_δφ)/∂θ · θ̇ (linear in θ̇)
-    grad0, b = jvp_where(lambda th: jax.grad(phi)(flat0, th), theta, t_theta)
+    # ∇_δφ at the solution (≈ 0, kept for the exact total derivative of the cost),
+    # b = ∂(∇_δφ)/∂θ · θ̇ (linear in θ̇) and the cost's partial derivative ∂φ/∂θ · θ̇, from
+    # one trace of the residuals (φ(0) is the cost at the solution)
+    (_, grad0), (dcost, b) = jvp_where(lambda th: jax.value_and_grad(phi)(flat0, th), theta,
+                                       t_theta)
     args, problem = theta
     if adjoint.hessian == "exact":
         mode, pattern = problem.jacobian_mode(x_star, args)
@@ -163,11 +165,11 @@ def _implicit_jvp(
     x_dot = jax.jvp(lift, (flat0,), (eps_dot,))[1]
 
     # total derivatives of the costs (at X*(θ) and at the initial params)
-    def costs(th_p0: tuple[Any, Any]) -> tuple[jax.Array, jax.Array]:
+    def initial_cost(th_p0: tuple[Any, Any]) -> jax.Array:
         (a, prob), p0 = th_p0
-        return prob.cost(x_star, a), prob.cost(p0, a)
+        return prob.cost(p0, a)
 
-    _, (dcost, dinit) = jvp_where(costs, (theta, params0), (t_theta, t_params0))
+    _, dinit = jvp_where(initial_cost, (theta, params0), (t_theta, t_params0))
     dcost = dcost + jnp.dot(grad0, eps_dot)
     t_sol = Solution(x_dot, None, None, None, dcost, dinit, None, None)  # None: no tangent
     return sol, t_sol
