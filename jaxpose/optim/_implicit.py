@@ -164,7 +164,7 @@ def _implicit_jvp(
     eps_dot = adjoint.linear_solver.solve(hess, b, hess, b, jnp.zeros_like(b))
     x_dot = jax.jvp(lift, (flat0,), (eps_dot,))[1]
 
-    # total derivatives of the costs (at X*(θ) and at the initial params)
+    # total derivative of the initial cost (the cost's partial derivative is above)
     def initial_cost(th_p0: tuple[Any, Any]) -> jax.Array:
         (a, prob), p0 = th_p0
         return prob.cost(p0, a)

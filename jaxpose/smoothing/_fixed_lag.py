@@ -496,18 +496,18 @@ class FixedLagSmoother(eqx.Module):
 
         def step(msg, inp):
             u_info, u_grad, empty_s, pair = inp
-            nxt, a_s, m_s, c_s = self._elimination_step(msg, (u_info, u_grad), empty_s, pair)
-            return nxt, (nxt, a_s, m_s, c_s)
+            nxt, a_s, m_s, l_s = self._elimination_step(msg, (u_info, u_grad), empty_s, pair)
+            return nxt, (nxt, a_s, m_s, l_s)
 
         head = jax.tree.map(lambda v: v[:-1], (info, grad, empty, pairs))
-        last, ((infos, grads), a, m, c) = jax.lax.scan(step, (msg_info, msg_grad), head)
-        a_last, c_last = self._newest_step(last, (info[-1], grad[-1]), empty[-1])
+        last, ((infos, grads), a, m, chol) = jax.lax.scan(step, (msg_info, msg_grad), head)
+        a_last, l_last = self._newest_step(last, (info[-1], grad[-1]), empty[-1])
         return (
             jnp.concatenate([msg_info[None], infos]),
             jnp.concatenate([msg_grad[None], grads]),
             jnp.concatenate([a, a_last[None]]),
             jnp.concatenate([m, jnp.zeros_like(empty[:1])]),
-            jnp.concatenate([c, c_last[None]]),
+            jnp.concatenate([chol, l_last[None]]),
         )
 
     def _reeliminate(self, lo: Array) -> FixedLagSmoother:
@@ -520,26 +520,26 @@ class FixedLagSmoother(eqx.Module):
             return c[0] < k - 1
 
         def body(c):
-            s, info, grad, a, m, cov = c
+            s, info, grad, a, m, chol = c
             u_info, u_grad, pair = self._chain_terms(self.lin, s[None])
-            (ni, ng), a_s, m_s, c_s = self._elimination_step(
+            (ni, ng), a_s, m_s, l_s = self._elimination_step(
                 (info[s], grad[s]),
                 (u_info[0], u_grad[0]),
                 self._empty_blocks(s[None])[0],
                 jax.tree.map(lambda v: v[0], pair),
             )
             info, grad = info.at[s + 1].set(ni), grad.at[s + 1].set(ng)
-            return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s), cov.at[s].set(c_s)
+            return s + 1, info, grad, a.at[s].set(a_s), m.at[s].set(m_s), chol.at[s].set(l_s)
 
-        _, info, grad, a, m, cov = jax.lax.while_loop(
+        _, info, grad, a, m, chol = jax.lax.while_loop(
             cond, body, (jnp.asarray(lo), *self._linearization()))
         newest = jnp.arange(k - 1, k)
         u_info, u_grad, _ = self._chain_terms(self.lin, newest, pairs=False)
-        a_last, c_last = self._newest_step(
+        a_last, l_last = self._newest_step(
             (info[-1], grad[-1]), (u_info[0], u_grad[0]), self._empty_blocks(newest)[0]
         )
         return self._with_linearization(
-            (info, grad, a.at[-1].set(a_last), m.at[-1].set(0.0), cov.at[-1].set(c_last)))
+            (info, grad, a.at[-1].set(a_last), m.at[-1].set(0.0), chol.at[-1].set(l_last)))
 
     def _linearization(self) -> tuple[Array, ...]:
         """The kept linearisation at the linearisation point: the elimination ``(msg_info,
