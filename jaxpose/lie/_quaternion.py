@@ -77,8 +77,8 @@ def _exp_smooth(phi: Array) -> Array:
     derivative order NaN-free and accurate at θ = 0 (see :mod:`series`)."""
     x, y, z = _parts(phi)
     t4 = 0.25 * (x * x + y * y + z * z)  # (θ/2)²
-    s = 0.5 * series.sinc(t4)  # sin(θ/2)/θ
-    w = series.cos(t4)  # cos(θ/2)
+    sinc, w = series.sinc_cos(t4)  # sin(θ/2)/(θ/2), cos(θ/2)
+    s = 0.5 * sinc  # sin(θ/2)/θ
     # one use per scalar coefficient: XLA:CPU would otherwise recompute the whole scalar
     # chain once per output component (it duplicates cheap producers into each consumer)
     return jnp.concatenate([phi * s[..., None], w[..., None]], -1)

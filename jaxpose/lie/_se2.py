@@ -23,9 +23,11 @@ class se2(LieAlgebra):  # noqa: N801
 
 
 def _v_coeffs(theta: Array) -> tuple[Array, Array]:
-    """a = sinθ/θ and b = (1−cosθ)/θ, smooth at θ = 0."""
-    t = theta * theta
-    return series.sinc(t), theta * series.one_minus_cos_over_t(t)
+    """a = sinθ/θ and b = (1−cosθ)/θ, smooth at θ = 0, from the half-angle terms
+    S = sin(θ/2)/(θ/2) and C = cos(θ/2) (one :func:`series.sinc_cos`, whose derivatives
+    of every order share one sincos): a = S·C, b = θ·S²/2."""
+    s, c = series.sinc_cos(0.25 * theta * theta)
+    return series.computed_once(s * c, theta * (0.5 * s * s))
 
 
 def _jl_column(xi: Array, *, principal: bool) -> Array:

@@ -27,6 +27,7 @@ branch-free.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from fractions import Fraction
@@ -242,6 +243,14 @@ class _Fn:
         return f"series.{self.name}"
 
 
+def polynomial(fn: _Fn, t0: float) -> _Fn:
+    """``fn``'s Taylor series alone, truncated for t ≤ ``t0``, as an :class:`_Fn` (its
+    derivatives are the differentiated polynomials): for a caller that switches to its
+    own closed form at ``t0``."""
+    return _Fn(f"{fn.name}_below_{t0:g}", fn.exact_coeffs, t0, None,
+               f"{fn.name} for t ≤ {t0:g} as one polynomial in t.")
+
+
 # ----------------------------------------------------------------------------------
 # sin and cos without libm: Cody–Waite reduction to |r| ≤ π/4 and Taylor polynomials
 # ----------------------------------------------------------------------------------
@@ -300,6 +309,74 @@ def _cos(x: Array) -> Array:
 
 
 _SIN, _COS = _sin_series(), _cos_series()
+
+# ----------------------------------------------------------------------------------
+# sin θ/θ and cos θ together, with derivatives of any order from one sincos
+# ----------------------------------------------------------------------------------
+_SINC_T = _even_in_t(_shift(_SIN, 1))  # Σ (−1)ʲ tʲ/(2j+1)!
+_COS_SERIES = Series(_even_in_t(_COS), 1.0)
+
+
+def _sinc_switch(order: int) -> float:
+    """Where the ``order``-th derivative of sinc switches from its series to the
+    recurrence: t = 1 up to the second; later for higher orders, where the recurrence
+    would lose digits near t = 1 (about 1e-10 relative at the fifth at t = 1)."""
+    return 1.0 + 2.0 * max(0, order - 2)
+
+
+@functools.cache
+def _sinc_derivative_series(order: int) -> Series:
+    """The Taylor series in t of dᵏ/dtᵏ (sin √t / √t), truncated at its switch point."""
+    coeffs = _SINC_T
+    for _ in range(order):
+        coeffs = [c * (k + 1) for k, c in enumerate(coeffs[1:])]
+    return Series(coeffs, _sinc_switch(order))
+
+
+def _switch(t: Array, t0: float, series: Series, direct: Array) -> Array:
+    """``series(t)`` below ``t0``, ``direct`` (computed for t ≥ 1) from there on; the
+    series never sees a large t."""
+    small = t < t0
+    return jnp.where(small, series(jnp.where(small, t, jnp.zeros_like(t))), direct)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _sinc_cos_jet(t: Array, order: int) -> tuple[Array, ...]:
+    """(C, S, S′, …, S⁽ᵒʳᵈᵉʳ⁾) at t = θ², C = cos θ, S = sin θ / θ, derivatives in t.
+
+    Below t = 1 (later for S's higher derivatives, :func:`_sinc_switch`) each is its exact
+    Taylor series; from there on one :func:`sincos` gives C and S, S′ = (C − S)/(2t), and
+    the higher derivatives follow from S's differential equation 4t·S″ + 6S′ + S = 0,
+    differentiated k times: S⁽ᵏ⁺²⁾ = −((4k + 6)·S⁽ᵏ⁺¹⁾ + S⁽ᵏ⁾)/(4t). Its jvp is this
+    function one order higher (C′ = −S/2), so every derivative order costs one sincos,
+    not one per function and order."""
+    t = jnp.asarray(t)
+    t_direct = jnp.where(t < 1.0, jnp.ones_like(t), t)
+    u = jnp.sqrt(t_direct)
+    sin_u, cos_u = sincos(u)
+    direct = [sin_u / u]
+    if order >= 1:
+        direct.append((cos_u - direct[0]) / (2.0 * t_direct))
+    for k in range(order - 1):
+        direct.append(-((4 * k + 6) * direct[-1] + direct[-2]) / (4.0 * t_direct))
+    return (_switch(t, 1.0, _COS_SERIES, cos_u),
+            *(_switch(t, _sinc_switch(k), _sinc_derivative_series(k), d)
+              for k, d in enumerate(direct)))
+
+
+@_sinc_cos_jet.defjvp
+def _sinc_cos_jet_jvp(order: int, primals: tuple[Array], tangents: tuple[Array]) -> Any:
+    (t,), (dt,) = primals, tangents
+    out = _sinc_cos_jet(t, order + 1)
+    return out[:-1], (-0.5 * out[1] * dt, *(f * dt for f in out[2:]))
+
+
+def sinc_cos(t: Array) -> tuple[Array, Array]:
+    """(sin θ / θ, cos θ) from t = θ² (t ≥ 0): the values of :data:`sinc` and :data:`cos`,
+    evaluated together — their derivatives of every order share one :func:`sincos`
+    (a jvp of both costs about a third of theirs, evaluated apart)."""
+    c, s = _sinc_cos_jet(jnp.asarray(t), 0)
+    return s, c
 _ONE = _mono(0)
 _THETA = _mono(1)
 

@@ -74,6 +74,26 @@ _EVEN = [fn.name for fn in (*series.ALL, *_POLYNOMIALS)]  # functions of t = θ�
 # (name, callable, t0, domain upper bound in t) for the even functions of θ
 _FUNCS = {fn.name: (fn, fn.t0) for fn in (*series.ALL, *_POLYNOMIALS)}
 _FUNCS["atanc"] = (series.atanc, series._ATAN_T0)
+
+
+class _SincCosPart:
+    """One output of :func:`series.sinc_cos` (index 0: sinc, 1: cos) as a function of t,
+    with the Taylor coefficients of the function it computes, so that every test below
+    applies to it as to the :class:`series._Fn` of that name."""
+
+    def __init__(self, index: int, like):
+        self.index, self.name = index, f"sinc_cos[{index}]"
+        self.exact_coeffs, self.coeffs, self.t0 = like.exact_coeffs, like.coeffs, like.t0
+
+    def __call__(self, t):
+        return series.sinc_cos(t)[self.index]
+
+
+for _i, _like in enumerate((series.sinc, series.cos)):
+    _part = _SincCosPart(_i, _like)
+    _FUNCS[_part.name] = (_part, _part.t0)
+    _CLOSED_FORMS[_part.name] = _CLOSED_FORMS[_like.name]
+    _EVEN.append(_part.name)
 # radius of convergence in θ (or x): cot(θ/2) has poles at ±2π, atan(x)/x branch points at ±i
 _RADIUS = {"jinv_coeff": 2 * np.pi, "half_cot_half": 2 * np.pi, "atanc": 1.0}
 # largest t at which each function is tested (cot-based ones blow up at θ = 2π)
@@ -392,3 +412,42 @@ def test_computed_once_is_the_identity_through_a_dot(count, dtype):
     assert all(np.array_equal(np.asarray(o), np.asarray(t)) for o, t in zip(t_out, tangents))
     hlo = fn.lower(*arrays).compile().as_text()
     assert " dot(" in hlo, "computed_once's dot was simplified away"
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32], ids=["float64", "float32"])
+def test_sinc_cos_derivatives_to_sixth_order_against_mpmath(dtype):
+    """``sinc_cos``'s derivatives come from one sincos per order (exact series below
+    t = 1, the recurrence of sinc's differential equation above): its sixth-order jet and
+    six nested ``jax.grad`` of each output equal mpmath's derivatives of sin √t/√t and
+    cos √t on both sides of the switch, and are finite at 0."""
+    pts = np.array([0.0, 1e-6, 0.3, 0.999, 1.001, 2.5, 9.0, 40.0])
+    rtol = 1e-11 if dtype == np.float64 else 2e-4
+    jet = np.asarray(jax.jit(lambda t: jnp.stack(series._sinc_cos_jet(t, 6)))(
+        jnp.asarray(pts, dtype)))
+    fns = [lambda t, i=i: series.sinc_cos(t)[i] for i in (0, 1)]
+    nested = []
+    for fn in fns:
+        ds = [fn]
+        for _ in range(6):
+            ds.append(jax.grad(ds[-1]))
+        nested.append(np.asarray(jax.jit(jax.vmap(lambda t, ds=ds: jnp.stack([d(t) for d in ds])))(
+            jnp.asarray(pts, dtype))))
+    assert np.all(np.isfinite(jet)) and all(np.all(np.isfinite(n)) for n in nested)
+    forms = {0: lambda u: mp.sin(mp.sqrt(u)) / mp.sqrt(u), 1: lambda u: mp.cos(mp.sqrt(u))}
+    for i, t in enumerate(pts):
+        with mp.workdps(DPS + 30):
+            if t == 0.0:  # the k-th derivative in t at 0 is k!·(the k-th series coefficient)
+                ref = {j: [float(c) * float(mp.factorial(k)) for k, c in
+                           enumerate((series.sinc, series.cos)[j].exact_coeffs[:7])]
+                       for j in (0, 1)}
+            else:
+                ref = {j: [float(mp.diff(forms[j], mp.mpf(float(t)), k)) for k in range(7)]
+                       for j in (0, 1)}
+        # jet rows: cos, sinc, sinc', …, sinc⁽⁶⁾
+        for k in range(7):
+            scale = max(abs(ref[0][k]), float(mp.factorial(k)) / float(mp.factorial(2 * k + 1)))
+            assert abs(jet[1 + k, i] - ref[0][k]) <= rtol * scale, (t, k, jet[1 + k, i], ref[0][k])
+            for j in (0, 1):
+                scale_j = max(abs(ref[j][k]), scale)
+                assert abs(nested[j][i, k] - ref[j][k]) <= rtol * scale_j, (j, t, k)
+        assert abs(jet[0, i] - ref[1][0]) <= rtol * max(abs(ref[1][0]), 1e-3)
