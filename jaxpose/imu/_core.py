@@ -33,7 +33,6 @@ import jax
 import jax.numpy as jnp
 
 from ..lie import _quaternion as quat
-from ..lie import series
 
 Array = jax.Array
 
@@ -229,8 +228,7 @@ def _jl_parts(phi: list[Array]) -> list[list[Array]]:
     """Left Jacobian entries (1 − bθ²)I + a[φ]× + bφφᵀ of rotation vectors (N,) × 3."""
     x, y, z = phi
     t = x * x + y * y + z * z
-    a = series.one_minus_cos_over_t(t)
-    b = series.theta_minus_sin_over_theta3(t)
+    a, b, _, _ = quat.jl_coeffs(t)
     d = 1 - b * t
     bx, by, bz = b * x, b * y, b * z
     ax, ay, az = a * x, a * y, a * z

@@ -234,12 +234,29 @@ def normalize(q: Array) -> Array:
     return q / jnp.sqrt(series.safe_norm_sq(q))[..., None]
 
 
+# (θ − sin θ)/θ³ below t = θ² = 4 as one polynomial (its derivatives are polynomials);
+# from there on (1 − S·C)/t loses at most a few ulp
+THETA_MINUS_SIN_POLY = series.polynomial(series.theta_minus_sin_over_theta3, 4.0)
+
+
+def jl_coeffs(t: Array) -> tuple[Array, Array, Array, Array]:
+    """(a, b, S, C) of rotation angles θ from t = θ²: the left Jacobian's coefficients
+    a = (1 − cos θ)/θ² = S²/2 and b = (θ − sin θ)/θ³ = (1 − S·C)/θ² (a polynomial below
+    θ = 2) from the half-angle terms S = sin(θ/2)/(θ/2), C = cos(θ/2) of one
+    :func:`series.sinc_cos` (their derivatives of every order share one sincos)."""
+    s, c = series.sinc_cos(0.25 * t)
+    t0 = THETA_MINUS_SIN_POLY.t0
+    small = t < t0
+    b = jnp.where(small, THETA_MINUS_SIN_POLY(jnp.where(small, t, jnp.zeros_like(t))),
+                  (1.0 - s * c) / jnp.where(small, jnp.full_like(t, t0), t))
+    return 0.5 * s * s, b, s, c
+
+
 def jl(phi: Array) -> Array:
     """SO(3) left Jacobian I + A[φ]× + B[φ]×² (..., 3, 3)."""
     t = series.safe_norm_sq(phi)
-    a = series.one_minus_cos_over_t(t)[..., None, None]
-    b = series.theta_minus_sin_over_theta3(t)[..., None, None]
-    return _poly_skew(phi, t, a, b)
+    a, b, _, _ = jl_coeffs(t)
+    return _poly_skew(phi, t, a[..., None, None], b[..., None, None])
 
 
 def jl_inv(phi: Array, *, principal: bool = False) -> Array:
@@ -261,11 +278,9 @@ def _poly_skew(phi: Array, t: Array, a: Array, b: Array) -> Array:
 
 def jl_apply(phi: Array, v: Array) -> Array:
     """Jl(φ) v without forming the matrix."""
-    t = series.safe_norm_sq(phi)
-    a = series.one_minus_cos_over_t(t)[..., None]
-    b = series.theta_minus_sin_over_theta3(t)[..., None]
+    a, b, _, _ = jl_coeffs(series.safe_norm_sq(phi))
     pv = cross(phi, v)
-    return v + a * pv + b * cross(phi, pv)
+    return v + a[..., None] * pv + b[..., None] * cross(phi, pv)
 
 
 def jl_inv_apply(phi: Array, v: Array, *, principal: bool = False) -> Array:

@@ -28,26 +28,18 @@ def _split(x: Array) -> tuple[Array, Array]:
 
 
 # (θ − sin θ)/θ³ below t = θ² = 4; above, its closed form loses at most a few ulp
-_THETA_MINUS_SIN_SERIES = series.Series(series.theta_minus_sin_over_theta3.exact_coeffs, 4.0)
-# the same series as a polynomial whose derivatives are polynomials (series._Fn)
-_THETA_MINUS_SIN_POLY = series.polynomial(series.theta_minus_sin_over_theta3, 4.0)
+_THETA_MINUS_SIN_SERIES = series.Series(series.theta_minus_sin_over_theta3.exact_coeffs,
+                                        quat.THETA_MINUS_SIN_POLY.t0)
 
 
 def _exp_smooth(xi: Array) -> Array:
     """Exp written for derivatives (NaN-free at every order), from the half-angle terms
-    like :func:`_exp_value`: S = sin(θ/2)/(θ/2) and C = cos(θ/2) from one
-    :func:`series.sinc_cos` (its derivatives of every order share one sincos),
-    a = (1 − cos θ)/θ² = S²/2 and b = (θ − sin θ)/θ³ = (1 − S·C)/θ², a polynomial below
-    θ = 2."""
+    like :func:`_exp_value`: Jl(φ)ρ's coefficients and the quaternion from one
+    :func:`quat.jl_coeffs` (one sincos per derivative order)."""
     rho, phi = _split(xi)
-    t = series.safe_norm_sq(phi)
-    s, c = series.sinc_cos(0.25 * t)
-    small = t < _THETA_MINUS_SIN_SERIES.t0
-    t_direct = jnp.where(small, jnp.full_like(t, _THETA_MINUS_SIN_SERIES.t0), t)
-    b = jnp.where(small, _THETA_MINUS_SIN_POLY(jnp.where(small, t, jnp.zeros_like(t))),
-                  (1.0 - s * c) / t_direct)
+    a, b, s, c = quat.jl_coeffs(series.safe_norm_sq(phi))
     pv = quat.cross(phi, rho)
-    trans = rho + (0.5 * s * s)[..., None] * pv + b[..., None] * quat.cross(phi, pv)
+    trans = rho + a[..., None] * pv + b[..., None] * quat.cross(phi, pv)
     return jnp.concatenate([trans, phi * (0.5 * s)[..., None], c[..., None]], -1)
 
 
