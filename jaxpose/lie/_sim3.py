@@ -43,9 +43,11 @@ def w_matrix(phi: Array, sigma: Array) -> Array:
     u = jnp.asarray(GL_NODES, phi.dtype)
     w = jnp.asarray(GL_WEIGHTS, phi.dtype)
     e = jnp.exp(sigma[..., None] * u) * w  # (..., N)
-    tu = t * u * u
-    b = jnp.sum(e * u * series.sinc(tu), -1)
-    c = jnp.sum(e * u * u * series.one_minus_cos_over_t(tu), -1)
+    # sin θ/θ = S·C and (1 − cos θ)/θ² = S²/2 at θ = u|φ| from the half-angle terms of one
+    # series.sinc_cos (their derivatives of every order share one sincos)
+    s, cos_half = series.sinc_cos(0.25 * t * u * u)
+    b = jnp.sum(e * u * (s * cos_half), -1)
+    c = jnp.sum(e * u * u * (0.5 * s * s), -1)
     a = series.expm1c(sigma)
     P = skew(phi)
     eye = jnp.eye(3, dtype=phi.dtype)

@@ -574,7 +574,15 @@ def higher_order(G, name):
     else:
         def one(v):
             return _second_and_contracted_third(f, v)
-    return fast_jit(jax.vmap(one))
+    return jax.jit(jax.vmap(one), compiler_options=THIRD_DERIVATIVE_COMPILE)
+
+
+# jaxlib 0.10.2's XLA:CPU segfaults while running the third derivative of Sim(3)'s `jr`
+# in float32 (in a YNNPACK fusion's transpose, slinky::can_fuse; the same program runs
+# with YNN fusions off, and crashed an xdist worker of every all-tiers run): these
+# programs are compiled without them. Production code keeps XLA's defaults.
+THIRD_DERIVATIVE_COMPILE = ({**FAST_COMPILE, "xla_cpu_experimental_ynn_fusion_type": ""}
+                            if FAST_COMPILE else {})
 
 
 def _second_and_contracted_third(f, v):
