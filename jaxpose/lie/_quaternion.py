@@ -245,11 +245,16 @@ def jl_coeffs(t: Array) -> tuple[Array, Array, Array, Array]:
     θ = 2) from the half-angle terms S = sin(θ/2)/(θ/2), C = cos(θ/2) of one
     :func:`series.sinc_cos` (their derivatives of every order share one sincos)."""
     s, c = series.sinc_cos(0.25 * t)
+    return 0.5 * s * s, theta_minus_sin_over_theta3(t, s * c), s, c
+
+
+def theta_minus_sin_over_theta3(t: Array, sinc: Array) -> Array:
+    """(θ − sin θ)/θ³ from t = θ² and sinc = sin θ/θ: :data:`THETA_MINUS_SIN_POLY` below
+    θ = 2, (1 − sinc)/t from there on (double-``where``)."""
     t0 = THETA_MINUS_SIN_POLY.t0
     small = t < t0
-    b = jnp.where(small, THETA_MINUS_SIN_POLY(jnp.where(small, t, jnp.zeros_like(t))),
-                  (1.0 - s * c) / jnp.where(small, jnp.full_like(t, t0), t))
-    return 0.5 * s * s, b, s, c
+    return jnp.where(small, THETA_MINUS_SIN_POLY(jnp.where(small, t, jnp.zeros_like(t))),
+                     (1.0 - sinc) / jnp.where(small, jnp.full_like(t, t0), t))
 
 
 def jl(phi: Array) -> Array:

@@ -27,11 +27,6 @@ def _split(x: Array) -> tuple[Array, Array]:
     return x[..., :3], x[..., 3:]
 
 
-# (θ − sin θ)/θ³ below t = θ² = 4; above, its closed form loses at most a few ulp
-_THETA_MINUS_SIN_SERIES = series.Series(series.theta_minus_sin_over_theta3.exact_coeffs,
-                                        quat.THETA_MINUS_SIN_POLY.t0)
-
-
 def _exp_smooth(xi: Array) -> Array:
     """Exp written for derivatives (NaN-free at every order), from the half-angle terms
     like :func:`_exp_value`: Jl(φ)ρ's coefficients and the quaternion from one
@@ -53,7 +48,7 @@ def _exp_value(xi: Array) -> Array:
     rho, phi = _split(xi)
     s, c = quat.half_angle_terms(phi)
     t = series.safe_norm_sq(phi)
-    b = series.switched(_THETA_MINUS_SIN_SERIES, lambda tt: (1.0 - 2.0 * s * c) / tt)(t)
+    b = quat.theta_minus_sin_over_theta3(t, 2.0 * s * c)
     pv = quat.cross(phi, rho)
     trans = rho + (2.0 * s * s)[..., None] * pv + b[..., None] * quat.cross(phi, pv)
     return jnp.concatenate([trans, phi * s[..., None], c[..., None]], -1)
