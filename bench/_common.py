@@ -418,6 +418,8 @@ def fmt_ratio(a: float | None, b: float | None) -> str:
 def fmt_seconds(s: float | None) -> str:
     if s is None:
         return "—"
+    if s < 0.01:  # two significant figures where whole milliseconds would read 0 or 1
+        return f"{s * 1e3:.2f} ms"
     return f"{s * 1e3:.0f} ms" if s < 1 else f"{s:.2f} s"
 
 

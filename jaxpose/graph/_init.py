@@ -36,6 +36,7 @@ import warnings
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse
 
 from ..io._g2o import connected_components
@@ -135,6 +136,45 @@ def _spd_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray:
         return np.asarray(scipy.sparse.linalg.spsolve(h.tocsc(), rhs)).reshape(rhs.shape)
 
 
+_DENSE_MAX = 256
+"""Unknowns up to which :func:`_block_lstsq` solves densely in NumPy: on the shared graphs
+of 5–11 poses SciPy's sparse assembly and CHOLMOD's call cost ~10x the arithmetic."""
+
+
+def _sparse_lstsq(vals: np.ndarray, r: np.ndarray, cc: np.ndarray, shape: tuple[int, int],
+                  rhs_rows: np.ndarray) -> np.ndarray:
+    """Least-squares X of ``A X = C``, A sparse from COO ``(vals, (r, cc))`` of ``shape``,
+    through the normal equations AᵀA (CHOLMOD); a 1e-12 ridge where they are singular."""
+    a = scipy.sparse.csr_matrix((vals, (r, cc)), shape=shape)
+    h = (a.T @ a).tocsr()
+    rhs = np.asarray(a.T @ rhs_rows)
+    x = _spd_solve(h, rhs)
+    if not np.all(np.isfinite(x)):  # a free vertex seen only by zero-weight edges
+        x = _spd_solve(h + scipy.sparse.diags(np.full(h.shape[0], _ridge(h.diagonal()))), rhs)
+    return x
+
+
+def _dense_lstsq(vals: np.ndarray, r: np.ndarray, cc: np.ndarray, shape: tuple[int, int],
+                 rhs_rows: np.ndarray) -> np.ndarray:
+    """:func:`_sparse_lstsq` with A dense (small systems): Cholesky of AᵀA, the same
+    ridge where it is not positive definite."""
+    a = np.zeros(shape)
+    np.add.at(a, (r, cc), vals)
+    h = a.T @ a
+    rhs = a.T @ rhs_rows
+    for ridge in (0.0, _ridge(np.diagonal(h))):
+        try:
+            low = np.linalg.cholesky(h + ridge * np.eye(h.shape[0]))
+        except np.linalg.LinAlgError:
+            continue
+        return scipy.linalg.cho_solve((low, True), rhs, check_finite=False)
+    return np.full(rhs.shape, np.nan)
+
+
+def _ridge(diag: np.ndarray) -> float:
+    return 1e-12 * (float(diag.max()) if diag.size and diag.max() > 0 else 1.0)
+
+
 def _block_lstsq(
     n: int,
     edges: np.ndarray,
@@ -170,14 +210,11 @@ def _block_lstsq(
         cc = np.broadcast_to(cc, r.shape)
         entries.append((blocks[keep].reshape(-1), r.reshape(-1), cc.reshape(-1)))
     vals, r, cc = (np.concatenate(a) for a in zip(*entries, strict=True))
-    a = scipy.sparse.csr_matrix((vals, (r, cc)), shape=(m * k, free.size * d))
-    h = (a.T @ a).tocsr()
-    rhs = a.T @ c.reshape(m * k, p)
-    x = _spd_solve(h, np.asarray(rhs))
-    if not np.all(np.isfinite(x)):  # a free vertex seen only by zero-weight edges
-        diag = h.diagonal()
-        ridge = 1e-12 * (float(diag.max()) if diag.size and diag.max() > 0 else 1.0)
-        x = _spd_solve(h + scipy.sparse.diags(np.full(h.shape[0], ridge)), np.asarray(rhs))
+    rhs_rows = c.reshape(m * k, p)
+    if free.size * d <= _DENSE_MAX:
+        x = _dense_lstsq(vals, r, cc, (m * k, free.size * d), rhs_rows)
+    else:
+        x = _sparse_lstsq(vals, r, cc, (m * k, free.size * d), rhs_rows)
     x_all[free] = x.reshape(free.size, d, p)
     return x_all
 

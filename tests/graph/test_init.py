@@ -356,17 +356,21 @@ def _dense_block_lstsq(n, edges, bi, bj, c, anchors, x_anchor):
     return x
 
 
-@pytest.mark.parametrize("use_cholmod", [True, False])
-def test_block_least_squares_matches_the_dense_solution(monkeypatch, use_cholmod):
+@pytest.mark.parametrize("path", ["dense", "cholmod", "scipy"])
+def test_block_least_squares_matches_the_dense_solution(monkeypatch, path):
     # repeated edges, an edge in both directions, a self-loop, edges between anchors and
-    # a vertex seen only by zero-weight rows (the ridge fallback): the sparse normal
-    # equations against the dense design matrix
+    # a vertex seen only by zero-weight rows (the ridge fallback): the normal equations
+    # (dense for small systems, else sparse with CHOLMOD or SciPy) against the dense
+    # design matrix and np.linalg.lstsq
     from jaxpose.graph import _cholmod as cholmod
+    from jaxpose.graph import _init
     from jaxpose.graph._init import _block_lstsq
 
-    if use_cholmod and not cholmod.available():
+    if path == "cholmod" and not cholmod.available():
         pytest.skip(f"CHOLMOD unavailable: {cholmod.unavailable_reason()}")
-    if not use_cholmod:
+    if path != "dense":
+        monkeypatch.setattr(_init, "_DENSE_MAX", 0)
+    if path == "scipy":
         monkeypatch.setattr(cholmod, "available", lambda: False)
     rng = np.random.default_rng(4)
     n, k, d, p = 7, 4, 3, 2
