@@ -24,7 +24,8 @@ quadratic form over the translation residual).
 
 Where it runs: on the host, in NumPy and SciPy (sparse assembly of the normal equations
 ``AᵀA``) and CHOLMOD (:mod:`jaxpose.graph._cholmod`, one factorisation per linear system;
-SciPy's sparse solver when CHOLMOD is unavailable). The whole initialisation takes tens of
+SciPy's sparse solver when CHOLMOD is unavailable); systems of at most ``_DENSE_MAX``
+unknowns densely in NumPy (dense Cholesky). The whole initialisation takes tens of
 milliseconds on the shared graphs (sphere_bignoise_vertex3: 2200 poses, 8647 edges), less
 than tracing a jitted version would, so it is not jitted; it is not differentiable either
 (use it to produce a starting point, then :func:`jaxpose.graph.solve`).
