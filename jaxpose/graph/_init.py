@@ -137,9 +137,11 @@ def _spd_solve(h: scipy.sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray:
         return np.asarray(scipy.sparse.linalg.spsolve(h.tocsc(), rhs)).reshape(rhs.shape)
 
 
-_DENSE_MAX = 256
-"""Unknowns up to which :func:`_block_lstsq` solves densely in NumPy: on the shared graphs
-of 5–11 poses SciPy's sparse assembly and CHOLMOD's call cost ~10x the arithmetic."""
+_DENSE_MAX = 64
+"""Unknowns up to which :func:`_block_lstsq` solves densely in NumPy, where SciPy's sparse
+assembly and the CHOLMOD call cost more than the arithmetic: measured (random 9×3 blocks,
+two edges per vertex) 0.13 against 0.44 ms at 12 unknowns, 0.18 against 0.48 ms at 30,
+even at 81 (0.63 / 0.59 ms) and 5.4 against 0.9 ms at 252."""
 
 
 def _sparse_lstsq(vals: np.ndarray, r: np.ndarray, cc: np.ndarray, shape: tuple[int, int],
