@@ -36,8 +36,7 @@ its outer iterations. Absolute times on a shared machine are noisy; the ratios f
 run are what count, and the load average is printed with the table. Every timed loop
 (initialisation, solve, both GTSAM paths) runs ``--repeats`` times and, where those take
 under ``MIN_TIMED_S``, on until it has (at most ``MAX_RUNS``): the tiny graphs' calls take
-a fraction of a millisecond. A missing GTSAM is
-reported as skipped, never faked.
+a fraction of a millisecond. A missing GTSAM is reported as skipped, never faked.
 
 Usage::
 

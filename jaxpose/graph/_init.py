@@ -213,11 +213,8 @@ def _block_lstsq(
         cc = np.broadcast_to(cc, r.shape)
         entries.append((blocks[keep].reshape(-1), r.reshape(-1), cc.reshape(-1)))
     vals, r, cc = (np.concatenate(a) for a in zip(*entries, strict=True))
-    rhs_rows = c.reshape(m * k, p)
-    if free.size * d <= _DENSE_MAX:
-        x = _dense_lstsq(vals, r, cc, (m * k, free.size * d), rhs_rows)
-    else:
-        x = _sparse_lstsq(vals, r, cc, (m * k, free.size * d), rhs_rows)
+    lstsq = _dense_lstsq if free.size * d <= _DENSE_MAX else _sparse_lstsq
+    x = lstsq(vals, r, cc, (m * k, free.size * d), c.reshape(m * k, p))
     x_all[free] = x.reshape(free.size, d, p)
     return x_all
 

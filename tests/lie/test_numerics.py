@@ -580,7 +580,8 @@ def higher_order(G, name):
 # jaxlib 0.10.2's XLA:CPU segfaults while running the third derivative of Sim(3)'s `jr`
 # in float32 (in a YNNPACK fusion's transpose, slinky::can_fuse; the same program runs
 # with YNN fusions off, and crashed an xdist worker of every all-tiers run): these
-# programs are compiled without them. Production code keeps XLA's defaults.
+# programs are compiled without them (a CPU option: FAST_COMPILE is empty on other
+# backends, which get none). Production code keeps XLA's defaults.
 THIRD_DERIVATIVE_COMPILE = ({**FAST_COMPILE, "xla_cpu_experimental_ynn_fusion_type": ""}
                             if FAST_COMPILE else {})
 
