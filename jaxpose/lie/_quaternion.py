@@ -14,20 +14,17 @@ import jax
 import jax.numpy as jnp
 
 from . import series
-from ._base import max_abs
+from ._base import max_abs, parts
 
 Array = jnp.ndarray
 
 
-def _parts(a: Array) -> list[Array]:
-    """The components of the last axis as (…,) arrays. These kernels work on components
-    and stack once at the end: XLA:CPU vectorises elementwise code over the batch, but not
-    reductions or gathers along a 3- or 4-wide minor axis."""
-    return [a[..., i] for i in range(a.shape[-1])]
-
-
-def _stack(parts: list[Array]) -> Array:
-    return jnp.stack(jnp.broadcast_arrays(*parts), -1)
+def _stack(cs: list[Array]) -> Array:
+    """Components (…,) stacked on a last axis. These kernels work on components
+    (:func:`~jaxpose.lie._base.parts`) and stack once at the end: XLA:CPU vectorises
+    elementwise code over the batch, but not reductions or gathers along a 3- or 4-wide
+    minor axis."""
+    return jnp.stack(jnp.broadcast_arrays(*cs), -1)
 
 
 def multiply(q1: Array, q2: Array) -> Array:
@@ -36,8 +33,8 @@ def multiply(q1: Array, q2: Array) -> Array:
     Summed as (w1·v2 + w2·v1) + v1 × v2 and w1·w2 − v1·v2, each cross/dot product
     rounded on its own before the larger terms are added (less round-off than a flat
     left-to-right sum when the product is near the identity)."""
-    x1, y1, z1, w1 = _parts(q1)
-    x2, y2, z2, w2 = _parts(q2)
+    x1, y1, z1, w1 = parts(q1)
+    x2, y2, z2, w2 = parts(q2)
     return _stack([
         (w1 * x2 + x1 * w2) + (y1 * z2 - z1 * y2),
         (w1 * y2 + y1 * w2) + (z1 * x2 - x1 * z2),
@@ -49,8 +46,8 @@ def multiply(q1: Array, q2: Array) -> Array:
 def cross(a: Array, b: Array) -> Array:
     """a × b for (..., 3) vectors, by components (``jnp.cross`` is a jitted call with
     reshapes and gathers that every derivative order copies)."""
-    ax, ay, az = _parts(a)
-    bx, by, bz = _parts(b)
+    ax, ay, az = parts(a)
+    bx, by, bz = parts(b)
     return _stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx])
 
 
@@ -62,8 +59,8 @@ def conjugate(q: Array) -> Array:
 def rotate(q: Array, p: Array) -> Array:
     """R(q) p for points p (..., 3): (p + w·t) + v × t with t = 2 v × p (the small v × t
     term is rounded on its own before it is added)."""
-    x, y, z, w = _parts(q)
-    px, py, pz = _parts(p)
+    x, y, z, w = parts(q)
+    px, py, pz = parts(p)
     tx, ty, tz = 2.0 * (y * pz - z * py), 2.0 * (z * px - x * pz), 2.0 * (x * py - y * px)
     return _stack([
         (px + w * tx) + (y * tz - z * ty),
@@ -75,7 +72,7 @@ def rotate(q: Array, p: Array) -> Array:
 def _exp_smooth(phi: Array) -> Array:
     """The exponential written for derivatives: series switches in t = (θ/2)² make every
     derivative order NaN-free and accurate at θ = 0 (see :mod:`series`)."""
-    x, y, z = _parts(phi)
+    x, y, z = parts(phi)
     t4 = 0.25 * (x * x + y * y + z * z)  # (θ/2)²
     sinc, w = series.sinc_cos(t4)  # sin(θ/2)/(θ/2), cos(θ/2)
     s = 0.5 * sinc  # sin(θ/2)/θ
@@ -92,7 +89,7 @@ def half_angle_terms(phi: Array) -> tuple[Array, Array]:
     h is computed as m·|φ/m|/2 with m = max |φᵢ|, so it does not overflow for any finite
     φ (|φ| ≳ 1e154 in float64, 1e19 in float32); beyond |φ| ≈ 1/eps the angle modulo 2π
     is not determined by the input's digits."""
-    x, y, z = _parts(phi)
+    x, y, z = parts(phi)
     m = max_abs([x, y, z])
     r = 1.0 / jnp.where(m > 0, m, 1.0)
     xs, ys, zs = x * r, y * r, z * r
@@ -111,10 +108,10 @@ def _exp_value(phi: Array) -> Array:
 
 def _log_smooth(q: Array) -> Array:
     """The logarithm written for derivatives (branch-free, see :func:`series.quat_log_coeff`)."""
-    x, y, z, w = _parts(q)
+    x, y, z, w = parts(q)
     sign = jnp.where(w < 0, -1.0, 1.0).astype(q.dtype)
     f = sign * series.quat_log_coeff(x * x + y * y + z * z, w * sign)
-    return q[..., :3] * f[..., None]
+    return _stack([x * f, y * f, z * f])
 
 
 def _log_value(q: Array) -> Array:
@@ -122,9 +119,9 @@ def _log_value(q: Array) -> Array:
 
     The quaternion is first divided by m = max |qᵢ|, so any nonzero finite quaternion
     (×1e200 or ×1e-200 included) gives the rotation vector of its direction."""
-    m = max_abs(_parts(q))
+    m = max_abs(parts(q))
     q = q * (1.0 / jnp.where(m > 0, m, 1.0))[..., None]
-    x, y, z, w = _parts(q)
+    x, y, z, w = parts(q)
     n = jnp.sqrt(x * x + y * y + z * z)
     positive = n > 0
     n_safe = jnp.where(positive, n, 1.0)
@@ -178,7 +175,7 @@ def log(q: Array) -> Array:
 
 def to_matrix(q: Array) -> Array:
     """Unit quaternion (..., 4) → rotation matrix (..., 3, 3)."""
-    x, y, z, w = _parts(q)
+    x, y, z, w = parts(q)
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
@@ -229,7 +226,7 @@ def normalize(q: Array) -> Array:
     """Project onto the unit sphere: q / |q|, computed as (q/m) / |q/m| with m = max |qᵢ|
     so that quaternions ×1e200 or ×1e-200 neither overflow nor underflow. The zero
     quaternion has no projection and gives NaN (``SO3(data, check=True)`` rejects it)."""
-    m = max_abs(_parts(q))
+    m = max_abs(parts(q))
     q = q * (1.0 / jnp.where(m > 0, m, 1.0))[..., None]
     return q / jnp.sqrt(series.safe_norm_sq(q))[..., None]
 

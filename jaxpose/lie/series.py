@@ -36,6 +36,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from ._base import parts
+
 Array = jnp.ndarray
 
 _ORDER = 64  # power-series coefficients (in θ) kept while deriving: enough for 8 derivatives
@@ -234,7 +236,8 @@ class _Fn:
 
     def _jvp(self, primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
         (t,), (dt,) = primals, tangents
-        return self._f(t), self.derivative(t) * dt
+        f, d = computed_once(self._f(t), self.derivative(t))
+        return f, d * dt
 
     def __call__(self, t: Array) -> Array:
         return self._f(jnp.asarray(t))
@@ -367,7 +370,7 @@ def _sinc_cos_jet(t: Array, order: int) -> tuple[Array, ...]:
 @_sinc_cos_jet.defjvp
 def _sinc_cos_jet_jvp(order: int, primals: tuple[Array], tangents: tuple[Array]) -> Any:
     (t,), (dt,) = primals, tangents
-    out = _sinc_cos_jet(t, order + 1)
+    out = computed_once(*_sinc_cos_jet(t, order + 1))
     return out[:-1], (-0.5 * out[1] * dt, *(f * dt for f in out[2:]))
 
 
@@ -547,7 +550,8 @@ def _quat_log_coeff_jvp(primals: tuple[Array, Array],
     s = jnp.where(small, n2 / (w_series * w_series), jnp.zeros_like(n2))
     d_n2 = jnp.where(small, -_LOG_DN2(s) / (w_series * w_series * w_series),
                      -(0.5 * f - w / r2) / n2_direct)
-    return f, d_n2 * dn2 - 2.0 / r2 * dw
+    f, d_n2, d_w = computed_once(f, d_n2, -2.0 / r2)
+    return f, d_n2 * dn2 + d_w * dw
 
 
 _EXPM1C = Series([Fraction(1, _factorial(k + 1)) for k in range(40)], 1.0)
@@ -566,17 +570,20 @@ def expm1c(x: Array) -> Array:
 
 
 def computed_once(*xs: Array) -> tuple[Array, ...]:
-    """The arrays ``xs`` (same shape) unchanged, each computed once. XLA:CPU fuses a cheap
-    elementwise chain (a Horner polynomial) into each consumer and evaluates it once per
-    element: a coefficient broadcast over a 6×6 block ran 36 times (SE(3)'s Jr⁻¹ 7x slower).
-    A product with the identity is a dot, which XLA neither fuses nor simplifies away
-    (``jax.lax.optimization_barrier`` is removed before fusion on CPU); it is exact for
-    finite values. One array goes in twice (XLA simplifies a 1×1 dot into a product)."""
+    """The arrays ``xs`` (broadcast to one shape) unchanged, each computed once. XLA:CPU
+    fuses a cheap elementwise chain (a Horner polynomial) into each consumer and evaluates
+    it once per element: a coefficient broadcast over a 6×6 block ran 36 times (SE(3)'s
+    Jr⁻¹ 7x slower), and the series' derivative rules below, whose coefficients every
+    derivative order consumes, were copied into a dozen fusions of a gradient through a
+    solve. A product with the identity is a dot, which XLA neither fuses nor simplifies
+    away (``jax.lax.optimization_barrier`` is removed before fusion on CPU); it is exact
+    for finite values. One array goes in twice (XLA simplifies a 1×1 dot into a
+    product)."""
     lanes = xs if len(xs) > 1 else (xs[0], xs[0])
-    stacked = jnp.stack(lanes, -1)
+    stacked = jnp.stack(jnp.broadcast_arrays(*lanes), -1)
     out = jnp.matmul(stacked, jnp.eye(len(lanes), dtype=stacked.dtype),
                      precision=jax.lax.Precision.HIGHEST)
-    return tuple(out[..., i] for i in range(len(xs)))
+    return tuple(parts(out)[:len(xs)])
 
 
 def safe_norm_sq(v: Array, axis: int = -1) -> Array:
@@ -585,9 +592,9 @@ def safe_norm_sq(v: Array, axis: int = -1) -> Array:
     v = jnp.asarray(v)
     n = v.shape[axis] if v.ndim else 0
     if 0 < n <= 8:
-        parts = [jnp.take(v, i, axis=axis) for i in range(n)]
-        out = parts[0] * parts[0]
-        for p in parts[1:]:
+        cs = parts(v, axis)
+        out = cs[0] * cs[0]
+        for p in cs[1:]:
             out = out + p * p
         return out
     return jnp.sum(v * v, axis=axis)

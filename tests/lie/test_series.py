@@ -20,17 +20,21 @@ from __future__ import annotations
 
 import functools
 from fractions import Fraction
+from typing import Any
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import jax.extend.core as jex_core  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mpmath as mp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from jaxpose.lie import _quaternion as quat  # noqa: E402
 from jaxpose.lie import series  # noqa: E402
+from jaxpose.lie._base import parts  # noqa: E402
 
 from .conftest import FAST_COMPILE  # noqa: E402
 
@@ -451,3 +455,78 @@ def test_sinc_cos_derivatives_to_sixth_order_against_mpmath(dtype):
                 scale_j = max(abs(ref[j][k]), scale)
                 assert abs(nested[j][i, k] - ref[j][k]) <= rtol * scale_j, (j, t, k)
         assert abs(jet[0, i] - ref[1][0]) <= rtol * max(abs(ref[1][0]), 1e-3)
+
+
+def test_computed_once_broadcasts_its_arrays():
+    """Arrays of different (broadcastable) shapes come back at the common shape."""
+    a, b = series.computed_once(jnp.float32(2.0), jnp.arange(3.0, dtype=jnp.float32))
+    assert a.shape == b.shape == (3,)
+    np.testing.assert_array_equal(np.asarray(a), [2.0, 2.0, 2.0])
+    np.testing.assert_array_equal(np.asarray(b), [0.0, 1.0, 2.0])
+
+
+def _primitive_names(jaxpr: Any) -> set[str]:
+    """Primitive names in ``jaxpr`` and every jaxpr inside it (custom rules, jit, loops)."""
+    names = set()
+    for eqn in jaxpr.eqns:
+        names.add(eqn.primitive.name)
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                if isinstance(sub, jex_core.ClosedJaxpr):
+                    names |= _primitive_names(sub.jaxpr)
+                elif isinstance(sub, jex_core.Jaxpr):
+                    names |= _primitive_names(sub)
+    return names
+
+
+@pytest.mark.parametrize("axis", [-1, 0])
+def test_parts_are_the_components_and_transpose_to_one_concatenate(axis):
+    """``parts`` gives ``a``'s components along ``axis``; its transpose is one concatenate,
+    not a pad per component (XLA:CPU fuses pads apart, each recomputing the components'
+    shared producers) and not the scatter-add of ``jnp.take``."""
+    a = jnp.asarray(np.random.default_rng(0).normal(size=(4, 3)))
+    cs = parts(a, axis)
+    assert len(cs) == a.shape[axis]
+    for i, c in enumerate(cs):
+        np.testing.assert_array_equal(np.asarray(c), np.take(np.asarray(a), i, axis))
+
+    def f(x):
+        return sum(jnp.sum(jnp.sin(c) * k) for k, c in enumerate(parts(x, axis), 1))
+
+    names = _primitive_names(jax.make_jaxpr(jax.grad(f))(a).jaxpr)
+    assert "concatenate" in names and not names & {"pad", "gather", "scatter-add"}, names
+
+
+@pytest.mark.parametrize("fn", ["log", "exp", "jl_inv_apply", "safe_norm_sq"])
+def test_rotation_derivatives_have_no_pads_or_scatters(fn):
+    """First and second derivatives of SO(3)'s Log, Exp, Jl⁻¹·v and |φ|² are built from
+    components (``parts``) and stacks, without ``pad`` (transposed slices), ``gather`` or
+    ``scatter-add`` (transposed ``jnp.take``): those made the gradient of a solve over
+    SE(3) residuals compile twice the fused code."""
+    phi = jnp.asarray(np.random.default_rng(1).normal(size=(5, 3)))
+    f, x = {
+        "log": (quat.log, quat.exp(phi)),
+        "exp": (quat.exp, phi),
+        "jl_inv_apply": (lambda p: quat.jl_inv_apply(p, p[::-1]), phi),
+        "safe_norm_sq": (lambda p: series.safe_norm_sq(p)[..., None], phi),
+    }[fn]
+
+    def scalar(y):
+        return jnp.sum(jnp.sin(f(y)))
+
+    for g in (jax.grad(scalar), jax.hessian(scalar)):
+        names = _primitive_names(jax.make_jaxpr(g)(x).jaxpr)
+        assert not names & {"pad", "gather", "scatter-add"}, (fn, names)
+
+
+def test_series_derivative_rules_store_their_coefficients_once():
+    """The jvp rules of the series functions and of the quaternion log's coefficient
+    materialise the coefficients every derivative order consumes (one dot each,
+    :func:`series.computed_once`): XLA:CPU otherwise copied their polynomials into about a
+    dozen fusions of a gradient through a solve."""
+    t = jnp.linspace(0.0, 4.0, 7)
+    for fn, args in ((series.jinv_coeff, (t,)), (series.quat_log_coeff, (t, 1.0 + t))):
+        tangents = tuple(jnp.ones_like(a) for a in args)
+        hlo = jax.jit(lambda *a, fn=fn, tangents=tangents: jax.jvp(fn, a, tangents)).lower(
+            *args).compile().as_text()
+        assert " dot(" in hlo, fn
