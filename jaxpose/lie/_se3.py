@@ -23,6 +23,18 @@ class se3(LieAlgebra):  # noqa: N801
     layout: ClassVar[str] = "[ρx, ρy, ρz, φx, φy, φz]"
 
 
+def _tq_by_products(x: Array) -> tuple[Array, Array]:
+    """(t, q) of SE(3) storage (..., 7) as products with the identity's columns (exact for
+    finite values; a non-finite component makes both parts non-finite). Slices transpose
+    to pads that XLA:CPU fuses apart, each recomputing what Log's cotangent shares; a
+    product transposes to a product and is stored once: with this in Log, a Hessian
+    through a least-squares solve over SE(3) residuals compiled 21 % fewer fused
+    instructions (XLA 15 → 12.5 s). ``compose`` keeps its slices: products there would add
+    kernels to every composition of the forward solves."""
+    e = jnp.eye(7, dtype=x.dtype)
+    return (jnp.matmul(x, e[:, :3], precision=FULL), jnp.matmul(x, e[:, 3:], precision=FULL))
+
+
 def _split(x: Array) -> tuple[Array, Array]:
     return x[..., :3], x[..., 3:]
 
@@ -101,7 +113,7 @@ class SE3(LieGroup):
 
     @staticmethod
     def _log(x: Array) -> Array:
-        t, q = x[..., :3], x[..., 3:]
+        t, q = _tq_by_products(x)
         phi = quat.log(q)
         return jnp.concatenate([quat.jl_inv_apply(phi, t, principal=True), phi], -1)
 

@@ -32,8 +32,8 @@ import mpmath as mp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from jaxpose.lie import SE3, series  # noqa: E402
 from jaxpose.lie import _quaternion as quat  # noqa: E402
-from jaxpose.lie import series  # noqa: E402
 from jaxpose.lie._base import parts  # noqa: E402
 
 from .conftest import FAST_COMPILE  # noqa: E402
@@ -497,9 +497,10 @@ def test_parts_are_the_components_and_transpose_to_one_concatenate(axis):
     assert "concatenate" in names and not names & {"pad", "gather", "scatter-add"}, names
 
 
-@pytest.mark.parametrize("fn", ["log", "exp", "jl_inv_apply", "safe_norm_sq"])
+@pytest.mark.parametrize("fn", ["log", "exp", "jl_inv_apply", "safe_norm_sq", "se3_log"])
 def test_rotation_derivatives_have_no_pads_or_scatters(fn):
-    """First and second derivatives of SO(3)'s Log, Exp, Jl⁻¹·v and |φ|² are built from
+    """First and second derivatives of SO(3)'s Log, Exp, Jl⁻¹·v, |φ|² and SE(3)'s Log
+    (translation and rotation taken by products, ``_se3._tq_by_products``) are built from
     components (``parts``) and stacks, without ``pad`` (transposed slices), ``gather`` or
     ``scatter-add`` (transposed ``jnp.take``): those made the gradient of a solve over
     SE(3) residuals compile twice the fused code."""
@@ -509,6 +510,8 @@ def test_rotation_derivatives_have_no_pads_or_scatters(fn):
         "exp": (quat.exp, phi),
         "jl_inv_apply": (lambda p: quat.jl_inv_apply(p, p[::-1]), phi),
         "safe_norm_sq": (lambda p: series.safe_norm_sq(p)[..., None], phi),
+        "se3_log": (lambda x: SE3(x).log().data,
+                    SE3.exp(jnp.concatenate([phi, phi[::-1]], -1)).data),
     }[fn]
 
     def scalar(y):
