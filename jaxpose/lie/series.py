@@ -533,7 +533,8 @@ def quat_log_coeff(n2: Array, w: Array) -> Array:
 
 
 # K(s) = (atan(√s)/√s − 1/(1+s)) / s = Σ_j (−1)^j (2j+2)/(2j+3) s^j, kept to s < 0.04
-_LOG_DN2 = Series([Fraction((-1) ** j * (2 * j + 2), 2 * j + 3) for j in range(60)], _ATAN_T0)
+_LOG_DN2 = _Fn("log_dn2", [Fraction((-1) ** j * (2 * j + 2), 2 * j + 3) for j in range(60)],
+              _ATAN_T0, None, "K(s) for s ≤ 0.04, one polynomial (derivatives term-wise).")
 
 
 @quat_log_coeff.defjvp
