@@ -497,21 +497,23 @@ def test_parts_are_the_components_and_transpose_to_one_concatenate(axis):
     assert "concatenate" in names and not names & {"pad", "gather", "scatter-add"}, names
 
 
-@pytest.mark.parametrize("fn", ["log", "exp", "jl_inv_apply", "safe_norm_sq", "se3_log"])
+@pytest.mark.parametrize("fn", ["log", "exp", "jl_inv_apply", "safe_norm_sq", "se3_log",
+                                "se3_compose"])
 def test_rotation_derivatives_have_no_pads_or_scatters(fn):
-    """First and second derivatives of SO(3)'s Log, Exp, Jl⁻¹·v, |φ|² and SE(3)'s Log
-    (translation and rotation taken by products, ``_se3._tq_by_products``) are built from
-    components (``parts``) and stacks, without ``pad`` (transposed slices), ``gather`` or
-    ``scatter-add`` (transposed ``jnp.take``): those made the gradient of a solve over
-    SE(3) residuals compile twice the fused code."""
+    """First and second derivatives of SO(3)'s Log, Exp, Jl⁻¹·v, |φ|² and SE(3)'s Log and
+    composition (translation and rotation taken by products, ``_se3._tq_by_products``)
+    are built from components (``parts``) and stacks, without ``pad`` (transposed
+    slices), ``gather`` or ``scatter-add`` (transposed ``jnp.take``): those made the
+    gradient of a solve over SE(3) residuals compile twice the fused code."""
     phi = jnp.asarray(np.random.default_rng(1).normal(size=(5, 3)))
+    pose = SE3.exp(jnp.concatenate([phi, phi[::-1]], -1)).data
     f, x = {
         "log": (quat.log, quat.exp(phi)),
         "exp": (quat.exp, phi),
         "jl_inv_apply": (lambda p: quat.jl_inv_apply(p, p[::-1]), phi),
         "safe_norm_sq": (lambda p: series.safe_norm_sq(p)[..., None], phi),
-        "se3_log": (lambda x: SE3(x).log().data,
-                    SE3.exp(jnp.concatenate([phi, phi[::-1]], -1)).data),
+        "se3_log": (lambda x: SE3(x).log().data, pose),
+        "se3_compose": (lambda x: (SE3(x) @ SE3(x[::-1])).data, pose),
     }[fn]
 
     def scalar(y):
