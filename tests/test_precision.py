@@ -10,7 +10,6 @@ programs: every ``dot_general`` in them, derivatives included, must ask for full
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import equinox as eqx
@@ -18,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.extend import core as jex_core
+from _jaxprs import equations
 
 from jaxpose.control import QuadraticCost, lqr
 from jaxpose.datasets import synthetic_pose_graph
@@ -32,32 +31,11 @@ F32 = jnp.float32
 FULL = jax.lax.Precision.HIGHEST
 
 
-def _subjaxprs(value: Any) -> Iterator[Any]:
-    if isinstance(value, jex_core.ClosedJaxpr):
-        yield value.jaxpr
-    elif isinstance(value, jex_core.Jaxpr):
-        yield value
-    elif isinstance(value, (tuple, list)):
-        for v in value:
-            yield from _subjaxprs(v)
-
-
-def _dots(jaxpr: Any) -> Iterator[Any]:
-    """Every dot_general equation of ``jaxpr`` and of the jaxprs inside it (jit, loops,
-    conditionals, custom derivative rules, linear solves)."""
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name == "dot_general":
-            yield eqn
-        for value in eqn.params.values():
-            for sub in _subjaxprs(value):
-                yield from _dots(sub)
-
-
 def _assert_full(fn: Any, *args: Any) -> int:
     """All float32 dot_generals of ``make_jaxpr(fn)(*args)`` at full precision; returns
     how many there are (a test that finds none checks nothing)."""
-    dots = [e for e in _dots(jax.make_jaxpr(fn)(*args).jaxpr)
-            if any(v.aval.dtype == F32 for v in e.invars)]
+    dots = [e for e in equations(jax.make_jaxpr(fn)(*args).jaxpr)
+            if e.primitive.name == "dot_general" and any(v.aval.dtype == F32 for v in e.invars)]
     reduced = [e for e in dots if e.params["precision"] is None
                or any(p != FULL for p in e.params["precision"])]
     assert not reduced, f"{len(reduced)} of {len(dots)} float32 products at reduced precision: " \

@@ -37,6 +37,8 @@ def _tq_by_products(x: Array) -> tuple[Array, Array]:
 
 
 def _split(x: Array) -> tuple[Array, Array]:
+    """(ρ, φ) of a twist (..., 6) by slices: products here (as :func:`_tq_by_products`)
+    made the Hessian through least squares 20 % more fused code, not less."""
     return x[..., :3], x[..., 3:]
 
 

@@ -26,11 +26,11 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.extend.core as jex_core  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mpmath as mp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from _jaxprs import equations  # noqa: E402
 
 from jaxpose.lie import SE3, series  # noqa: E402
 from jaxpose.lie import _quaternion as quat  # noqa: E402
@@ -467,16 +467,7 @@ def test_computed_once_broadcasts_its_arrays():
 
 def _primitive_names(jaxpr: Any) -> set[str]:
     """Primitive names in ``jaxpr`` and every jaxpr inside it (custom rules, jit, loops)."""
-    names = set()
-    for eqn in jaxpr.eqns:
-        names.add(eqn.primitive.name)
-        for value in eqn.params.values():
-            for sub in value if isinstance(value, (tuple, list)) else (value,):
-                if isinstance(sub, jex_core.ClosedJaxpr):
-                    names |= _primitive_names(sub.jaxpr)
-                elif isinstance(sub, jex_core.Jaxpr):
-                    names |= _primitive_names(sub)
-    return names
+    return {eqn.primitive.name for eqn in equations(jaxpr)}
 
 
 @pytest.mark.parametrize("axis", [-1, 0])
