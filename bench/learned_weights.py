@@ -25,7 +25,7 @@ every rate.
 Usage::
 
     python bench/learned_weights.py [--files sphere2500,intel] [--rates 0.1,0.3,0.5]
-                                    [--train 2] [--test 2] [--steps 40] [--quick] [--out F.md]
+                                    [--train 2] [--test 4] [--steps 40] [--quick] [--out F.md]
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def build_parser() -> Any:
     ap.add_argument("--files", default=None, help="comma-separated g2o names in ../shared/data/g2o")
     ap.add_argument("--rates", default="0.1,0.3,0.5")
     ap.add_argument("--train", type=int, default=2, help="training draws per rate")
-    ap.add_argument("--test", type=int, default=2, help="held-out draws per rate")
+    ap.add_argument("--test", type=int, default=4, help="held-out draws per rate")
     ap.add_argument("--steps", type=int, default=40, help="Adam steps")
     ap.add_argument("--lr", type=float, default=1e-2)
     return ap

@@ -5,12 +5,16 @@ edges, :func:`jaxpose.datasets.corrupt_loop_closures`) is solved first with a fi
 kernel ρ. From that solution each edge gets three features: its whitened squared residual
 ``s`` relative to the χ² 0.99 threshold τ (``log(1 + s/τ)`` and ``τ/(s + τ)``) and the
 length of the loop it closes (``log|i − j| / log n``, zero for odometry). A small equinox
-MLP maps them to a factor on the kernel's own weight ρ'(s) (the weight of iteratively
-reweighted least squares): ``w = ρ'(s) · sigmoid(MLP(features))``. The MLP's last layer
-starts at weight 0 and bias 0, a uniform factor ½ that leaves the minimiser unchanged, so
-the untrained network reproduces the kernel's solution (its stationary point); from there
-an edge's factor can fall to 0 or rise to 1, twice the others' (and sigmoid's slope is
-largest at 0, so training moves fast).
+MLP maps them to a correction of the kernel's own weight ρ'(s) (the weight of iteratively
+reweighted least squares) in log-odds: ``w = sigmoid(logit(ρ'(s)) + MLP(features))``.
+The MLP's last layer starts at weight 0 and bias 0, so the untrained network gives the
+kernel's weights and reproduces its solution (its stationary point; ρ' is capped at
+1 − 10⁻³ so that every weight can move); from there any edge's weight can go anywhere in
+(0, 1). (An earlier form, a factor ``sigmoid(MLP)`` on ρ'(s), could raise an edge at most
+to twice the others' relative weight: where the kernel had down-weighted true loop
+closures hard — Geman–McClure at small δ on intel — it could not restore them, and on
+intel at 50 % outliers it closed 4 % of the kernel's gap to the oracle weighting where
+this form closes 38 %.)
 The weighted graph is solved again from the kernel's solution, and the network is trained
 to minimise the mean squared position error of that solution against each training draw's
 own clean optimum: the draw's graph without its wrong loop closures (solved from the same
@@ -93,9 +97,14 @@ def edge_features(graph: Any, poses: Any, kernel: Any) -> np.ndarray:
     return np.stack([np.log1p(s / tau), tau / (s + tau), np.log(gap) / np.log(n), rho1], 1)
 
 
+RHO1_CAP = 1.0 - 1e-3
+"""ρ'(s) is capped here before its log-odds are taken (a weight of exactly 1 has infinite
+log-odds, which no finite correction moves)."""
+
+
 class WeightNet(eqx.Module):
-    """Per-edge weight: the kernel's weight ρ'(s) times a factor in (0, 1) from an MLP of
-    the edge's features (uniform ½ at initialisation)."""
+    """Per-edge weight: the kernel's weight ρ'(s) corrected in log-odds by an MLP of the
+    edge's features (the correction is 0 at initialisation)."""
 
     mlp: eqx.nn.MLP
 
@@ -106,8 +115,10 @@ class WeightNet(eqx.Module):
                                (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)))
 
     def __call__(self, inputs: Any) -> Any:
-        """(m, 4) inputs (:func:`edge_features`) → (m,) weights."""
-        return inputs[:, -1] * jax.nn.sigmoid(jax.vmap(self.mlp)(inputs[:, :-1]))
+        """(m, 4) inputs (:func:`edge_features`) → (m,) weights in (0, 1)."""
+        rho1 = jnp.clip(inputs[:, -1], jnp.finfo(inputs.dtype).tiny, RHO1_CAP)
+        log_odds = jnp.log(rho1) - jnp.log1p(-rho1)
+        return jax.nn.sigmoid(log_odds + jax.vmap(self.mlp)(inputs[:, :-1]))
 
 
 @dataclasses.dataclass

@@ -1,10 +1,11 @@
 """The learned-edge-weights example (notebooks/_examples/learned_weights.py): the untrained
-network gives a uniform fraction of the kernel's IRLS weights (so training starts at the
-kernel's solution), the features are those documented, and the training target is each
-draw's own clean optimum."""
+network gives the kernel's IRLS weights (so training starts at the kernel's solution) and
+its output corrects them in log-odds, the features are those documented, and the training
+target is each draw's own clean optimum."""
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -40,8 +41,25 @@ def test_untrained_network_returns_the_kernel_weights_and_features_are_documente
     np.testing.assert_allclose(feats[:, 2], np.log(gap) / np.log(12), rtol=1e-12)
     np.testing.assert_allclose(feats[:, 3], 1.0 / (1.0 + s / 4.0), rtol=1e-12)  # Cauchy ρ'
     net = lw.WeightNet(jax.random.PRNGKey(0))
-    w = np.asarray(net(jnp.asarray(feats)))  # a uniform fraction of ρ': the same minimiser
-    np.testing.assert_allclose(w / feats[:, 3], 0.5, rtol=1e-12)
+    w = np.asarray(net(jnp.asarray(feats)))  # ρ' itself (capped below 1): the same minimiser
+    np.testing.assert_allclose(w, np.minimum(feats[:, 3], lw.RHO1_CAP), rtol=1e-12)
+
+
+def test_network_output_corrects_the_kernel_weight_in_log_odds():
+    # a constant MLP output b moves every weight to σ(logit(ρ') + b) = ρ'/(ρ' + (1 − ρ')e⁻ᵇ),
+    # so an edge the kernel down-weighted to 0.01 can rise above a kept one's weight
+    rho1 = np.array([1e-200, 0.01, 0.3, 0.9, 1.0])
+    feats = jnp.asarray(np.column_stack([np.zeros((5, 3)), rho1]))
+    net = lw.WeightNet(jax.random.PRNGKey(1))
+    for b in (-3.0, 0.0, 5.0):
+        shifted = eqx.tree_at(lambda m: m.mlp.layers[-1].bias, net, jnp.asarray(b))
+        cap = np.minimum(rho1, lw.RHO1_CAP)
+        expect = cap / (cap + (1.0 - cap) * np.exp(-b))
+        np.testing.assert_allclose(np.asarray(shifted(feats)), expect, rtol=1e-12)
+    # differentiable in the network's parameters where ρ' is capped or tiny (no NaN)
+    grads = eqx.filter_grad(lambda m: jnp.sum(m(feats)))(net)
+    leaves = jax.tree.leaves(grads)
+    assert leaves and all(np.all(np.isfinite(g)) for g in leaves)
 
 
 def test_training_target_is_the_draws_graph_without_its_wrong_loop_closures():
