@@ -11,8 +11,8 @@ from typing import ClassVar
 import jax.numpy as jnp
 
 from . import series
-from ._base import Array, LieAlgebra, LieGroup, matvec
-from ._so2 import SO2, angle, conj2, mul2, normalize2, rot2, rotate2
+from ._base import Array, LieAlgebra, LieGroup, matvec, parts
+from ._so2 import SO2, angle, normalize2, rot2
 
 
 class se2(LieAlgebra):  # noqa: N801
@@ -33,11 +33,11 @@ def _v_coeffs(theta: Array) -> tuple[Array, Array]:
 def _jl_column(xi: Array, *, principal: bool) -> Array:
     """The translation column w of Jl(ξ) = [[V, w], [0, 1]] (..., 2): w = [[B, A], [−A, B]]·ρ
     with A = (1 − cos θ)/θ², B = (θ − sin θ)/θ². ``principal=True`` promises |θ| ≤ π."""
-    rho, th = xi[..., :2], xi[..., 2]
+    rx, ry, th = parts(xi)
     t = th * th
     a = series.select(series.one_minus_cos_over_t, principal)(t)
     b = th * series.select(series.theta_minus_sin_over_theta3, principal)(t)
-    return jnp.stack([b * rho[..., 0] + a * rho[..., 1], -a * rho[..., 0] + b * rho[..., 1]], -1)
+    return jnp.stack([b * rx + a * ry, -a * rx + b * ry], -1)
 
 
 def _with_column(block: Array, col: Array) -> Array:
@@ -49,7 +49,8 @@ def _with_column(block: Array, col: Array) -> Array:
 
 def _perp(v: Array) -> Array:
     """[vy, −vx]: the SE(2) adjoint column, J·v with J = [[0, 1], [−1, 0]]."""
-    return jnp.stack([v[..., 1], -v[..., 0]], -1)
+    x, y = parts(v)
+    return jnp.stack([y, -x], -1)
 
 
 class SE2(LieGroup):
@@ -69,47 +70,43 @@ class SE2(LieGroup):
 
     @staticmethod
     def _exp(xi: Array) -> Array:
-        rho, th = xi[..., :2], xi[..., 2]
+        rx, ry, th = parts(xi)
         a, b = _v_coeffs(th)
-        a, b = a[..., None], b[..., None]
-        t = jnp.concatenate(
-            [a * rho[..., :1] - b * rho[..., 1:], b * rho[..., :1] + a * rho[..., 1:]], -1
-        )
-        return jnp.concatenate([t, jnp.cos(th)[..., None], jnp.sin(th)[..., None]], -1)
+        return jnp.stack([a * rx - b * ry, b * rx + a * ry, jnp.cos(th), jnp.sin(th)], -1)
 
     @staticmethod
     def _exp_linear(xi: Array) -> Array:
-        return jnp.concatenate([xi[..., :2], jnp.ones_like(xi[..., 2:]), xi[..., 2:]], -1)
+        rx, ry, th = parts(xi)
+        return jnp.stack([rx, ry, jnp.ones_like(th), th], -1)
 
     @staticmethod
     def _exp_quadratic(xi: Array) -> Array:
-        rx, ry, th = xi[..., :1], xi[..., 1:2], xi[..., 2:]
-        return jnp.concatenate(
-            [rx - 0.5 * th * ry, ry + 0.5 * th * rx, 1.0 - 0.5 * th * th, th], -1)
+        rx, ry, th = parts(xi)
+        return jnp.stack([rx - 0.5 * th * ry, ry + 0.5 * th * rx, 1.0 - 0.5 * th * th, th], -1)
 
     @staticmethod
     def _log(x: Array) -> Array:
-        t, th = x[..., :2], angle(x[..., 2:])
-        h = series.half_cot_half_principal(th * th)[..., None]  # |θ| ≤ π
-        half = 0.5 * th[..., None]
-        rho = jnp.concatenate(
-            [h * t[..., :1] + half * t[..., 1:], -half * t[..., :1] + h * t[..., 1:]], -1
-        )
-        return jnp.concatenate([rho, th[..., None]], -1)
+        tx, ty, c, s = parts(x)
+        th = jnp.arctan2(s, c)
+        h = series.half_cot_half_principal(th * th)  # |θ| ≤ π
+        half = 0.5 * th
+        return jnp.stack([h * tx + half * ty, -half * tx + h * ty, th], -1)
 
     @staticmethod
     def _compose(a: Array, b: Array) -> Array:
-        t = a[..., :2] + rotate2(a[..., 2:], b[..., :2])
-        return jnp.concatenate([t, mul2(a[..., 2:], b[..., 2:])], -1)
+        (tax, tay, ca, sa), (tbx, tby, cb, sb) = parts(a), parts(b)
+        return jnp.stack([tax + ca * tbx - sa * tby, tay + sa * tbx + ca * tby,
+                          ca * cb - sa * sb, sa * cb + ca * sb], -1)
 
     @staticmethod
     def _inv(x: Array) -> Array:
-        ci = conj2(x[..., 2:])
-        return jnp.concatenate([-rotate2(ci, x[..., :2]), ci], -1)
+        tx, ty, c, s = parts(x)  # (R⁻¹, −R⁻¹t)
+        return jnp.stack([-(c * tx + s * ty), s * tx - c * ty, c, -s], -1)
 
     @staticmethod
     def _act(x: Array, p: Array) -> Array:
-        return rotate2(x[..., 2:], p) + x[..., :2]
+        (tx, ty, c, s), (px, py) = parts(x), parts(p)
+        return jnp.stack([c * px - s * py + tx, s * px + c * py + ty], -1)
 
     @staticmethod
     def _matrix(x: Array) -> Array:
@@ -129,14 +126,14 @@ class SE2(LieGroup):
 
     @staticmethod
     def _jl(xi: Array) -> Array:
-        a, b = _v_coeffs(xi[..., 2])
+        a, b = _v_coeffs(parts(xi)[2])
         v = jnp.stack([jnp.stack([a, -b], -1), jnp.stack([b, a], -1)], -2)
         return _with_column(v, _jl_column(xi, principal=False))
 
     @staticmethod
     def _jl_inv(xi: Array, principal: bool = False) -> Array:
         # [[V, w], [0, 1]]⁻¹ = [[V⁻¹, −V⁻¹w], [0, 1]] with V⁻¹ = [[h, θ/2], [−θ/2, h]].
-        th = xi[..., 2]
+        th = parts(xi)[2]
         h = series.select(series.half_cot_half, principal)(th * th)
         vinv = jnp.stack([jnp.stack([h, 0.5 * th], -1), jnp.stack([-0.5 * th, h], -1)], -2)
         return _with_column(vinv, -matvec(vinv, _jl_column(xi, principal=principal)))

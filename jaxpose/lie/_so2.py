@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 
-from ._base import Array, LieAlgebra, LieGroup
+from ._base import Array, LieAlgebra, LieGroup, parts
 
 
 class so2(LieAlgebra):  # noqa: N801
@@ -18,36 +18,42 @@ class so2(LieAlgebra):  # noqa: N801
 
 def rot2(cs: Array) -> Array:
     """2×2 rotation matrices (..., 2, 2) from ``[cos, sin]`` (..., 2)."""
-    c, s = cs[..., 0], cs[..., 1]
+    c, s = parts(cs)
     return jnp.stack([jnp.stack([c, -s], -1), jnp.stack([s, c], -1)], -2)
 
 
 def rotate2(cs: Array, p: Array) -> Array:
-    c, s = cs[..., :1], cs[..., 1:]
-    return jnp.concatenate([c * p[..., :1] - s * p[..., 1:], s * p[..., :1] + c * p[..., 1:]], -1)
+    """``p`` (…, 2) rotated by ``[cos, sin]`` (…, 2)."""
+    (c, s), (x, y) = parts(cs), parts(p)
+    return jnp.stack([c * x - s * y, s * x + c * y], -1)
 
 
 def mul2(a: Array, b: Array) -> Array:
     """Complex product of unit complex numbers ``[cos, sin]``."""
-    ca, sa, cb, sb = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
-    return jnp.concatenate([ca * cb - sa * sb, sa * cb + ca * sb], -1)
+    (ca, sa), (cb, sb) = parts(a), parts(b)
+    return jnp.stack([ca * cb - sa * sb, sa * cb + ca * sb], -1)
 
 
 def conj2(a: Array) -> Array:
-    return jnp.concatenate([a[..., :1], -a[..., 1:]], -1)
+    c, s = parts(a)
+    return jnp.stack([c, -s], -1)
 
 
 def angle(cs: Array) -> Array:
     """θ ∈ (−π, π] from ``[cos, sin]`` (…, 2) → (…,)."""
-    return jnp.arctan2(cs[..., 1], cs[..., 0])
+    c, s = parts(cs)
+    return jnp.arctan2(s, c)
 
 
 def normalize2(cs: Array) -> Array:
     """``[cos, sin]`` (…, 2) divided by its norm, without overflow or underflow (the pair
     is first divided by its larger magnitude); ``[0, 0]`` gives NaN."""
-    m = jnp.maximum(jnp.abs(cs[..., :1]), jnp.abs(cs[..., 1:]))
-    cs = cs * (1.0 / jnp.where(m > 0, m, 1.0))
-    return cs / jnp.sqrt(cs[..., :1] * cs[..., :1] + cs[..., 1:] * cs[..., 1:])
+    c, s = parts(cs)
+    m = jnp.maximum(jnp.abs(c), jnp.abs(s))
+    scale = 1.0 / jnp.where(m > 0, m, 1.0)
+    c, s = c * scale, s * scale
+    n = jnp.sqrt(c * c + s * s)
+    return jnp.stack([c / n, s / n], -1)
 
 
 class SO2(LieGroup):
