@@ -13,7 +13,7 @@ kernel's weights and reproduces its solution (its stationary point; ρ' is cappe
 (0, 1). (An earlier form, a factor ``sigmoid(MLP)`` on ρ'(s), could raise an edge at most
 to twice the others' relative weight: where the kernel had down-weighted true loop
 closures hard — Geman–McClure at small δ on intel — it could not restore them, and on
-intel at 50 % outliers it closed 4 % of the kernel's gap to the oracle weighting where
+intel at 50 % outliers it closed 6 % of the kernel's gap to the oracle weighting where
 this form closes 38 %.)
 The weighted graph is solved again from the kernel's solution, and the network is trained
 to minimise the mean squared position error of that solution against each training draw's
