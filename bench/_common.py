@@ -200,13 +200,16 @@ def spawn_worker(args: Sequence[str], *, timeout: float, env: dict[str, str] | N
 
 @dataclass(frozen=True)
 class Timing:
-    """Steady-state seconds per call (min and median over repeats) and compile seconds."""
+    """Steady-state seconds per call (min and median over repeats), compile seconds and,
+    where asked for, the lines of the optimised HLO program (deterministic, unlike the
+    seconds: it compares program sizes across machines)."""
 
     best: float
     median: float
     repeats: int
     number: int
     compile_s: float | None = None
+    hlo_lines: int | None = None
 
     def rate(self, items: int) -> float:
         """Items per second at the best time."""
@@ -278,9 +281,10 @@ def time_jax(
     min_time: float = 0.05,
     max_time: float = 10.0,
     compiler_options: dict[str, Any] | None = None,
+    hlo_lines: bool = False,
 ) -> tuple[Timing, Any]:
     """Jit ``fn``, time compilation (lower + compile, with ``compiler_options``) and then
-    steady-state calls.
+    steady-state calls; with ``hlo_lines`` count the optimised program's lines too.
 
     Returns the :class:`Timing` and the output of one call (for correctness checks)."""
     import jax
@@ -295,7 +299,8 @@ def time_jax(
     best, med, reps, number = _measure(
         call, first_s, repeats=repeats, min_time=min_time, max_time=max_time
     )
-    return Timing(best, med, reps, number, compile_s), out
+    lines = compiled.as_text().count("\n") if hlo_lines else None
+    return Timing(best, med, reps, number, compile_s, lines), out
 
 
 def time_callable(

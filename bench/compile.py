@@ -5,7 +5,11 @@ through a solver. Every entry runs in a fresh subprocess (no JIT cache, float64)
 with XLA's default options and with :func:`jaxpose.compile_options` (what a user can pass
 to ``jax.jit(..., compiler_options=...)``), and reports the cold compile seconds of
 ``jit(f).lower(...).compile()`` (tracing, lowering and XLA) and the steady-state seconds
-of one call. The budget is checked on the defaults.
+of one call. The budget is checked on the defaults. The lines of the optimised HLO
+program (XLA defaults) are reported too: unlike the seconds, which move with the machine
+a session is given (±15 % within minutes, 2x between machines), they are deterministic,
+so they compare code changes across sessions (most of XLA:CPU's compile time is LLVM
+code generation, which grows with the fused code).
 
 Entries (issue 16's budget on an idle 2-core CPU in brackets):
 
@@ -131,8 +135,9 @@ def worker(name: str, quick: bool, options: bool) -> None:
     jax.config.update("jax_enable_x64", True)
     f, args = _entry(name, quick)
     opts = jaxpose.compile_options() if options else None
-    timing, _ = time_jax(f, *args, repeats=3, compiler_options=opts)
-    worker_result({"compile_s": timing.compile_s, "run_s": timing.median})
+    timing, _ = time_jax(f, *args, repeats=3, compiler_options=opts, hlo_lines=not options)
+    worker_result({"compile_s": timing.compile_s, "run_s": timing.median,
+                   "hlo_lines": timing.hlo_lines})
 
 
 # ----------------------------------------------------------------------------------
@@ -151,7 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows = []
     for name in args.only.split(","):
         if name.startswith("graph") and not Path(GARAGE).exists():
-            rows.append([name, "—", "—", "—", "—", "—", f"skipped: {GARAGE} missing"])
+            rows.append([name, "—", "—", "—", "—", "—", "—", f"skipped: {GARAGE} missing"])
             continue
         flags = ["--quick"] if args.quick else []
         outs = [spawn_worker([str(Path(__file__)), "--worker", name, *flags, *extra],
@@ -159,12 +164,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 for extra in ([], ["--options"])]
         failed = [o["failed"] for o in outs if "failed" in o]
         if failed:
-            rows.append([name, "—", "—", "—", "—", "—", failed[0]])
+            rows.append([name, "—", "—", "—", "—", "—", "—", failed[0]])
             continue
         default, opts = outs
         budget = BUDGET.get(name)
         verdict = "—" if budget is None else ("met" if default["compile_s"] <= budget else "over")
         rows.append([name, fmt_seconds(default["compile_s"]), fmt_seconds(default["run_s"]),
+                     f"{default['hlo_lines']:,}".replace(",", " "),
                      fmt_seconds(opts["compile_s"]), fmt_seconds(opts["run_s"]),
                      "—" if budget is None else f"≤ {budget:g} s", verdict])
         print(f"{name}: compile {default['compile_s']:.2f} s, run {default['run_s']:.4f} s; "
@@ -175,7 +181,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         environment(),
         "",
-        markdown_table(["entry", "cold compile", "steady run",
+        markdown_table(["entry", "cold compile", "steady run", "optimised HLO lines",
                         "cold compile, jaxpose.compile_options()", "steady run, same",
                         "budget (XLA defaults)", "verdict"], rows),
         "",
