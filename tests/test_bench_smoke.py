@@ -246,3 +246,21 @@ def test_outlier_bench_aligned_ape(kind):
     expected = _kabsch_rmse(ref[:, :dim], est[:, :dim])
     assert pgo_outliers.ape_aligned(kind, ref, est) == pytest.approx(expected, rel=1e-9)
     assert pgo_outliers.ape(kind, ref, est) > expected
+
+
+def test_time_jax_counts_the_optimised_program_only_when_asked():
+    # bench/compile.py's deterministic size column: the lines of the compiled program's text
+    import jax
+    import jax.numpy as jnp
+
+    from bench._common import time_jax
+
+    def f(x):
+        return jnp.sin(x) * 2.0 + jnp.cos(x)
+
+    x = jnp.arange(8.0)
+    timing, out = time_jax(f, x, repeats=1, min_time=0.0, hlo_lines=True)
+    expected = jax.jit(f).lower(x).compile().as_text().count("\n")
+    assert timing.hlo_lines == expected > 0
+    assert jnp.allclose(out, f(x))
+    assert time_jax(f, x, repeats=1, min_time=0.0)[0].hlo_lines is None
