@@ -12,7 +12,7 @@ import jax.numpy as jnp
 
 from . import series
 from ._base import Array, LieAlgebra, LieGroup, matvec, parts
-from ._so2 import SO2, angle, normalize2, rot2
+from ._so2 import SO2, angle, normalize2, rot2, rotated
 
 
 class se2(LieAlgebra):  # noqa: N801
@@ -95,18 +95,20 @@ class SE2(LieGroup):
     @staticmethod
     def _compose(a: Array, b: Array) -> Array:
         (tax, tay, ca, sa), (tbx, tby, cb, sb) = parts(a), parts(b)
-        return jnp.stack([tax + ca * tbx - sa * tby, tay + sa * tbx + ca * tby,
-                          ca * cb - sa * sb, sa * cb + ca * sb], -1)
+        rx, ry = rotated(ca, sa, tbx, tby)
+        return jnp.stack([tax + rx, tay + ry, *rotated(ca, sa, cb, sb)], -1)
 
     @staticmethod
     def _inv(x: Array) -> Array:
         tx, ty, c, s = parts(x)  # (R⁻¹, −R⁻¹t)
-        return jnp.stack([-(c * tx + s * ty), s * tx - c * ty, c, -s], -1)
+        rx, ry = rotated(c, -s, tx, ty)
+        return jnp.stack([-rx, -ry, c, -s], -1)
 
     @staticmethod
     def _act(x: Array, p: Array) -> Array:
         (tx, ty, c, s), (px, py) = parts(x), parts(p)
-        return jnp.stack([c * px - s * py + tx, s * px + c * py + ty], -1)
+        rx, ry = rotated(c, s, px, py)
+        return jnp.stack([rx + tx, ry + ty], -1)
 
     @staticmethod
     def _matrix(x: Array) -> Array:

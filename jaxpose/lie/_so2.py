@@ -22,16 +22,20 @@ def rot2(cs: Array) -> Array:
     return jnp.stack([jnp.stack([c, -s], -1), jnp.stack([s, c], -1)], -2)
 
 
+def rotated(c: Array, s: Array, x: Array, y: Array) -> tuple[Array, Array]:
+    """(x, y) rotated by the angle of cosine ``c`` and sine ``s``, by components (the
+    kernels take components with :func:`~jaxpose.lie._base.parts`, not slices)."""
+    return c * x - s * y, s * x + c * y
+
+
 def rotate2(cs: Array, p: Array) -> Array:
     """``p`` (…, 2) rotated by ``[cos, sin]`` (…, 2)."""
-    (c, s), (x, y) = parts(cs), parts(p)
-    return jnp.stack([c * x - s * y, s * x + c * y], -1)
+    return jnp.stack(rotated(*parts(cs), *parts(p)), -1)
 
 
 def mul2(a: Array, b: Array) -> Array:
-    """Complex product of unit complex numbers ``[cos, sin]``."""
-    (ca, sa), (cb, sb) = parts(a), parts(b)
-    return jnp.stack([ca * cb - sa * sb, sa * cb + ca * sb], -1)
+    """Complex product of unit complex numbers ``[cos, sin]`` (``b`` rotated by ``a``)."""
+    return jnp.stack(rotated(*parts(a), *parts(b)), -1)
 
 
 def conj2(a: Array) -> Array:
