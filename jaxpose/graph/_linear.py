@@ -6,7 +6,9 @@
   (:mod:`jaxpose.graph._cholmod`). If that module cannot load CHOLMOD, cholespy's public API
   is used (re-analyses every call: 2–4x slower), and without cholespy SciPy's SuperLU, which
   is much slower on large graphs (measured on sphere2500: 355 s for one SuperLU
-  factorisation vs 1.0 s with cholespy on a loaded 2-core machine).
+  factorisation vs 1.0 s with cholespy on a loaded 2-core machine). Exact zeros are
+  dropped from the pattern first when there are many (:func:`without_zeros`): factors
+  with weight 0 then cost the factorisation nothing.
 * :func:`solve_pcg` — matrix-free conjugate gradient with a block-Jacobi preconditioner,
   ``lineax.CG`` on lineax function operators (jit/vmap/differentiable, any backend).
 * :func:`solve_dense` — assembles H densely and uses Cholesky (small problems; fully
@@ -27,9 +29,37 @@ from . import _cholmod as cholmod
 Array = jax.Array
 
 
+PRUNE_FRACTION = 0.02
+"""Share of exactly-zero stored entries from which the host solvers drop them from the
+pattern (:func:`without_zeros`). Every shared pose graph stores 0.02–1 % zeros (the held
+pose's blocks), which leave the fill unchanged; a factor whose weight is 0 (a loop closure
+that graduated non-convexity rejected, one a user switched off) stores a whole zero block
+per slot pair, and dropping them removes its fill: sphere2500 with half its loop closures
+replaced by random ones factorises in 340 ms with them, 8 ms without (GNC's last steps,
+every random edge rejected). Compacting costs ~2 ms per 500 000 entries, counting the
+zeros 0.06 ms."""
+
+
+def without_zeros(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The CSR matrix (data, indices, indptr) without its exactly-zero entries when they
+    are at least :data:`PRUNE_FRACTION` of the stored ones, else unchanged. The matrix is
+    the same, so is its factorisation's result; only the pattern the sparse analysis
+    sees is smaller (a changed pattern is analysed once, then cached like any other)."""
+    keep = data != 0
+    kept = int(np.count_nonzero(keep))
+    if data.size - kept < PRUNE_FRACTION * data.size:
+        return data, indices, indptr
+    before = np.zeros(data.size + 1, np.int64)
+    np.cumsum(keep, out=before[1:])
+    return data[keep], indices[keep], before[indptr].astype(indptr.dtype)
+
+
 def _cholmod_solve(
     data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, b: np.ndarray
 ) -> np.ndarray:
+    data, indices, indptr = without_zeros(np.asarray(data), np.asarray(indices),
+                                          np.asarray(indptr))
     if cholmod.available():
         return cholmod.solve(data, indices, indptr, b).astype(b.dtype)
     return _cholespy_solve(data, indices, indptr, b)

@@ -124,3 +124,40 @@ def test_the_cli_notes_a_reference_blas_unless_asked_for(monkeypatch, capsys):
         assert cholmod.slow_blas() is None
         _note_slow_blas("jaxpose pgo")
         assert capsys.readouterr().err == ""
+
+
+def test_without_zeros_drops_exact_zeros_only_when_there_are_many():
+    """The pruned CSR is the same matrix with a smaller pattern; below PRUNE_FRACTION the
+    arrays come back untouched (no copy, no new pattern to analyse)."""
+    from jaxpose.graph import _linear
+
+    rng = np.random.default_rng(7)
+    n = 30
+    a = np.diag(rng.uniform(2.0, 3.0, n))
+    for i, j in rng.integers(0, n, size=(40, 2)):
+        if i != j:
+            a[i, j] = a[j, i] = rng.uniform(-0.2, 0.2)
+    h = scipy.sparse.csr_matrix(a)
+    h.sort_indices()
+    few = h.data.copy()
+    few[np.flatnonzero(h.indices != np.repeat(np.arange(n), np.diff(h.indptr)))[:1]] = 0.0
+    assert np.mean(few == 0) < _linear.PRUNE_FRACTION
+    out = _linear.without_zeros(few, h.indices, h.indptr)
+    assert all(x is y for x, y in zip(out, (few, h.indices, h.indptr), strict=True))
+
+    rows = np.repeat(np.arange(n), np.diff(h.indptr))
+    upper = np.flatnonzero(h.indices > rows)
+    dropped = a.copy()  # half the off-diagonal pairs zero, still stored (a zero weight)
+    dropped[rows[upper[::2]], h.indices[upper[::2]]] = 0.0
+    dropped[h.indices[upper[::2]], rows[upper[::2]]] = 0.0
+    many = dropped[rows, h.indices]
+    off = np.flatnonzero(many == 0)
+    assert off.size == 2 * upper[::2].size
+    data, indices, indptr = _linear.without_zeros(many, h.indices, h.indptr)
+    assert data.size == h.nnz - off.size and np.all(data != 0)
+    assert indices.dtype == h.indices.dtype and indptr.dtype == h.indptr.dtype
+    pruned = scipy.sparse.csr_matrix((data, indices, indptr), shape=(n, n)).toarray()
+    np.testing.assert_array_equal(pruned, dropped)
+    b = rng.normal(size=n)
+    np.testing.assert_allclose(_linear._cholmod_solve(many, h.indices, h.indptr, b),
+                               np.linalg.solve(dropped, b), rtol=1e-12, atol=1e-12)

@@ -8,6 +8,8 @@ One GNC program per configuration is compiled (module fixtures).
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -210,6 +212,44 @@ def test_plain_least_squares_is_pulled_by_outliers(outlier_case):
     ref = _scipy_inlier_solution(bad, keep)
     plain = _scipy_inlier_solution(bad, np.ones(bad.n_edges, bool))
     assert np.abs(plain[:, :2] - ref[:, :2]).max() > 0.1  # the test case is not trivial
+
+
+def test_zero_weight_factors_leave_the_sparse_pattern(monkeypatch):
+    """Loop closures of weight 0 (as graduated non-convexity leaves the rejected ones)
+    are dropped from the pattern the host factorisation analyses: the solution equals the
+    solve without them (those factors removed from the graph) and the unpruned solve."""
+    from jaxpose.graph import _linear, solve, weighted_graph
+
+    clean, _ = synthetic_pose_graph("SE3", n_poses=64, noise=(0.01, 0.02), seed=4)
+    loops = np.flatnonzero(~pgo.odometry_edges(clean))
+    off = loops[::2]
+    w = np.ones(clean.n_edges)
+    w[off] = 0.0
+    problem = weighted_graph(pgo.pose_graph_problem(clean), (jnp.asarray(w),))
+    kept = np.setdiff1d(np.arange(clean.n_edges), off)
+    fewer = dataclasses.replace(clean, edges=clean.edges[kept],
+                                measurements=clean.measurements[kept],
+                                information=clean.information[kept])
+    sizes = []
+    prune = _linear.without_zeros
+
+    def spy(*csr):
+        out = prune(*csr)
+        sizes.append((csr[0].size, out[0].size))
+        return out
+
+    monkeypatch.setattr(_linear, "without_zeros", spy)
+    pruned = solve(problem, linear_solver="sparse")
+    assert sizes and all(after < before for before, after in sizes)
+    monkeypatch.setattr(_linear, "PRUNE_FRACTION", 2.0)  # never prune
+    sizes.clear()
+    full = solve(problem, linear_solver="sparse")
+    assert sizes and all(after == before for before, after in sizes)
+    without = solve(pgo.pose_graph_problem(fewer), linear_solver="sparse")
+    for other in (full, without):
+        np.testing.assert_allclose(pruned.variables["pose"].data,
+                                   other.variables["pose"].data, atol=1e-10)
+    assert int(pruned.iterations) == int(full.iterations)
 
 
 def test_weighted_graph_scales_each_factor(outlier_case):
