@@ -34,11 +34,15 @@ Array = jax.Array
 
 def reprojection_residual(pose: SE3, intrinsics: Array, point: Array, z: Array) -> Array:
     """BAL reprojection residual (2,) of ONE observation ``z`` (pixels)."""
-    pc = pose.act(point)
+    return pixel(pose.act(point), intrinsics) - z
+
+
+def pixel(pc: Array, intrinsics: Array) -> Array:
+    """BAL pixel (2,) of a point ``pc`` (3,) in the camera frame, ``intrinsics`` [f, k1, k2]."""
     p = -pc[:2] / pc[2]
     r2 = p @ p
     f, k1, k2 = intrinsics[0], intrinsics[1], intrinsics[2]
-    return f * (1.0 + r2 * (k1 + k2 * r2)) * p - z
+    return f * (1.0 + r2 * (k1 + k2 * r2)) * p
 
 
 def reprojection_jacobian(

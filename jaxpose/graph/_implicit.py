@@ -10,8 +10,9 @@ solution's tangent
 with H = ∂²φ/∂δ² the exact Hessian of the (robust, weighted) cost. H has the block
 pattern of J̃ᵀJ̃ (a factor only couples its own variables), so it is assembled in the
 graph's CSR pattern from per-factor Hessians (one ``jax.hessian`` of a factor's cost,
-vmapped over :data:`HESSIAN_CHUNK` factors at a time) and solved by the forward's linear
-solver (:func:`_tangent_solve`) inside ``jax.lax.custom_linear_solve``
+vmapped over :data:`HESSIAN_CHUNK` factors at a time; closed forms for between factors,
+:func:`_between_hessian`, and BAL reprojections, :func:`_bal_hessian`) and solved by the
+forward's linear solver (:func:`_tangent_solve`) inside ``jax.lax.custom_linear_solve``
 (:func:`~jaxpose.graph._linear.solve_sparse_spd`).
 Fixed variables have zero tangents (unit diagonal, zero right-hand side).
 
@@ -35,8 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._precision import full_precision
-from ..lie import LieGroup
-from ..lie._base import small_matmul
+from ..lie import SE3, LieGroup
+from ..lie._base import skew, small_matmul
 from ..optim._implicit import jvp_where
 from ._analysis import tangent_dim
 from ._factor import between_residual
@@ -150,6 +151,13 @@ def _factor_hessian(f: Any, values: list[Any]) -> Callable[..., Any]:
             return [[hii, hij], [hji, hjj]]
 
         return between
+    if _is_bal_reprojection(f, values):
+        def reprojection(vals: list[Any], data: Any, sqrt: Any) -> list[list[Array]]:
+            hess = jax.vmap(partial(_bal_hessian, f.kernel))(*vals, data, sqrt)
+            flat = stored_together([b for row in hess for b in row])
+            return [list(flat[3 * s:3 * s + 3]) for s in range(3)]
+
+        return reprojection
 
     def local_cost(deltas: tuple[Array, ...], point: tuple[Any, ...], data: Any,
                    sqrt: Any) -> Array:
@@ -222,6 +230,110 @@ def _between_hessian(kernel: Any, xi: LieGroup, xj: LieGroup, z: LieGroup,
     at_hh = small_matmul(a.T, hh)
     hij = at_hh + 0.5 * small_matmul(a.T, m)
     return ((small_matmul(at_hh, a), hij), (hij.T, hh))
+
+
+def _is_bal_reprojection(f: Any, vals: list[Any]) -> bool:
+    """A :func:`~jaxpose.graph.reprojection_residual` factor (pose, intrinsics, point)."""
+    from ._ba import reprojection_residual  # _ba imports the solver, which imports this
+
+    return (f.residual is reprojection_residual and len(vals) == 3
+            and isinstance(vals[0], SE3))
+
+
+def _bal_hessian(kernel: Any, pose: SE3, intrinsics: Array, point: Array, z: Array,
+                 sqrt: Any) -> list[list[Array]]:
+    """Exact Hessian blocks ``h[s][t]`` (slots pose (6: ρ, φ), intrinsics (3), point (3))
+    of one BAL reprojection factor's ``½ρ(|S·r|²)`` at δ = 0, through the six numbers the
+    residual depends on: u = (P, f, k1, k2), P = R·X + t the point in the camera.
+
+    With c(u) the factor's cost, g = ∇c, G = ∇²c (6×6, :func:`_pixel_cost_derivatives`),
+    A = ∂u/∂δ and w = Rᵀ·∂c/∂P: H = AᵀGA + the second-order terms
+    of P. Right-perturbed, P(δ) = R·Exp(ξ)·(X + δX) + t and to second order
+    Exp(ξ)·Y = Y + ρ + φ×Y + ½φ×ρ + ½φ×(φ×Y), so A's P rows are R·[I, −[X]×, 0, I] and
+    the terms wᵀ∂²(RᵀP) are (φ, ρ): −½[w]×, (φ, φ): ½(wXᵀ + Xwᵀ) − (w·X)·I,
+    (φ, δX): −[w]× (and their transposes). Differentiable again like the generic rule.
+    """
+    rot = pose.rotation().matrix()
+    pc = jnp.sum(rot * point, -1) + pose.translation()
+    g, gmat = _pixel_cost_derivatives(kernel, pc, intrinsics, z, sqrt)
+    # products by elements (small_matmul): batched small dots are slow on XLA:CPU.
+    # With K = [X]× (Kᵀ = −K): ∂(RᵀP)/∂ξ = [I, −K], so AᵀGA's pose rows are
+    # [[M, −MK], [KM, −KMK]] (M = RᵀG_PP R) and the (φ, ·) rows pick up the terms above
+    eye = jnp.eye(3, dtype=pc.dtype)
+    w = jnp.sum(rot * g[:3, None], 0)
+    m = small_matmul(small_matmul(rot.T, gmat[:3, :3]), rot)  # point–point
+    n = small_matmul(rot.T, gmat[:3, 3:])  # point–intrinsics
+    k = skew(point)
+    w_x = skew(w)
+    km = small_matmul(k, m)
+    phi_phi = (0.5 * (w[:, None] * point[None, :] + point[:, None] * w[None, :])
+               - jnp.sum(w * point) * eye - small_matmul(km, k))
+    rho_phi = 0.5 * w_x - small_matmul(m, k)
+    pose_pose = jnp.concatenate([jnp.concatenate([m, rho_phi], axis=1),
+                                 jnp.concatenate([rho_phi.T, phi_phi], axis=1)], axis=0)
+    pose_intr = jnp.concatenate([n, small_matmul(k, n)], axis=0)
+    pose_point = jnp.concatenate([m, km - w_x], axis=0)
+    return [[pose_pose, pose_intr, pose_point],
+            [pose_intr.T, gmat[3:, 3:], n.T],
+            [pose_point.T, n, m]]
+
+
+def _pixel_cost_derivatives(kernel: Any, pc: Array, intrinsics: Array, z: Array,
+                            sqrt: Any) -> tuple[Array, Array]:
+    """Gradient (6,) and Hessian (6, 6) of c(u) = ½ρ(|S·(pixel(u) − z)|²) in
+    u = (P, f, k1, k2) (:func:`~jaxpose.graph._ba.pixel`), in closed form.
+
+    With q = (p, f, k1, k2), p = −P_xy/P_z, pixel = f·D(r²)·p, D = 1 + k1·r² + k2·r⁴,
+    r² = |p|², J_q = ∂pixel/∂q (2, 5) and y = SᵀS·r: ∇²(yᵀpixel) in q is Ψ (below),
+    G = ρ′·(JᵀSᵀSJ + BᵀΨB + Q) + 2ρ″·(Jᵀy)(Jᵀy)ᵀ with B = ∂q/∂u, J = J_q·B and Q the
+    terms Σⱼ aⱼ∇²pⱼ (a = J_q[:, :2]ᵀy; ∇²p_j has only the (P_j, P_z) and (P_z, P_z)
+    entries 1/P_z² and 2p_j/P_z²)."""
+    dtype = pc.dtype
+    f, k1, k2 = intrinsics[0], intrinsics[1], intrinsics[2]
+    iz = 1.0 / pc[2]
+    p = -pc[:2] * iz
+    r2 = jnp.sum(p * p)
+    d = 1.0 + r2 * (k1 + k2 * r2)
+    d1 = k1 + 2.0 * k2 * r2  # dD/dr²
+    eye2 = jnp.eye(2, dtype=dtype)
+    pp = p[:, None] * p[None, :]
+    jq = jnp.concatenate([f * (d * eye2 + 2.0 * d1 * pp),
+                          jnp.stack([d * p, f * r2 * p, f * r2 * r2 * p], axis=1)], axis=1)
+    r = f * d * p - z
+    zero = jnp.zeros((), dtype)
+    bp = jnp.stack([jnp.stack([-iz, zero, -p[0] * iz]), jnp.stack([zero, -iz, -p[1] * iz])])
+    b = jnp.block([[bp, jnp.zeros((2, 3), dtype)], [jnp.zeros((3, 3), dtype),
+                                                     jnp.eye(3, dtype=dtype)]])  # ∂q/∂u
+    if sqrt is None:
+        sj, y = jq, r
+    else:
+        sqrt = sqrt.astype(dtype)
+        sj = small_matmul(sqrt, jq)
+        y = jnp.sum(sqrt * jnp.sum(sqrt * r, -1)[:, None], 0)  # SᵀS·r
+    h = jnp.sum(y * p)
+    yp = y[:, None] * p[None, :]
+    psi_pp = f * (2.0 * d1 * (yp + yp.T + h * eye2) + 8.0 * k2 * h * pp)
+    psi_pi = jnp.stack([d * y + 2.0 * d1 * h * p, f * (r2 * y + 2.0 * h * p),
+                        f * r2 * (r2 * y + 4.0 * h * p)], axis=1)
+    psi_ii = h * jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype) * r2
+    psi_ii = psi_ii + h * r2 * r2 * jnp.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0],
+                                                [1.0, 0.0, 0.0]], dtype)
+    psi = jnp.block([[psi_pp, psi_pi], [psi_pi.T, psi_ii]])
+    a = jnp.sum(jq[:, :2] * y[:, None], 0)
+    q = jnp.zeros((6, 6), dtype)
+    q = q.at[0, 2].set(a[0] * iz * iz).at[2, 0].set(a[0] * iz * iz)
+    q = q.at[1, 2].set(a[1] * iz * iz).at[2, 1].set(a[1] * iz * iz)
+    q = q.at[2, 2].set(2.0 * jnp.sum(a * p) * iz * iz)
+    sjb = small_matmul(sj, b)
+    jb = small_matmul(jq, b)
+    jty = jnp.sum(jb * y[:, None], 0)
+    gmat = small_matmul(sjb.T, sjb) + small_matmul(small_matmul(b.T, psi), b) + q
+    if kernel is not None:
+        s = jnp.sum(jnp.square(r if sqrt is None else jnp.sum(sqrt * r, -1)))
+        d1k, d2k = kernel.derivative(s), kernel.second_derivative(s)
+        gmat = d1k * gmat + 2.0 * d2k * jty[:, None] * jty[None, :]
+        jty = d1k * jty
+    return jty, gmat
 
 
 def _structure_constants(group: type, dtype: Any) -> Array:

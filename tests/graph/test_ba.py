@@ -330,3 +330,24 @@ def test_schur_backward_equals_the_sparse_backward(order):
     want = jax.jit(d(partial(_ba_loss, "sparse")), compiler_options=FAST_COMPILE)(theta)
     assert np.all(np.isfinite(np.asarray(got))) and float(jnp.max(jnp.abs(want))) > 1e-3
     np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-9 * float(jnp.max(jnp.abs(want))))
+
+
+@pytest.mark.slow  # compiles a BA gradient and a BA solve (~15 s)
+def test_ba_gradient_matches_finite_differences():
+    """``grad`` through a BA solve (the exact Hessian of the reprojection factors in
+    closed form, ``_bal_hessian``; Schur elimination) against central differences of the
+    solved loss, Richardson-extrapolated, along three random directions."""
+    graph, _ = _schur_graph()
+    theta = jnp.zeros_like(graph.factors[0].data)
+    value = jax.jit(partial(_ba_loss, "schur"), compiler_options=FAST_COMPILE)
+    grad = jax.jit(jax.grad(partial(_ba_loss, "schur")), compiler_options=FAST_COMPILE)(theta)
+    rng = np.random.default_rng(8)
+    for _ in range(3):
+        v = jnp.asarray(rng.normal(size=theta.shape))
+        along = lambda eps, v=v: float(value(theta + eps * v))  # noqa: E731
+        eps = 1e-3
+        d1 = (along(eps) - along(-eps)) / (2 * eps)
+        d2 = (along(eps / 2) - along(-eps / 2)) / eps
+        fd = (4 * d2 - d1) / 3
+        assert abs(fd) > 1e-3
+        np.testing.assert_allclose(float(jnp.sum(grad * v)), fd, rtol=1e-6)

@@ -218,6 +218,49 @@ def test_between_hessian_equals_the_generic_hessian_and_its_derivative(group, de
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize("derivative", [False, pytest.param(True, marks=pytest.mark.slow)],
+                         ids=["value", "derivative"])
+def test_bal_hessian_equals_the_generic_hessian_and_its_derivative(derivative):
+    """The BAL reprojection factor's exact Hessian through u = (P, f, k1, k2)
+    (``_bal_hessian``, closed form) equals ``jax.hessian`` of the factor's cost in the
+    three slots' charts (pose right-perturbed, intrinsics and point additive), with a
+    kernel and a full square-root information and without; and so does its derivative
+    with respect to the observation (what higher-order derivatives use)."""
+    from jaxpose.graph._ba import reprojection_residual
+    from jaxpose.graph._implicit import _bal_hessian
+    from jaxpose.lie import SE3
+    from jaxpose.optim import Cauchy
+
+    rng = np.random.default_rng(2)
+    pose = SE3.exp(jnp.asarray(rng.normal(size=6) * [0.3, 0.3, 0.3, 0.5, 0.5, 0.5]))
+    intrinsics = jnp.asarray([500.0, -0.1, 0.02])
+    point = pose.inv().act(jnp.asarray([0.4, -0.3, -4.0]))  # in front (BAL: P_z < 0)
+    z0 = reprojection_residual(pose, intrinsics, point, jnp.zeros(2)) + jnp.asarray([3.0, -2.0])
+    sqrt = jnp.asarray([[0.8, 0.3], [0.0, 1.1]])
+    kernel = Cauchy(2.5)
+
+    def generic(zt, kernel, sqrt):
+        def c(e):
+            r = reprojection_residual(pose.retract(e[:6]), intrinsics + e[6:9], point + e[9:],
+                                      z0 + zt)
+            s = jnp.sum((r if sqrt is None else sqrt @ r) ** 2)
+            return 0.5 * (s if kernel is None else kernel(s))
+
+        return jax.hessian(c)(jnp.zeros(12))
+
+    def closed(zt, kernel, sqrt):
+        return jnp.block(_bal_hessian(kernel, pose, intrinsics, point, z0 + zt, sqrt))
+
+    zt = jnp.zeros(2)
+    if derivative:
+        closed, generic = jax.jacfwd(closed), jax.jacfwd(generic)
+    pairs = jax.jit(lambda z: [(closed(z, k, q), generic(z, k, q))
+                               for k, q in ((kernel, sqrt), (None, None))])(zt)
+    for got, want in pairs:
+        assert np.abs(np.asarray(want)).max() > 1.0  # second-order terms are exercised
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-9 * np.abs(want).max())
+
+
 @pytest.mark.parametrize("chunk", [3, 4, 100], ids=["overlapping", "even", "one"])
 def test_exact_hessian_in_chunks_equals_the_dense_hessian_of_the_cost(monkeypatch, chunk):
     """The exact Hessian assembled :data:`HESSIAN_CHUNK` factors at a time (8 between
