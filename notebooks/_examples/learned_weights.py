@@ -33,6 +33,10 @@ solution, so they can reproduce its weighting and have only to improve on it.
 
 Every draw has its own edges (the outliers join random poses), hence its own sparsity
 pattern: the solves of a draw share one compilation, and each draw compiles once.
+
+``learned_ba_weights.py`` (next to this script) does the same for bundle adjustment:
+per-observation weights learned through the Schur-eliminated BA solve (its ``fit`` and
+``WeightNet`` are these).
 """
 
 from __future__ import annotations
@@ -108,14 +112,15 @@ class WeightNet(eqx.Module):
 
     mlp: eqx.nn.MLP
 
-    def __init__(self, key: Any, width: int = 16, depth: int = 2):
-        mlp = eqx.nn.MLP(N_FEATURES, "scalar", width, depth, activation=jax.nn.tanh, key=key)
+    def __init__(self, key: Any, width: int = 16, depth: int = 2, features: int = N_FEATURES):
+        mlp = eqx.nn.MLP(features, "scalar", width, depth, activation=jax.nn.tanh, key=key)
         last = mlp.layers[-1]
         self.mlp = eqx.tree_at(lambda m: (m.layers[-1].weight, m.layers[-1].bias), mlp,
                                (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)))
 
     def __call__(self, inputs: Any) -> Any:
-        """(m, 4) inputs (:func:`edge_features`) → (m,) weights in (0, 1)."""
+        """(m, features + 1) inputs (:func:`edge_features`: the features, then ρ'(s)) →
+        (m,) weights in (0, 1)."""
         rho1 = jnp.clip(inputs[:, -1], jnp.finfo(inputs.dtype).tiny, RHO1_CAP)
         log_odds = jnp.log(rho1) - jnp.log1p(-rho1)
         return jax.nn.sigmoid(log_odds + jax.vmap(self.mlp)(inputs[:, :-1]))
@@ -217,7 +222,7 @@ def train(net: WeightNet, draws: list, bases: list, targets: list, kernel: Any,
     """Adam on the mean over ``draws`` of the weighted solution's position MSE against each
     draw's ``targets`` entry (n, 7)/(n, 4); ``bases``: each draw's solution with ``kernel``."""
     kind = draws[0].graph.kind
-    grads = []
+    losses = []
     for d, b, target in zip(draws, bases, targets, strict=True):
         feats = jnp.asarray(edge_features(d.graph, b, kernel))
         solve = d.weighted_solve(b)
@@ -226,20 +231,27 @@ def train(net: WeightNet, draws: list, bases: list, targets: list, kernel: Any,
                  target: Any = target) -> Any:
             return mse(kind, solve(model(feats)), target)
 
-        grads.append(eqx.filter_jit(eqx.filter_value_and_grad(loss)))
+        losses.append(loss)
+    return fit(net, losses, steps, lr)
+
+
+def fit(net: WeightNet, losses: list, steps: int, lr: float) -> Training:
+    """Adam on the mean of ``losses`` (each ``loss(net) -> scalar``, one compiled
+    gradient per entry)."""
+    grads = [eqx.filter_jit(eqx.filter_value_and_grad(loss)) for loss in losses]
     opt = optax.adam(lr)
     state = opt.init(eqx.filter(net, eqx.is_array))
-    losses, times = [], []
+    history, times = [], []
     for _ in range(steps):
         t0 = time.perf_counter()
         vals, gs = zip(*(g(net) for g in grads), strict=True)
         grad = jax.tree.map(lambda *x: sum(x) / len(x), *gs)
         updates, state = opt.update(grad, state)
         net = eqx.apply_updates(net, updates)
-        losses.append(float(np.mean([float(v) for v in vals])))
+        history.append(float(np.mean([float(v) for v in vals])))
         times.append(time.perf_counter() - t0)
     steady = float(np.median(times[1:])) if len(times) > 1 else float("nan")
-    return Training(net, losses, steady, times[0])
+    return Training(net, history, steady, times[0])
 
 
 def learned_solver(draw: Draw, base: np.ndarray, kernel: Any) -> Any:

@@ -83,3 +83,74 @@ def test_training_target_is_the_draws_graph_without_its_wrong_loop_closures():
     ref = lw.clean_optimum(pruned, base, 100)
     np.testing.assert_allclose(target, ref, atol=1e-8)
     np.testing.assert_allclose(draw.oracle_solution(base), ref, atol=1e-8)  # what trains
+
+
+# ----------------------------------------------------------------------------------
+# The bundle-adjustment example (notebooks/_examples/learned_ba_weights.py)
+# ----------------------------------------------------------------------------------
+def _ba():
+    from jaxpose.datasets import synthetic_bal
+    from notebooks._examples import learned_ba_weights as lb
+
+    clean, _ = synthetic_bal(6, 40, 3, lb.PIXEL_NOISE, seed=0)
+    return lb, clean
+
+
+def test_ba_outliers_and_features_are_documented():
+    """Outliers: the seeded fraction of observations, each moved by at most OUTLIER_PX per
+    coordinate, the others unchanged; features: log(1 + s/τ), τ/(s + τ), the error
+    against the median of the point's other observations, and ρ'(s), with s the squared
+    reprojection error recomputed here with NumPy's BAL camera model."""
+    from jaxpose.graph import bundle_adjustment_problem
+    from jaxpose.io._bal import _bal_project_numpy
+
+    lb, clean = _ba()
+    bad, out = lb.corrupt_observations(clean, 0.25, seed=3)
+    again, out2 = lb.corrupt_observations(clean, 0.25, seed=3)
+    np.testing.assert_array_equal(out, out2)
+    np.testing.assert_array_equal(bad.observations, again.observations)
+    m = clean.observations.shape[0]
+    assert out.size == round(0.25 * m)
+    moved = np.flatnonzero(np.any(bad.observations != clean.observations, axis=1))
+    np.testing.assert_array_equal(moved, out)
+    assert np.abs(bad.observations - clean.observations).max() <= lb.OUTLIER_PX
+    kernel = Cauchy(3.0)
+    variables = bundle_adjustment_problem(bad).variables
+    feats = lb.observation_features(bad, variables, kernel)
+    pred = _bal_project_numpy(bad.cameras, bad.points, bad.camera_index, bad.point_index)
+    s = np.sum((pred - bad.observations) ** 2, 1)
+    tau = lb.threshold()
+    np.testing.assert_allclose(feats[:, 0], np.log1p(s / tau), rtol=1e-9)
+    np.testing.assert_allclose(feats[:, 1], tau / (s + tau), rtol=1e-9)
+    k = 7
+    others = [i for i in np.flatnonzero(bad.point_index == bad.point_index[k]) if i != k]
+    np.testing.assert_allclose(feats[k, 2], np.log1p(s[k] / (np.median(s[others]) + tau)),
+                               rtol=1e-9)
+    np.testing.assert_allclose(feats[:, 3], 1.0 / (1.0 + s / 9.0), rtol=1e-9)  # Cauchy ρ'
+
+
+def test_ba_weights_train_through_the_solve_and_the_oracle_removes_the_outliers():
+    """The oracle target (outliers at weight 0) is BA on the problem without them; a few
+    Adam steps through the Schur-eliminated solve lower the training loss; the untrained
+    network reproduces the kernel's solution."""
+    from jaxpose.graph import bundle_adjustment_problem, solve
+    from jaxpose.io import BALProblem
+
+    lb, clean = _ba()
+    (draw,) = lb.make_draws(clean, 0.2, [5], 60)
+    base = draw.kernel_solve("huber", 2.0)
+    keep = draw.true_observations().astype(bool)
+    p = draw.problem
+    fewer = BALProblem(p.cameras, p.points, p.camera_index[keep], p.point_index[keep],
+                       p.observations[keep])
+    graph = bundle_adjustment_problem(fewer, fixed_cameras=lb.FIXED)
+    graph = eqx.tree_at(lambda g: g.variables, graph, dict(base))
+    ref = solve(graph, **lb._solve_options(60)).variables["point"]
+    np.testing.assert_allclose(draw.oracle_solution(base), ref, atol=1e-8)
+
+    out = lb.experiment(6, 40, 3, rate=0.2, train_seeds=[5], test_seeds=[6], steps=6,
+                        kernels=("huber",), scales=(0.5, 1.0))
+    losses = out["fit"].losses
+    assert losses[-1] < losses[0]
+    np.testing.assert_allclose(out["test"]["untrained"], out["test"]["huber"], rtol=1e-3)
+    assert set(out["test"]) == {"huber", "untrained", "learned", "oracle"}
