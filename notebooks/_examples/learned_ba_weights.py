@@ -181,7 +181,7 @@ def tune_kernels(draws: list, ref: np.ndarray, scales: Any = SCALES,
 
 def experiment(n_cameras: int = 10, n_points: int = 200, obs_per_point: int = 4,
                rate: float = 0.2, train_seeds: Any = (1, 2), test_seeds: Any = (101, 102), *,
-               steps: int = 40, max_steps: int = 100, lr: float = 3e-2, seed: int = 0,
+               steps: int = 40, max_steps: int = 200, lr: float = 3e-2, seed: int = 0,
                scales: Any = SCALES, kernels: Any = tuple(KERNELS)) -> dict[str, Any]:
     """Tune the kernels and train the weights on ``train_seeds`` draws; points RMSE on
     ``test_seeds`` draws (held out) against the uncorrupted problem's solution for each
