@@ -246,8 +246,8 @@ def _bal_hessian(kernel: Any, pose: SE3, intrinsics: Array, point: Array, z: Arr
     of one BAL reprojection factor's ``½ρ(|S·r|²)`` at δ = 0, through the six numbers the
     residual depends on: u = (P, f, k1, k2), P = R·X + t the point in the camera.
 
-    With c(u) the factor's cost, g = ∇c, G = ∇²c (6×6, :func:`_pixel_cost_derivatives`),
-    A = ∂u/∂δ and w = Rᵀ·∂c/∂P: H = AᵀGA + the second-order terms
+    With c(u) the factor's cost, g = ∇c, G = ∇²c (its blocks from
+    :func:`_pixel_cost_derivatives`), A = ∂u/∂δ and w = Rᵀ·∂c/∂P: H = AᵀGA + the second-order terms
     of P. Right-perturbed, P(δ) = R·Exp(ξ)·(X + δX) + t and to second order
     Exp(ξ)·Y = Y + ρ + φ×Y + ½φ×ρ + ½φ×(φ×Y), so A's P rows are R·[I, −[X]×, 0, I] and
     the terms wᵀ∂²(RᵀP) are (φ, ρ): −½[w]×, (φ, φ): ½(wXᵀ + Xwᵀ) − (w·X)·I,
@@ -255,14 +255,14 @@ def _bal_hessian(kernel: Any, pose: SE3, intrinsics: Array, point: Array, z: Arr
     """
     rot = pose.rotation().matrix()
     pc = jnp.sum(rot * point, -1) + pose.translation()
-    g, gmat = _pixel_cost_derivatives(kernel, pc, intrinsics, z, sqrt)
+    g_pt, g_pp, g_pi, g_ii = _pixel_cost_derivatives(kernel, pc, intrinsics, z, sqrt)
     # products by elements (small_matmul): batched small dots are slow on XLA:CPU.
     # With K = [X]× (Kᵀ = −K): ∂(RᵀP)/∂ξ = [I, −K], so AᵀGA's pose rows are
     # [[M, −MK], [KM, −KMK]] (M = RᵀG_PP R) and the (φ, ·) rows pick up the terms above
     eye = jnp.eye(3, dtype=pc.dtype)
-    w = jnp.sum(rot * g[:3, None], 0)
-    m = small_matmul(small_matmul(rot.T, gmat[:3, :3]), rot)  # point–point
-    n = small_matmul(rot.T, gmat[:3, 3:])  # point–intrinsics
+    w = jnp.sum(rot * g_pt[:, None], 0)
+    m = small_matmul(small_matmul(rot.T, g_pp), rot)  # point–point
+    n = small_matmul(rot.T, g_pi)  # point–intrinsics
     k = skew(point)
     w_x = skew(w)
     km = small_matmul(k, m)
@@ -274,20 +274,21 @@ def _bal_hessian(kernel: Any, pose: SE3, intrinsics: Array, point: Array, z: Arr
     pose_intr = jnp.concatenate([n, small_matmul(k, n)], axis=0)
     pose_point = jnp.concatenate([m, km - w_x], axis=0)
     return [[pose_pose, pose_intr, pose_point],
-            [pose_intr.T, gmat[3:, 3:], n.T],
+            [pose_intr.T, g_ii, n.T],
             [pose_point.T, n, m]]
 
 
 def _pixel_cost_derivatives(kernel: Any, pc: Array, intrinsics: Array, z: Array,
-                            sqrt: Any) -> tuple[Array, Array]:
-    """Gradient (6,) and Hessian (6, 6) of c(u) = ½ρ(|S·(pixel(u) − z)|²) in
-    u = (P, f, k1, k2) (:func:`~jaxpose.graph._ba.pixel`), in closed form.
+                            sqrt: Any) -> tuple[Array, Array, Array, Array]:
+    """``(g_P (3,), G_PP, G_PI, G_II (3, 3))``: the gradient in P and the Hessian blocks of
+    c(u) = ½ρ(|S·(pixel(u) − z)|²) in u = (P, I), I = (f, k1, k2)
+    (:func:`~jaxpose.graph._ba.pixel`), in closed form.
 
-    With q = (p, f, k1, k2), p = −P_xy/P_z, pixel = f·D(r²)·p, D = 1 + k1·r² + k2·r⁴,
-    r² = |p|², J_q = ∂pixel/∂q (2, 5) and y = SᵀS·r: ∇²(yᵀpixel) in q is Ψ (below),
-    G = ρ′·(JᵀSᵀSJ + BᵀΨB + Q) + 2ρ″·(Jᵀy)(Jᵀy)ᵀ with B = ∂q/∂u, J = J_q·B and Q the
-    terms Σⱼ aⱼ∇²pⱼ (a = J_q[:, :2]ᵀy; ∇²p_j has only the (P_j, P_z) and (P_z, P_z)
-    entries 1/P_z² and 2p_j/P_z²)."""
+    With p = −P_xy/P_z, pixel = f·D(r²)·p, D = 1 + k1·r² + k2·r⁴, r² = |p|², y = SᵀS·r and
+    J_P = J_p·B (J_p = ∂pixel/∂p, B = ∂p/∂P), J_I = ∂pixel/∂I: the Hessian of ½|S·r|² is
+    JᵀSᵀSJ plus Σₖ yₖ∇²pixelₖ, which is BᵀΨ_ppB, BᵀΨ_pI and Ψ_II from Ψ = ∇²(yᵀpixel) in
+    (p, I), and in the P block Σⱼ aⱼ∇²pⱼ = (e_z vᵀ + v e_zᵀ)/P_z² (a = J_pᵀy,
+    v = (a, a·p)); a kernel makes it ρ′·(…) + 2ρ″·(Jᵀy)(Jᵀy)ᵀ."""
     dtype = pc.dtype
     f, k1, k2 = intrinsics[0], intrinsics[1], intrinsics[2]
     iz = 1.0 / pc[2]
@@ -297,43 +298,43 @@ def _pixel_cost_derivatives(kernel: Any, pc: Array, intrinsics: Array, z: Array,
     d1 = k1 + 2.0 * k2 * r2  # dD/dr²
     eye2 = jnp.eye(2, dtype=dtype)
     pp = p[:, None] * p[None, :]
-    jq = jnp.concatenate([f * (d * eye2 + 2.0 * d1 * pp),
-                          jnp.stack([d * p, f * r2 * p, f * r2 * r2 * p], axis=1)], axis=1)
-    r = f * d * p - z
     zero = jnp.zeros((), dtype)
     bp = jnp.stack([jnp.stack([-iz, zero, -p[0] * iz]), jnp.stack([zero, -iz, -p[1] * iz])])
-    b = jnp.block([[bp, jnp.zeros((2, 3), dtype)], [jnp.zeros((3, 3), dtype),
-                                                     jnp.eye(3, dtype=dtype)]])  # ∂q/∂u
+    jp = f * (d * eye2 + 2.0 * d1 * pp)  # ∂pixel/∂p (2, 2)
+    j_pt = small_matmul(jp, bp)  # ∂pixel/∂P (2, 3)
+    j_in = jnp.stack([d * p, f * r2 * p, f * r2 * r2 * p], axis=1)  # ∂pixel/∂I (2, 3)
+    r = f * d * p - z
     if sqrt is None:
-        sj, y = jq, r
+        s_pt, s_in, y = j_pt, j_in, r
     else:
         sqrt = sqrt.astype(dtype)
-        sj = small_matmul(sqrt, jq)
+        s_pt, s_in = small_matmul(sqrt, j_pt), small_matmul(sqrt, j_in)
         y = jnp.sum(sqrt * jnp.sum(sqrt * r, -1)[:, None], 0)  # SᵀS·r
     h = jnp.sum(y * p)
     yp = y[:, None] * p[None, :]
     psi_pp = f * (2.0 * d1 * (yp + yp.T + h * eye2) + 8.0 * k2 * h * pp)
     psi_pi = jnp.stack([d * y + 2.0 * d1 * h * p, f * (r2 * y + 2.0 * h * p),
                         f * r2 * (r2 * y + 4.0 * h * p)], axis=1)
-    psi_ii = h * jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype) * r2
-    psi_ii = psi_ii + h * r2 * r2 * jnp.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0],
-                                                [1.0, 0.0, 0.0]], dtype)
-    psi = jnp.block([[psi_pp, psi_pi], [psi_pi.T, psi_ii]])
-    a = jnp.sum(jq[:, :2] * y[:, None], 0)
-    q = jnp.zeros((6, 6), dtype)
-    q = q.at[0, 2].set(a[0] * iz * iz).at[2, 0].set(a[0] * iz * iz)
-    q = q.at[1, 2].set(a[1] * iz * iz).at[2, 1].set(a[1] * iz * iz)
-    q = q.at[2, 2].set(2.0 * jnp.sum(a * p) * iz * iz)
-    sjb = small_matmul(sj, b)
-    jb = small_matmul(jq, b)
-    jty = jnp.sum(jb * y[:, None], 0)
-    gmat = small_matmul(sjb.T, sjb) + small_matmul(small_matmul(b.T, psi), b) + q
+    hr2, hr4 = h * r2, h * r2 * r2  # Ψ_II: only ∂²/∂f∂k1 = h·r², ∂²/∂f∂k2 = h·r⁴
+    psi_ii = jnp.stack([jnp.stack([zero, hr2, hr4]), jnp.stack([hr2, zero, zero]),
+                        jnp.stack([hr4, zero, zero])])
+    a = jnp.sum(jp * y[:, None], 0)
+    v = jnp.concatenate([a, jnp.sum(a * p)[None]]) * (iz * iz)
+    e_z = jnp.asarray([0.0, 0.0, 1.0], dtype)
+    g_pt, g_in = jnp.sum(j_pt * y[:, None], 0), jnp.sum(j_in * y[:, None], 0)
+    h_pp = (small_matmul(s_pt.T, s_pt) + small_matmul(small_matmul(bp.T, psi_pp), bp)
+            + e_z[:, None] * v[None, :] + v[:, None] * e_z[None, :])
+    h_pi = small_matmul(s_pt.T, s_in) + small_matmul(bp.T, psi_pi)
+    h_ii = small_matmul(s_in.T, s_in) + psi_ii
     if kernel is not None:
         s = jnp.sum(jnp.square(r if sqrt is None else jnp.sum(sqrt * r, -1)))
         d1k, d2k = kernel.derivative(s), kernel.second_derivative(s)
-        gmat = d1k * gmat + 2.0 * d2k * jty[:, None] * jty[None, :]
-        jty = d1k * jty
-    return jty, gmat
+        outer = lambda x, w: 2.0 * d2k * x[:, None] * w[None, :]  # noqa: E731
+        h_pp = d1k * h_pp + outer(g_pt, g_pt)
+        h_pi = d1k * h_pi + outer(g_pt, g_in)
+        h_ii = d1k * h_ii + outer(g_in, g_in)
+        g_pt = d1k * g_pt
+    return g_pt, h_pp, h_pi, h_ii
 
 
 def _structure_constants(group: type, dtype: Any) -> Array:
