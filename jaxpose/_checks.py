@@ -43,7 +43,17 @@ def as_float_array(x: Any, name: str, what: str = "an array of numbers") -> Arra
 def numpy_field(value: Any, dtype: Any, shape: tuple[int | None, ...], name: str) -> np.ndarray:
     """``value`` as a NumPy array of ``dtype`` whose shape matches ``shape`` (None: any size).
 
-    With ``dtype=np.int64``, non-integer input is refused rather than truncated."""
+    With ``dtype=np.int64``, non-integer input is refused rather than truncated; a traced
+    array (inside ``jit``/``grad``/``vmap``) is refused with the way to differentiate."""
+    if isinstance(getattr(value, "data", value), jax.core.Tracer):
+        raise TypeError(
+            f"{name}: got a traced array (inside jax.jit, grad or vmap); this container "
+            f"holds NumPy data (as read from a file) and is built outside traced code. To "
+            f"differentiate through a solve, build the factor graph outside "
+            f"(jaxpose.graph.pose_graph_problem / bundle_adjustment_problem) and replace its "
+            f"factor data inside the traced function, e.g. "
+            f"eqx.tree_at(lambda g: g.factors[0].data, graph, new_data) (docs/graph.md, "
+            f"'Differentiating through a solution')")
     arr = np.asarray(value)
     if dtype is np.int64 and arr.size and not np.issubdtype(arr.dtype, np.integer):
         raise ValueError(f"{name}: expected integers, got dtype {arr.dtype}")

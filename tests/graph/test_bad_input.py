@@ -112,3 +112,30 @@ def test_all_nan_trials_end_non_finite_not_max_steps():
     sq = Factor(lambda x, z: jnp.sqrt(x) + z, [("x", np.array([0]))], data=jnp.ones((1, 1)))
     sol = solve(FactorGraph([sq], {"x": jnp.zeros((1, 1))}), linear_solver="dense")
     assert sol.status_name == "non_finite" and int(sol.iterations) == 0
+
+
+def test_file_containers_refuse_traced_data_naming_the_differentiable_path():
+    """``BALProblem`` and ``PoseGraph`` hold NumPy data: built inside ``grad`` they raise a
+    TypeError naming the field and the way to differentiate (the factor graph's data),
+    not a TracerArrayConversionError from deep inside NumPy."""
+    import jax
+
+    from jaxpose.datasets import synthetic_bal, synthetic_pose_graph
+    from jaxpose.io import BALProblem, PoseGraph
+
+    prob, _ = synthetic_bal(4, 10, 3, seed=0)
+    graph, _ = synthetic_pose_graph("SE2", n_poses=6, seed=0)
+
+    def bal(obs):
+        BALProblem(prob.cameras, prob.points, prob.camera_index, prob.point_index, obs)
+        return jnp.sum(obs)
+
+    def pose_graph(z):
+        PoseGraph(graph.kind, graph.vertex_ids, graph.poses, graph.edges, z, graph.information)
+        return jnp.sum(z)
+
+    with pytest.raises(TypeError, match=r"BALProblem\.observations: got a traced array.*"
+                                        r"bundle_adjustment_problem.*tree_at"):
+        jax.grad(bal)(jnp.asarray(prob.observations))
+    with pytest.raises(TypeError, match=r"PoseGraph\.measurements: got a traced array"):
+        jax.jit(pose_graph)(jnp.asarray(graph.measurements))
