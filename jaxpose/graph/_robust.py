@@ -29,11 +29,11 @@ It stops (GTSAM's rules) when the weights are binary within ``weights_tol`` (TLS
 μ reaches 1 (GM), when the weighted cost changes by less than ``cost_rtol`` relative, or
 after ``max_iterations`` outer iterations. Known inliers (e.g. the odometry edges of a
 pose graph) keep weight 1, known outliers weight 0. Defaults follow GTSAM's
-``GncParams`` (mu_step 1.4, cost_rtol 1e-5, weights_tol 1e-4, 100 iterations), and so
-does the protocol: the unweighted problem is solved first and the first weights computed
-at its solution (``initial_solve``), and every inner solve restarts from the initial
-values (``warm_start=False``; warm starts are 2–5x faster but lock in early mistakes on
-hard graphs, see :func:`gnc`).
+``GncParams`` (mu_step 1.4, cost_rtol 1e-5, weights_tol 1e-4, 100 iterations); unlike
+GTSAM (which first solves the unweighted problem, then restarts each inner solve from
+the initial values), the first weights are computed at the initial values
+(``initial_solve=True``: at the unweighted solution) and each inner solve starts from the
+previous estimate (``warm_start=False``: from the initial values).
 
 Weights enter the inner solve by scaling each factor's square-root information by
 ``√w_k`` (a zero weight removes the factor). The whole outer loop is one
@@ -516,8 +516,8 @@ def gnc(
     max_iterations: int = 100,
     cost_rtol: float = 1e-5,
     weights_tol: float = 1e-4,
-    warm_start: bool = False,
-    initial_solve: bool = True,
+    warm_start: bool = True,
+    initial_solve: bool = False,
     inner: str = "sparse",
     **solver_options: Any,
 ) -> GNCSolution:
@@ -536,19 +536,14 @@ def gnc(
         mu_step: factor of the μ update (> 1). max_iterations: outer iterations.
         cost_rtol: stop when the weighted cost changes by less than this, relatively.
         weights_tol: (TLS) stop when every weight is within this of 0 or 1.
-        warm_start: start each inner solve from the previous estimate; default False:
-            from the initial values, as GTSAM (2–5x fewer inner iterations warm, but the
-            estimate can lock in early mistakes: manhattan with 50 % outlier loop
-            closures, aligned APE 1.01 warm against 0.31 restarted, the oracle's 0.34).
+        warm_start: start each inner solve from the previous estimate (False: from the
+            initial values, as GTSAM).
         initial_solve: first solve the unweighted problem and compute the first weights
-            at its solution (the paper's Algorithm 1, and GTSAM; the default); False: the
-            first weights come from the initial values. Do not combine True with warm
-            starts: the unweighted solution with many outliers is a bad starting point
-            (manhattan at 50 %: APE 20 aligned; intel at 50 %: 10 % of the inliers
-            rejected). Measured on ``bench/pgo_outliers.py``'s nine cases, the default
-            equals warm starts from the initial values on intel and sphere2500, and on
-            manhattan is lower at 50 % (above), about equal at 30 % (0.48 vs 0.50) and
-            higher at 10 % (0.130 vs 0.120), both below GTSAM's.
+            at its solution (the paper's Algorithm 1, and GTSAM); default False: the first
+            weights come from the initial values. With a local inner solver and warm
+            starts, an unweighted solve with many outliers throws away a good initial
+            guess (intel with 50 % outlier loop closures: 10 % of the inliers then end up
+            rejected; from the initial values all are classified right).
         inner: ``"sparse"`` (:func:`jaxpose.graph.solve`; ``solver_options`` are its
             keywords, e.g. ``linear_solver``, ``stopping``) or ``"dense"``
             (:func:`jaxpose.optim.least_squares` over the stacked free variables;
