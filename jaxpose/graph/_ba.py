@@ -55,25 +55,32 @@ def reprojection_jacobian(
     ∂P/∂φ = −R [X]×, ∂P/∂X = R."""
     rot = pose.rotation().matrix()
     pc = rot @ point + pose.translation()
-    inv_z = 1.0 / pc[2]
-    p = -pc[:2] * inv_z
-    r2 = p @ p
-    f, k1, k2 = intrinsics[0], intrinsics[1], intrinsics[2]
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    residual = f * radial * p - z
-    # ∂p/∂P (2, 3) and ∂pixel/∂p (2, 2)
-    zero = jnp.zeros_like(inv_z)
-    dp_dP = jnp.stack([jnp.stack([-inv_z, zero, -p[0] * inv_z]),
-                       jnp.stack([zero, -inv_z, -p[1] * inv_z])])
-    dradial = k1 + 2.0 * k2 * r2  # ∂radial/∂r2
-    dpix_dp = f * (radial * jnp.eye(2, dtype=p.dtype) + 2.0 * dradial * jnp.outer(p, p))
+    p, _, radial, _, dpix_dp, dp_dP, j_intr = pixel_terms(pc, intrinsics)
+    residual = intrinsics[0] * radial * p - z
     dpix_dP = dpix_dp @ dp_dP
     j_point = dpix_dP @ rot
     skew = jnp.array([[0.0, -point[2], point[1]], [point[2], 0.0, -point[0]],
                       [-point[1], point[0], 0.0]], dtype=point.dtype)
     j_pose = jnp.concatenate([j_point, -j_point @ skew], axis=1)
-    j_intr = jnp.stack([radial * p, f * r2 * p, f * r2 * r2 * p], axis=1)
     return residual, j_pose, j_intr, j_point
+
+
+def pixel_terms(pc: Array, intrinsics: Array) -> tuple[Array, ...]:
+    """The pieces of :func:`pixel` and its first derivatives at ``pc`` (3,):
+    ``(p (2,), r², D, dD/dr², ∂pixel/∂p (2, 2), ∂p/∂P (2, 3), ∂pixel/∂[f, k1, k2] (2, 3))``
+    with p = −P_xy/P_z, r² = |p|², D = 1 + k1·r² + k2·r⁴ and pixel = f·D·p."""
+    inv_z = 1.0 / pc[2]
+    p = -pc[:2] * inv_z
+    r2 = p @ p
+    f, k1, k2 = intrinsics[0], intrinsics[1], intrinsics[2]
+    radial = 1.0 + r2 * (k1 + k2 * r2)
+    dradial = k1 + 2.0 * k2 * r2
+    zero = jnp.zeros_like(inv_z)
+    dp_dP = jnp.stack([jnp.stack([-inv_z, zero, -p[0] * inv_z]),
+                       jnp.stack([zero, -inv_z, -p[1] * inv_z])])
+    dpix_dp = f * (radial * jnp.eye(2, dtype=p.dtype) + 2.0 * dradial * jnp.outer(p, p))
+    j_intr = jnp.stack([radial * p, f * r2 * p, f * r2 * r2 * p], axis=1)
+    return p, r2, radial, dradial, dpix_dp, dp_dP, j_intr
 
 
 def bal_to_variables(cameras: Any, points: Any, dtype: Any = None) -> dict[str, Any]:

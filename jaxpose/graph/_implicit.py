@@ -289,20 +289,16 @@ def _pixel_cost_derivatives(kernel: Any, pc: Array, intrinsics: Array, z: Array,
     JᵀSᵀSJ plus Σₖ yₖ∇²pixelₖ, which is BᵀΨ_ppB, BᵀΨ_pI and Ψ_II from Ψ = ∇²(yᵀpixel) in
     (p, I), and in the P block Σⱼ aⱼ∇²pⱼ = (e_z vᵀ + v e_zᵀ)/P_z² (a = J_pᵀy,
     v = (a, a·p)); a kernel makes it ρ′·(…) + 2ρ″·(Jᵀy)(Jᵀy)ᵀ."""
+    from ._ba import pixel_terms  # see _is_bal_reprojection
+
     dtype = pc.dtype
-    f, k1, k2 = intrinsics[0], intrinsics[1], intrinsics[2]
+    f, k2 = intrinsics[0], intrinsics[2]
     iz = 1.0 / pc[2]
-    p = -pc[:2] * iz
-    r2 = jnp.sum(p * p)
-    d = 1.0 + r2 * (k1 + k2 * r2)
-    d1 = k1 + 2.0 * k2 * r2  # dD/dr²
+    p, r2, d, d1, jp, bp, j_in = pixel_terms(pc, intrinsics)
     eye2 = jnp.eye(2, dtype=dtype)
     pp = p[:, None] * p[None, :]
     zero = jnp.zeros((), dtype)
-    bp = jnp.stack([jnp.stack([-iz, zero, -p[0] * iz]), jnp.stack([zero, -iz, -p[1] * iz])])
-    jp = f * (d * eye2 + 2.0 * d1 * pp)  # ∂pixel/∂p (2, 2)
     j_pt = small_matmul(jp, bp)  # ∂pixel/∂P (2, 3)
-    j_in = jnp.stack([d * p, f * r2 * p, f * r2 * r2 * p], axis=1)  # ∂pixel/∂I (2, 3)
     r = f * d * p - z
     if sqrt is None:
         s_pt, s_in, y = j_pt, j_in, r

@@ -169,14 +169,8 @@ def rmse(points: Any, ref: Any) -> float:
 def tune_kernels(draws: list, ref: np.ndarray, scales: Any = SCALES,
                  kernels: Any = tuple(KERNELS)) -> dict[str, tuple]:
     """Per kernel: (best scale δ, mean points RMSE over ``draws`` at that δ)."""
-    root_tau = np.sqrt(threshold())
-    out = {}
-    for name in kernels:
-        err = [np.mean([rmse(d.kernel_solve(name, c * root_tau)["point"], ref) for d in draws])
-               for c in scales]
-        k = int(np.argmin(err))
-        out[name] = (float(scales[k] * root_tau), float(err[k]))
-    return out
+    return lw.best_scales(kernels, scales, np.sqrt(threshold()), lambda name, delta: np.mean(
+        [rmse(d.kernel_solve(name, delta)["point"], ref) for d in draws]))
 
 
 def experiment(n_cameras: int = 10, n_points: int = 200, obs_per_point: int = 4,

@@ -199,13 +199,19 @@ def ape(kind: str, poses: Any, ref: Any) -> float:
 def tune_kernels(draws: list, ref: np.ndarray, scales: Any = SCALES,
                  kernels: Any = tuple(KERNELS)) -> dict[str, tuple]:
     """Per kernel: (best scale δ, mean APE over ``draws`` at that δ)."""
-    root_tau = np.sqrt(threshold(draws[0].graph.kind))
+    return best_scales(kernels, scales, np.sqrt(threshold(draws[0].graph.kind)),
+                       lambda name, delta: np.mean([ape(d.graph.kind, d.kernel_solve(name, delta),
+                                                        ref) for d in draws]))
+
+
+def best_scales(kernels: Any, scales: Any, unit: float, error: Any) -> dict[str, tuple]:
+    """Per kernel name: (δ, error) at the δ among ``scales`` × ``unit`` where
+    ``error(name, δ)`` is lowest."""
     out = {}
     for name in kernels:
-        err = [np.mean([ape(d.graph.kind, d.kernel_solve(name, c * root_tau), ref) for d in draws])
-               for c in scales]
+        err = [float(error(name, c * unit)) for c in scales]
         k = int(np.argmin(err))
-        out[name] = (float(scales[k] * root_tau), float(err[k]))
+        out[name] = (float(scales[k] * unit), err[k])
     return out
 
 
