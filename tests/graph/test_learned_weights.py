@@ -92,8 +92,26 @@ def _ba():
     from jaxpose.datasets import synthetic_bal
     from notebooks._examples import learned_ba_weights as lb
 
-    clean, _ = synthetic_bal(6, 40, 3, lb.PIXEL_NOISE, seed=0)
+    clean = lb.held_at_truth(*synthetic_bal(6, 40, 3, lb.PIXEL_NOISE, seed=0))
     return lb, clean
+
+
+def test_ba_gauge_cameras_are_held_at_their_true_values():
+    """With cameras 0 and 1 held at their true values the uncorrupted problem's optimum
+    fits the 1-pixel noise (cost within the χ² spread of ½·(residuals − unknowns)); held
+    at synthetic_bal's perturbed values they contradict the data (cost several times it)."""
+    from jaxpose.datasets import synthetic_bal
+    from jaxpose.graph import bundle_adjustment_problem, solve
+
+    lb, clean = _ba()
+    start, truth = synthetic_bal(6, 40, 3, lb.PIXEL_NOISE, seed=0)
+    np.testing.assert_array_equal(clean.cameras[list(lb.FIXED)], truth.cameras[list(lb.FIXED)])
+    np.testing.assert_array_equal(clean.cameras[2:], start.cameras[2:])
+    dof = 2 * clean.observations.shape[0] - (9 * (6 - len(lb.FIXED)) + 3 * 40)
+    costs = [float(solve(bundle_adjustment_problem(p, fixed_cameras=lb.FIXED),
+                         **lb._solve_options(60)).cost) for p in (clean, start)]
+    assert abs(costs[0] - 0.5 * dof) < 0.5 * 5 * np.sqrt(2 * dof), (costs, dof)
+    assert costs[1] > 3 * costs[0], costs
 
 
 def test_ba_outliers_and_features_are_documented():
