@@ -131,9 +131,12 @@ def bundle_adjustment_problem(
         kernel: optional robust kernel ρ(s) on every observation (s = ‖r‖² in pixels²).
         eliminate: build the Schur bookkeeping for ``"point"`` (``linear_solver="schur"``).
         fix_intrinsics: hold every camera's ``[f, k1, k2]`` constant.
-        fixed_cameras: indices of cameras whose pose (and intrinsics) are held constant.
-            BA has a 7-dof gauge (similarity); by default nothing is fixed and LM's
-            damping keeps the steps bounded, as in Ceres.
+        fixed_cameras: indices of cameras whose pose (and intrinsics) are held constant
+            at their values in ``problem``. BA has a 7-dof gauge (similarity); by default
+            nothing is fixed and LM's damping keeps the steps bounded, as in Ceres. Two
+            held cameras remove the gauge (needed to differentiate the solution) but fix
+            12 degrees of freedom, so their values must agree with the data: held at a
+            rough initial guess they bias the whole solution.
         dtype: float dtype of the variables (default: JAX's default float).
     """
     if not isinstance(problem, BALProblem):

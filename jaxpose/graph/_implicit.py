@@ -411,8 +411,8 @@ def _refuse_open_gauge(graph: FactorGraph) -> None:
     elif all(f.name == "reprojection_bal" for f in factors) and fixed.get("pose", 0) < 2:
         why = ("every factor is a reprojection and fewer than two cameras are fixed, so a "
                "similarity transform of cameras and points leaves the cost unchanged")
-        fix = ("fix two cameras (bundle_adjustment_problem(..., fixed_cameras=[0, 1])) or "
-               "add priors")
+        fix = ("fix two cameras whose values you trust (bundle_adjustment_problem(..., "
+               "fixed_cameras=[0, 1]) holds them at their current values) or add priors")
     else:
         return
     raise ValueError(
