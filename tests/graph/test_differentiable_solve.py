@@ -261,6 +261,44 @@ def test_bal_hessian_equals_the_generic_hessian_and_its_derivative(derivative):
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-9 * np.abs(want).max())
 
 
+def test_closed_form_hessians_stay_float32_and_agree_with_float64():
+    """float32 inputs: the between (SE3) and BAL reprojection closed-form Hessians come out
+    float32 (no constant promotes them to float64 under x64) and agree with the same
+    closed forms evaluated in float64 to float32 rounding (relative to the largest entry)."""
+    from jaxpose.graph._ba import reprojection_residual
+    from jaxpose.graph._implicit import _bal_hessian, _between_hessian
+    from jaxpose.lie import SE3
+    from jaxpose.optim import Cauchy
+
+    rng = np.random.default_rng(3)
+    tangents = [rng.normal(size=6) * [0.3, 0.3, 0.3, 0.5, 0.5, 0.5] for _ in range(3)]
+    sqrt6 = np.triu(rng.normal(size=(6, 6))) + 3 * np.eye(6)
+    point_cam = np.asarray([0.4, -0.3, -4.0])
+
+    def between(dtype):
+        xi, xj, z = (SE3.exp(jnp.asarray(t, dtype)) for t in tangents)
+        (hii, hij), (hji, hjj) = _between_hessian(Cauchy(0.7), xi, xj, z,
+                                                  jnp.asarray(sqrt6, dtype))
+        return jnp.block([[hii, hij], [hji, hjj]])
+
+    def bal(dtype):
+        pose = SE3.exp(jnp.asarray(tangents[0], dtype))
+        intrinsics = jnp.asarray([500.0, -0.1, 0.02], dtype)
+        point = pose.inv().act(jnp.asarray(point_cam, dtype))
+        z = reprojection_residual(pose, intrinsics, point, jnp.zeros(2, dtype)) + jnp.asarray(
+            [3.0, -2.0], dtype)
+        return jnp.block(_bal_hessian(Cauchy(2.5), pose, intrinsics, point, z,
+                                      jnp.asarray([[0.8, 0.3], [0.0, 1.1]], dtype)))
+
+    for closed_form in (between, bal):
+        got = jax.jit(lambda f=closed_form: f(jnp.float32))()
+        want = np.asarray(jax.jit(lambda f=closed_form: f(jnp.float64))())
+        assert got.dtype == jnp.float32, closed_form.__name__
+        scale = np.abs(want).max()
+        np.testing.assert_allclose(np.asarray(got, np.float64), want, rtol=0,
+                                   atol=2e-5 * scale, err_msg=closed_form.__name__)
+
+
 @pytest.mark.parametrize("chunk", [3, 4, 100], ids=["overlapping", "even", "one"])
 def test_exact_hessian_in_chunks_equals_the_dense_hessian_of_the_cost(monkeypatch, chunk):
     """The exact Hessian assembled :data:`HESSIAN_CHUNK` factors at a time (8 between
