@@ -155,6 +155,31 @@ def test_kernel_parameter_is_traced_and_differentiable():
     assert float(f(0.3)) != pytest.approx(float(f(0.6)))  # the scale is not baked in
 
 
+@pytest.mark.parametrize("method", ["sparse", "pcg", "dense"])
+def test_float32_gradient_through_the_solve(method):
+    """The loop graph in float32: the gradient through graph.solve (forward and backward
+    in float32 on the device; CHOLMOD works in float64 on the host and hands back float32)
+    is float32 and equals the float64 gradient to float32 accuracy."""
+    f32 = jnp.float32
+
+    def loss32(noise):
+        info = jnp.broadcast_to(INFO.astype(f32), (len(EDGES), 3, 3))
+        z = SE2(Z_TRUE.data.astype(f32)).retract(noise)
+        f = G.Factor(between_residual, [("pose", EDGES[:, 0]), ("pose", EDGES[:, 1])],
+                     data=z, information=info)
+        graph = G.FactorGraph([f], {"pose": SE2(X0.data.astype(f32))},
+                              fixed={"pose": np.array([0])})
+        sol = G.solve(graph, linear_solver=method,
+                      stopping=jo.Stopping(max_steps=50, cost_rtol=1e-7, gtol=0.0, xtol=0.0))
+        return jnp.sum(W.astype(f32) * sol.variables["pose"].data) + sol.cost
+
+    got = jax.jit(jax.grad(loss32))(NOISE.astype(f32))
+    want = np.asarray(GRAD(NOISE))
+    assert got.dtype == f32
+    np.testing.assert_allclose(np.asarray(got, np.float64), want, rtol=0,
+                               atol=2e-4 * np.abs(want).max())
+
+
 @pytest.mark.parametrize("name", ["SO2", "SE2", "SO3", "SE3", "Sim3", "RxSO3"])
 def test_structure_constants_are_the_derivative_of_the_adjoint(name):
     """``c[:, :, p] = ad(e_p) = d/ds Ad(Exp(s·e_p))`` at 0 (autodiff of the adjoint, the
