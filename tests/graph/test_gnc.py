@@ -273,6 +273,23 @@ def test_dense_inner_solver_agrees_with_sparse(outlier_case):
     assert int(dense.iterations) == int(sol.iterations)
 
 
+def test_float32_gnc_keeps_the_same_inliers(outlier_case):
+    """The same graph in float32: weights, thresholds and poses stay float32, the inlier
+    set is the float64 one and the poses agree to float32 accuracy."""
+    clean, bad, outliers, poses, sol = outlier_case
+    f32 = jnp.float32
+    problem = pgo.pose_graph_problem(bad, dtype=f32)
+    out = gnc(problem, known_inliers=pgo.odometry_edges(bad),
+              stopping=default_stopping(100, f32))
+    w = out.weights[0]
+    assert w.dtype == f32 and out.barc_sq[0].dtype == f32
+    assert out.variables["pose"].data.dtype == f32
+    assert out.status_name == "converged"
+    np.testing.assert_array_equal(np.asarray(w) > 0.5, np.asarray(sol.weights[0]) > 0.5)
+    np.testing.assert_allclose(np.asarray(out.variables["pose"].data, np.float64),
+                               np.asarray(poses), atol=1e-4)
+
+
 @pytest.mark.slow
 def test_geman_mcclure_down_weights_the_outliers(outlier_case):
     clean, bad, outliers, poses, sol = outlier_case
