@@ -29,19 +29,25 @@ INFO = jnp.diag(jnp.array([1.0, 2.0, 3.0]))
 TIGHT = jo.Stopping(max_steps=100, cost_rtol=0.0, gtol=1e-14, xtol=0.0)
 
 
-def solved(noise, scale=1.0, kernel=None, linear_solver="auto"):
+FLOAT32_STOPPING = jo.Stopping(max_steps=50, cost_rtol=1e-7, gtol=0.0, xtol=0.0)
+
+
+def solved(noise, scale=1.0, kernel=None, linear_solver="auto", dtype=jnp.float64):
     """Poses of the loop graph whose measurements are Z_TRUE ⊕ noise, information
-    scale·INFO (both traced), first pose fixed."""
-    info = jnp.broadcast_to(INFO * scale, (len(EDGES), 3, 3))
+    scale·INFO (both traced), first pose fixed; built and solved in ``dtype``."""
+    info = jnp.broadcast_to((INFO * scale).astype(dtype), (len(EDGES), 3, 3))
     f = G.Factor(between_residual, [("pose", EDGES[:, 0]), ("pose", EDGES[:, 1])],
-                 data=Z_TRUE.retract(noise), information=info, kernel=kernel)
-    graph = G.FactorGraph([f], {"pose": X0}, fixed={"pose": np.array([0])})
-    return G.solve(graph, stopping=TIGHT, linear_solver=linear_solver)
+                 data=SE2(Z_TRUE.data.astype(dtype)).retract(noise), information=info,
+                 kernel=kernel)
+    graph = G.FactorGraph([f], {"pose": SE2(X0.data.astype(dtype))},
+                          fixed={"pose": np.array([0])})
+    stopping = TIGHT if dtype == jnp.float64 else FLOAT32_STOPPING
+    return G.solve(graph, stopping=stopping, linear_solver=linear_solver)
 
 
-def loss(noise, scale=1.0, kernel=None, linear_solver="auto"):
-    sol = solved(noise, scale, kernel, linear_solver)
-    return jnp.sum(W * sol.variables["pose"].data) + sol.cost
+def loss(noise, scale=1.0, kernel=None, linear_solver="auto", dtype=jnp.float64):
+    sol = solved(noise, scale, kernel, linear_solver, dtype)
+    return jnp.sum(W.astype(dtype) * sol.variables["pose"].data) + sol.cost
 
 
 def _richardson(f, x, eps=1e-3):
@@ -161,19 +167,8 @@ def test_float32_gradient_through_the_solve(method):
     in float32 on the device; CHOLMOD works in float64 on the host and hands back float32)
     is float32 and equals the float64 gradient to float32 accuracy."""
     f32 = jnp.float32
-
-    def loss32(noise):
-        info = jnp.broadcast_to(INFO.astype(f32), (len(EDGES), 3, 3))
-        z = SE2(Z_TRUE.data.astype(f32)).retract(noise)
-        f = G.Factor(between_residual, [("pose", EDGES[:, 0]), ("pose", EDGES[:, 1])],
-                     data=z, information=info)
-        graph = G.FactorGraph([f], {"pose": SE2(X0.data.astype(f32))},
-                              fixed={"pose": np.array([0])})
-        sol = G.solve(graph, linear_solver=method,
-                      stopping=jo.Stopping(max_steps=50, cost_rtol=1e-7, gtol=0.0, xtol=0.0))
-        return jnp.sum(W.astype(f32) * sol.variables["pose"].data) + sol.cost
-
-    got = jax.jit(jax.grad(loss32))(NOISE.astype(f32))
+    got = jax.jit(jax.grad(lambda n: loss(n, linear_solver=method, dtype=f32)))(
+        NOISE.astype(f32))
     want = np.asarray(GRAD(NOISE))
     assert got.dtype == f32
     np.testing.assert_allclose(np.asarray(got, np.float64), want, rtol=0,
