@@ -29,7 +29,11 @@ bar: backward ≤ one forward iteration, peak memory ≤ 1.5× the forward's (XL
 Usage::
 
     python bench/backward.py [--only garage,sphere2500,bal,bal-synthetic] [--quick]
-                             [--solver auto|sparse|schur|pcg|dense] [--out F.md]
+                             [--solver auto|sparse|schur|pcg|dense]
+                             [--dtype float64|float32] [--out F.md]
+
+``--dtype float32`` runs everything in float32 (x64 off: the data, the solve and the
+derivatives; CHOLMOD still factorises in float64 on the host).
 """
 
 from __future__ import annotations
@@ -120,11 +124,11 @@ def _problem(name: str, solver: str) -> tuple[Any, Any, str]:
     return loss, theta0, jg.GraphLinearSolver(solver).resolve(graph)
 
 
-def worker(name: str, mode: str, solver: str) -> None:
+def worker(name: str, mode: str, solver: str, dtype: str = "float64") -> None:
     import jax
     import numpy as np
 
-    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_enable_x64", dtype == "float64")
     loss, theta0, method = _problem(name, solver)
     f = loss if mode == "forward" else jax.grad(loss, has_aux=True)
     t0 = time.perf_counter()
@@ -163,7 +167,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     choices=("auto", "sparse", "schur", "pcg", "dense"),
                     help="graph.solve's linear_solver for every problem (default: auto; "
                     "schur needs a BA problem)")
-    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # NAME:MODE:SOLVER
+    ap.add_argument("--dtype", default="float64", choices=("float64", "float32"))
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # NAME:MODE:SOLVER:DTYPE
     args = ap.parse_args(argv)
     if args.worker:
         worker(*args.worker.split(":"))
@@ -177,8 +182,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             continue
         res = {}
         for mode in ("forward", "grad"):
-            res[mode] = spawn_worker([__file__, "--worker", f"{name}:{mode}:{args.solver}"],
-                                     timeout=args.timeout)
+            spec = f"{name}:{mode}:{args.solver}:{args.dtype}"
+            res[mode] = spawn_worker([__file__, "--worker", spec], timeout=args.timeout)
         fw, gr = res["forward"], res["grad"]
         if "failed" in fw or "failed" in gr:
             why = fw.get("failed") or gr.get("failed")
@@ -210,7 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               "compile forward / grad",
               "bar met"]
     text = "\n".join([
-        "## Backward pass through graph.solve vs one forward LM iteration (float64)",
+        f"## Backward pass through graph.solve vs one forward LM iteration ({args.dtype})",
         "",
         f"{environment()}. linear_solver={args.solver!r} (resolved per problem in the "
         "table); steady state, median of the repeats; each contestant in a cold process.",

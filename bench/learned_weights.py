@@ -31,9 +31,11 @@ held-out draws at every rate; for BA it lists the rates where they do.
 Usage::
 
     python bench/learned_weights.py [--files sphere2500,intel,ba] [--rates 0.1,0.3,0.5]
-                                    [--train 2] [--test 4] [--steps 40] [--quick] [--out F.md]
+                                    [--train 2] [--test 4] [--steps 40]
+                                    [--dtype float64|float32] [--quick] [--out F.md]
 
-(``ba`` names the bundle-adjustment example.)
+(``ba`` names the bundle-adjustment example; ``--dtype float32`` runs everything in float32,
+x64 off.)
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ def build_parser() -> Any:
     ap.add_argument("--test", type=int, default=4, help="held-out draws per rate")
     ap.add_argument("--steps", type=int, default=40, help="Adam steps")
     ap.add_argument("--lr", type=float, default=1e-2)
+    ap.add_argument("--dtype", default="float64", choices=("float64", "float32"))
     return ap
 
 
@@ -129,7 +132,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     args = build_parser().parse_args(argv)
     import jax
 
-    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_enable_x64", args.dtype == "float64")
     if args.quick:
         files, rates = ["intel"], [0.3]
         args.train, args.test, args.steps = 1, 1, 5
@@ -150,7 +153,7 @@ def main(argv: Sequence[str] | None = None) -> str:
         return float(r[7]) < min(float(r[3]), float(r[4]), float(r[5]))
 
     parts = [
-        "## Learning edge weights through graph.solve (float64)",
+        f"## Learning edge weights through graph.solve ({args.dtype})",
         "",
         f"{environment()}; {args.train} training and {args.test} held-out draws per rate, "
         f"{args.steps} Adam steps (lr {args.lr}). * = scale tuned on the training draws.",
