@@ -210,6 +210,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{fmt_seconds(fw['compile_s'])} / {fmt_seconds(gr['compile_s'])}",
             "yes" if ok else "no",
         ])
+        print(" | ".join(rows[-1]), flush=True)  # kept if a later problem is cut off
     header = ["problem", "linear solver", "LM iterations", "forward", "per iteration", "backward",
               "backward / iteration", "XLA buffers forward / grad", "peak RSS forward / grad",
               "compile forward / grad",
