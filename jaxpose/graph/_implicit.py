@@ -41,7 +41,13 @@ from ..lie._base import skew, small_matmul
 from ..optim._implicit import jvp_where
 from ._analysis import tangent_dim
 from ._factor import between_residual
-from ._linear import block_jacobi, pcg_spd, solve_dense, solve_sparse_spd
+from ._linear import (
+    block_jacobi,
+    pcg_spd,
+    solve_dense,
+    solve_sparse_direct,
+    solve_sparse_spd,
+)
 from ._pattern import scatter_blocks
 from ._problem import (
     FactorGraph,
@@ -424,28 +430,61 @@ BACKWARD_RTOL = {"float64": 1e-10, "float32": 1e-5}
 """Relative residual the backward's CG reaches (``linear_solver="pcg"``) whatever the
 forward's ``PCG.rtol``: derivatives are as exact as the dtype allows."""
 
+Inner = Callable[[Callable[[Array], Array], Array], Array]
+"""``inner(matvec, rhs) -> x``: the solver inside ``jax.lax.custom_linear_solve``."""
+
 
 def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
                    rhs: Array) -> Array:
     """H⁻¹·rhs, H the exact Hessian at ``xs``, by the forward's linear solver: ``dense``
-    Cholesky, ``pcg`` (block-Jacobi CG to :data:`BACKWARD_RTOL` on any backend; NaN if
-    it does not get there in ``PCG.max_iters``), ``schur`` (the eliminated type's
-    blocks eliminated as in the forward, :func:`_schur_solve`), else (``sparse``) the
-    sparse direct solver."""
+    Cholesky, ``pcg`` (block-Jacobi CG to :data:`BACKWARD_RTOL` on any backend),
+    ``schur`` (the eliminated type's blocks eliminated as in the forward,
+    :func:`_schur_solve`), else (``sparse``) the sparse direct solver. Each inside
+    ``jax.lax.custom_linear_solve`` and :func:`_checked`: a solve that fails raises."""
     st = graph.structure
     solver = options.get("linear_solver")
     method = solver.resolve(graph) if solver is not None else "sparse"
     if method == "schur":
         return _schur_solve(graph, xs, rhs, solver.dense_max)
     hess = exact_hessian_csr(graph, xs)
-    if method == "dense":
-        return solve_dense(hess, st.csr_indices, st.csr_indptr, rhs)
-    inner = None
+    idx, ptr = st.csr_indices, st.csr_indptr
     if method == "pcg":
         rtol = BACKWARD_RTOL.get(jnp.dtype(hess.dtype).name, 1e-10)
         inner = pcg_spd(block_jacobi(_diagonal_blocks(graph, hess)), rtol,
                         options["cg"].max_iters)
-    return solve_sparse_spd(hess, st.csr_indices, st.csr_indptr, rhs, inner)
+    else:
+        direct = solve_dense if method == "dense" else solve_sparse_direct
+        inner = lambda _, b: direct(hess, idx, ptr, b)  # noqa: E731
+    return solve_sparse_spd(hess, idx, ptr, rhs, _checked(inner, method))
+
+
+def _checked(inner: Inner, method: str) -> Inner:
+    """``inner`` raising (``eqx.error_if``, also under jit) where it returns a non-finite
+    solution for a finite right-hand side: a Cholesky factorisation of a matrix that is
+    not positive definite, or CG that has not converged (both give NaN). Never a NaN
+    derivative that looks like a number (or a step of a training loop)."""
+
+    def solve(matvec: Callable[[Array], Array], rhs: Array) -> Array:
+        x = inner(matvec, rhs)
+        failed = jnp.all(jnp.isfinite(rhs)) & ~jnp.all(jnp.isfinite(x))
+        return eqx.error_if(x, failed, _backward_failure(method, rhs.dtype))
+
+    return solve
+
+
+def _backward_failure(method: str, dtype: Any) -> str:
+    name = jnp.dtype(dtype).name
+    why = ("CG did not reach its tolerance in PCG.max_iters iterations, or H is not "
+           "positive definite" if method == "pcg" else
+           f"H is not positive definite to {name} precision")
+    fixes = ["tighten the stopping rule", "add priors on weakly determined variables"]
+    fixes += ["raise PCG.max_iters"] if method == "pcg" else []
+    fixes += ["differentiate in float64"] if name != "float64" else []
+    return (f"graph.solve: cannot differentiate the solution: the {method!r} solve with the "
+            f"exact Hessian H of the cost at the solution failed ({why}). Either the solve "
+            f"stopped away from a strict minimum (check the solution's status and "
+            f"iterations) or the problem is too ill-conditioned for {name} (down-weighted or "
+            f"barely observed variables): {', '.join(fixes[:-1])} or {fixes[-1]}.")
 
 
 def _schur_solve(graph: FactorGraph, xs: Variables, rhs: Array, dense_max: int) -> Array:
@@ -464,7 +503,7 @@ def _schur_solve(graph: FactorGraph, xs: Variables, rhs: Array, dense_max: int) 
     def inner(_: object, b: Array) -> Array:
         return schur_step(graph, parts, -b, add, reduced_solver(graph, dense_max))
 
-    return jax.lax.custom_linear_solve(matvec, rhs, inner, symmetric=True)
+    return jax.lax.custom_linear_solve(matvec, rhs, _checked(inner, "schur"), symmetric=True)
 
 
 def _exact_schur_parts(graph: FactorGraph, xs: Variables) -> SchurParts:

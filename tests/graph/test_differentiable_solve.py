@@ -441,3 +441,39 @@ def test_a_gauge_freedom_is_refused_when_differentiating_not_when_solving():
         with pytest.raises(ValueError, match=r"gauge freedom.*fixed_cameras=\[0, 1\]"):
             jax.make_jaxpr(jax.grad(lambda o, c=cams: ba(o, c)))(obs)
     jax.make_jaxpr(jax.grad(lambda o: ba(o, [0, 1])))(obs)
+
+
+
+def _square_graph(z, method, start=0.0):
+    """Residuals r = c² − z (z > 0, one per c) and r = x − c (ties x, the type Schur
+    eliminates, to c), every variable at ``start``. At 0 the cost ½Σ(c² − z)² is stationary
+    (LM stops there at once) but has a maximum in c: its exact Hessian is not positive
+    definite. Elsewhere LM finds c* = x* = ±√z."""
+    sq = G.Factor(lambda c, zz: c * c - zz, [("c", np.array([0, 1]))], data=z[:, None])
+    link = G.Factor(lambda x, c, zz: x - c, [("x", np.array([0, 1])), ("c", np.array([0, 1]))],
+                    data=jnp.zeros((2, 1)))
+    x0 = jnp.full((2, 1), start)
+    return G.FactorGraph([sq, link], {"c": x0, "x": x0},
+                         eliminate="x" if method == "schur" else None)
+
+
+@pytest.mark.parametrize("method", ["dense", "sparse", "pcg", "schur"])
+def test_a_backward_solve_that_fails_raises_instead_of_a_nan_derivative(method):
+    """Each backward solve (Cholesky, CHOLMOD, CG, Schur elimination) fails on an exact
+    Hessian that is not positive definite: the derivative was NaN (all four, silently);
+    now an error names the cause and the remedies, under jit too."""
+    z = jnp.array([1.0, 2.0])
+
+    def c_star(z, start):
+        sol = G.solve(_square_graph(z, method, start), linear_solver=method, stopping=TIGHT)
+        return sol.variables["c"][:, 0], sol.iterations
+
+    c, iterations = c_star(z, 0.0)
+    assert int(iterations) == 0 and np.all(np.asarray(c) == 0)
+    grad = eqx.filter_jit(jax.grad(lambda z: jnp.sum(c_star(z, 0.0)[0])))
+    with pytest.raises(Exception, match=rf"'{method}' solve with the exact Hessian.*not "
+                                        r"positive definite.*strict minimum"):
+        jax.block_until_ready(grad(z))
+    # off the maximum: c* = √z, dc*/dz = 1/(2√z), no error
+    grad = eqx.filter_jit(jax.grad(lambda z: jnp.sum(c_star(z, 0.5)[0])))
+    np.testing.assert_allclose(grad(z), 0.5 / np.sqrt(z), rtol=1e-8)
