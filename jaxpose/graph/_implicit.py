@@ -14,7 +14,9 @@ vmapped over :data:`HESSIAN_CHUNK` factors at a time; closed forms for between f
 :func:`_between_hessian`, and BAL reprojections, :func:`_bal_hessian`) and solved by the
 forward's linear solver (:func:`_tangent_solve`) inside ``jax.lax.custom_linear_solve``
 (:func:`~jaxpose.graph._linear.solve_sparse_spd`).
-Fixed variables have zero tangents (unit diagonal, zero right-hand side).
+Fixed variables have zero tangents (unit diagonal, zero right-hand side). A backward solve
+that fails (H not positive definite, CG not converged) raises (:func:`_checked`): never a
+NaN derivative.
 
 The rule is a ``custom_jvp``: its right-hand side is linear in θ̇ and the solve linear in
 it, so reverse mode is its transpose (one sparse solve per cotangent), and every step is
