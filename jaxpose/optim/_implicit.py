@@ -151,7 +151,9 @@ def _implicit_jvp(
     args, problem = theta
     if adjoint.hessian == "exact":
         mode, pattern = problem.jacobian_mode(x_star, args)
-        if mode == "sparse":  # one Hessian-vector product per colour of H's columns
+        # one Hessian-vector product per colour of H's columns, in JᵀJ's layout (blocks or
+        # CSR; a pattern with neither, under SPARSE_MIN_SIZE unknowns, has a dense JᵀJ)
+        if mode == "sparse" and (pattern.groups is not None or pattern.csr is not None):
             hess = compressed_hessian(lambda e: jax.grad(phi)(e, theta), flat0, pattern)
         else:
             hess = jax.hessian(phi)(flat0, theta)

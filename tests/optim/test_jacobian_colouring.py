@@ -307,6 +307,27 @@ def test_second_derivative_through_the_coloured_exact_hessian_equals_dense():
                                atol=1e-10)
 
 
+def test_implicit_gradient_on_the_coloured_path_with_a_dense_normal_matrix():
+    """Between AUTO_MIN_TANGENT (48) and SPARSE_MIN_SIZE (128) unknowns, ``jacobian="auto"``
+    colours a banded Jacobian but keeps JᵀJ dense (the pattern has neither blocks nor
+    CSR); the default implicit gradient crashed there (``'NoneType' object has no
+    attribute 'indices'``). A smoothing chain p = argmin |p − z|² + Σ|p_i − p_i+1|²:
+    (I + L) p = z with L 1 = 0, so d(Σp)/dz = (I + L)⁻¹ 1 = 1."""
+    n = 64
+
+    def res(p, z):
+        return {"node": p - z[:, None], "edge": p[:-1] - p[1:]}
+
+    def total(z):
+        sol = jo.least_squares(res, jnp.zeros((n, 1)), z)
+        return sol.params.sum()
+
+    z = jnp.asarray(np.random.default_rng(0).normal(size=n))
+    mode, pattern = jo.Problem(res).jacobian_mode(jnp.zeros((n, 1)), z)
+    assert mode == "sparse" and pattern.groups is None and pattern.csr is None
+    np.testing.assert_allclose(jax.jit(jax.grad(total))(z), np.ones(n), rtol=1e-10)
+
+
 def test_a_solve_analyses_the_sparsity_pattern_once(monkeypatch):
     """``least_squares`` resolves the Jacobian mode once (``Problem.resolve``): its
     linearisations (initial, in the loop) reuse it instead of re-tracing the residual."""
