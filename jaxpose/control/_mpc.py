@@ -134,6 +134,16 @@ def _solve_implicit_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...], *, 
     return out, (wx, wu, None, None)
 
 
+_NOT_STRICT_MINIMUM = (
+    "MPC: cannot differentiate the solution (gradient='implicit'): the Hessian of the "
+    "Lagrangian in the free controls (Q_uu of the tangent LQR problem) is not positive "
+    "definite at some step of the solution, so the implicit function theorem does not give "
+    "its derivative. Either the solver stopped at a stationary point that is not a strict "
+    "minimum (a saddle or maximum in u), or the cost is not strictly convex in u there "
+    "(e.g. no control cost at a step). Add control cost, start from another u_init, or use "
+    "gradient='unroll' (the derivative of the iterates).")
+
+
 def _trajectory_tangent(
     params: tuple[System, Cost, Array],
     t_params: Any,
@@ -201,7 +211,8 @@ def _trajectory_tangent(
         # the fixed part d of u̇ enters the dynamics offset and the linear cost term
         f_dot = f_dot + jnp.einsum("tij,tj->ti", F[:, :, n:], d)
         c_dot = c_dot + jnp.einsum("tij,tj->ti", H[:, :, n:], d)
-    K, k, _, _, _, _ = riccati(F, f_dot, H, c_dot, HT, cT_dot, free)
+    K, k, _, _, ok, _ = riccati(F, f_dot, H, c_dot, HT, cT_dot, free)
+    K = eqx.error_if(K, ~ok, _NOT_STRICT_MINIMUM)  # K and ok depend on the primal only
     wx, wu = policy_rollout(F, f_dot, K, k, x0_dot)
     return wx, wu + d
 

@@ -268,3 +268,36 @@ def test_second_derivative_through_unrolled_mpc_matches_finite_differences():
     h = 1e-3
     fd = float((f(0.1 + h) - 2 * f(0.1) + f(0.1 - h)) / h**2)
     assert d2 == pytest.approx(fd, rel=1e-3, abs=1e-6)
+
+
+def test_implicit_gradient_at_a_stationary_point_that_is_not_a_minimum_raises():
+    """Stage cost ½x² + ½(u² − 1)² from u = 0, x0 = 0: the gradient is zero at once, so MPC
+    stops there (status converged), at a maximum in u. The implicit derivative does not
+    exist (Q_uu = −2 < 0); it was NaN, silently, in reverse and forward mode. Now an error
+    names the cause; the unrolled derivative (of the iterates) stays available."""
+    from jaxpose.control import FunctionCost
+    from jaxpose.dynamics import NLS
+
+    class Scalar(NLS):
+        a: jax.Array
+
+        def state_transition(self, x, u, t=0):
+            return self.a * x + u
+
+    cost = FunctionCost(lambda x, u, t: 0.5 * jnp.sum(x**2) + 0.5 * jnp.sum((u**2 - 1.0) ** 2),
+                        lambda x: 0.5 * jnp.sum(x**2))
+
+    def total_u(a, x0, gradient="implicit"):
+        sol = MPC(Scalar(a), cost, 4, gradient=gradient)(x0, jnp.zeros((4, 1)))
+        return sol.u.sum(), sol.status
+
+    a, x0 = jnp.asarray(1.0), jnp.zeros(1)
+    u, status = total_u(a, x0)
+    assert float(u) == 0.0 and int(status) == 0  # converged, at the stationary maximum
+    match = r"MPC: cannot differentiate the solution.*not positive definite.*unroll"
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(jax.grad(lambda a, x: total_u(a, x)[0], (0, 1))(a, x0))
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(jax.jvp(lambda x: total_u(a, x)[0], (x0,), (jnp.ones(1),))[1])
+    g = jax.grad(lambda a, x: total_u(a, x, "unroll")[0], (0, 1))(a, x0)
+    assert np.all(np.isfinite(np.concatenate([np.ravel(g[0]), np.ravel(g[1])])))
