@@ -109,6 +109,32 @@ def jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple
     return jax.jvp(f_live, ([xs[i] for i in live],), ([ts[i] for i in live],))
 
 
+def _adjoint_solve(solver: LinearSolver, hess: Any, b: jax.Array) -> jax.Array:
+    """H⁻¹ b by ``solver`` (``solve(jac, res, hess, grad, diag)`` returns
+    −(hess + diag)⁻¹ grad). :class:`SVD` (the default) is the pseudo-inverse, defined for
+    every H (a gauge freedom gives the minimum-norm derivative), and differentiated as
+    such by lineax. Any other solver needs H nonsingular (Cholesky: positive definite):
+    it runs inside ``jax.lax.custom_linear_solve`` (operator ``H @ v``, exact at every
+    order) and raises (``eqx.error_if``, forward and reverse mode) where it returns a
+    non-finite solution for a finite right-hand side, instead of a NaN derivative."""
+    zero = jnp.zeros_like(b)
+    if isinstance(solver, SVD):
+        return -solver.solve(hess, b, hess, b, zero)
+    message = (f"least_squares: cannot differentiate the solution: the adjoint's "
+               f"{type(solver).__name__} solve with the Hessian H at the solution failed (H "
+               f"is singular, or not positive definite for Cholesky). Either the solver "
+               f"stopped away from a strict minimum (check the solution's status) or the "
+               f"solution is not unique (a gauge freedom): the default "
+               f"ImplicitAdjoint(linear_solver=SVD()) gives the minimum-norm derivative there.")
+
+    def inner(_: object, rhs: jax.Array) -> jax.Array:
+        x = -solver.solve(hess, rhs, hess, rhs, zero)
+        failed = jnp.all(jnp.isfinite(rhs)) & ~jnp.all(jnp.isfinite(x))
+        return eqx.error_if(x, failed, message)
+
+    return jax.lax.custom_linear_solve(lambda v: hess @ v, b, inner, symmetric=True)
+
+
 @eqx.filter_custom_jvp
 def _implicit(
     theta: tuple[PyTree, Problem],
@@ -162,8 +188,7 @@ def _implicit_jvp(
         lin = problem.linearize_structured(x_star, args)
         hess, _ = normal_equations(lin.jac, lin.res)  # dense, BlockHessian or SparseHessian
         hess = first_order_only(hess, "least_squares(ImplicitAdjoint(hessian='gauss_newton'))")
-    # solve(jac, res, hess, grad, diag) returns −(hess + diag)⁻¹ grad: here −H⁻¹ b
-    eps_dot = adjoint.linear_solver.solve(hess, b, hess, b, jnp.zeros_like(b))
+    eps_dot = -_adjoint_solve(adjoint.linear_solver, hess, b)
     x_dot = jax.jvp(lift, (flat0,), (eps_dot,))[1]
 
     # total derivative of the initial cost (the cost's partial derivative is above)

@@ -210,6 +210,53 @@ def test_implicit_derivatives_of_every_order_equal_the_closed_form(dtype):
                                    rtol=rtol)
 
 
+@pytest.mark.parametrize("solver", [jo.Cholesky(), jo.LU(), jo.CG()],
+                         ids=lambda s: type(s).__name__)
+def test_other_adjoint_solvers_are_exact_at_every_order(solver):
+    """An adjoint solver other than the default SVD runs inside custom_linear_solve: its
+    derivatives of orders 1–3 equal the closed form of :func:`_root_mean_cube`."""
+    adj = jo.ImplicitAdjoint(linear_solver=solver)
+
+    def f(y):
+        sol = jo.least_squares(lambda p, y: (p[0] ** 2 - y)[:, None], jnp.ones(1), y,
+                               adjoint=adj, gtol=1e-15, xtol=1e-16, cost_rtol=0.0, max_steps=80)
+        return sol.params[0] ** 3
+
+    y = jnp.array([1.0, 1.5, 2.5, 3.0])
+    n, m = 4, float(jnp.mean(y))
+    np.testing.assert_allclose(jax.jit(jax.grad(f))(y), np.full(n, 1.5 * m**0.5 / n),
+                               rtol=1e-10)
+    np.testing.assert_allclose(jax.jit(jax.hessian(f))(y),
+                               np.full((n, n), 0.75 * m**-0.5 / n**2), rtol=1e-10)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(jax.jacfwd(jax.jacrev(f))))(y),
+                               np.full((n, n, n), -0.375 * m**-1.5 / n**3), rtol=1e-10)
+
+
+def test_an_adjoint_solve_that_fails_raises_instead_of_a_nan_derivative():
+    """At a stationary maximum (½[(p² − 1)² + (p − z)²] from p = 0, z = 0: H = −1) the
+    Cholesky adjoint fails; with a gauge freedom (p₁ unobserved: H singular) so do LU and
+    Cholesky. Forward mode returned NaN silently, reverse mode raised lineax's generic
+    message; both now raise naming the cause. The default SVD adjoint gives the
+    minimum-norm derivative of the gauge problem (dp₀/dz = 1, dp₁/dz = 0)."""
+    def solution_sum(residual, p0, solver):
+        adj = jo.ImplicitAdjoint(linear_solver=solver)
+        return lambda z: jo.least_squares(residual, p0, z, adjoint=adj).params.sum()
+
+    maximum = lambda p, z: jnp.stack([p[0] ** 2 - 1.0, p[0] - z])  # noqa: E731
+    gauge = lambda p, z: jnp.stack([p[0] - z])  # noqa: E731
+    match = r"least_squares: cannot differentiate the solution.*Hessian H at the solution"
+    for residual, p0, solver in ((maximum, jnp.zeros(1), jo.Cholesky()),
+                                 (gauge, jnp.zeros(2), jo.LU()),
+                                 (gauge, jnp.zeros(2), jo.Cholesky())):
+        f = solution_sum(residual, p0, solver)
+        with pytest.raises(Exception, match=match):
+            jax.block_until_ready(jax.grad(f)(jnp.asarray(0.0)))
+        with pytest.raises(Exception, match=match):
+            jax.block_until_ready(jax.jvp(f, (jnp.asarray(0.0),), (jnp.asarray(1.0),))[1])
+    f = solution_sum(gauge, jnp.zeros(2), jo.SVD())
+    assert float(jax.grad(f)(jnp.asarray(1.0))) == pytest.approx(1.0, rel=1e-12)
+
+
 def test_gauss_newton_adjoint_refuses_a_second_derivative():
     """J̃ᵀJ̃ drops the Hessian's residual terms: first order is exact for zero residuals
     only, and a second derivative would be wrong, so it raises."""
