@@ -106,7 +106,8 @@ def run(graph_name: str, rates: Sequence[float], args: Any) -> list[list[Any]]:
 
 
 def failed_row(name: str, rate: float, err: Exception, width: int) -> list[Any]:
-    """A table row for a rate whose experiment raised: the error's first line."""
+    """A table row for a rate whose experiment raised: its message (the line raised inside
+    jit, else the first line)."""
     lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()] or [type(err).__name__]
     raised = [ln.split("Error: ", 1)[1] for ln in lines if "Error: " in ln]  # inside jit
     text = (raised[-1] if raised else lines[0])[:200].replace("|", "/")
