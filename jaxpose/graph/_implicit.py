@@ -15,8 +15,8 @@ vmapped over :data:`HESSIAN_CHUNK` factors at a time; closed forms for between f
 forward's linear solver (:func:`_tangent_solve`) inside ``jax.lax.custom_linear_solve``
 (:func:`~jaxpose.graph._linear.solve_sparse_spd`).
 Fixed variables have zero tangents (unit diagonal, zero right-hand side). A backward solve
-that fails (H not positive definite, CG not converged) raises (:func:`_checked`): never a
-NaN derivative.
+that fails (H not positive definite, CG not converged) raises
+(:func:`~jaxpose.optim._implicit.checked`): never a NaN derivative.
 
 The rule is a ``custom_jvp``: its right-hand side is linear in θ̇ and the solve linear in
 it, so reverse mode is its transpose (one sparse solve per cotangent), and every step is
@@ -40,7 +40,7 @@ import numpy as np
 from .._precision import full_precision
 from ..lie import SE3, LieGroup
 from ..lie._base import skew, small_matmul
-from ..optim._implicit import jvp_where
+from ..optim._implicit import checked, jvp_where
 from ._analysis import tangent_dim
 from ._factor import between_residual
 from ._linear import (
@@ -63,6 +63,7 @@ from ._problem import (
     retract_all,
     stored_together,
 )
+from ._reprojection import pixel_terms, reprojection_residual
 from ._schur import (
     SchurParts,
     add_group,
@@ -242,7 +243,6 @@ def _between_hessian(kernel: Any, xi: LieGroup, xj: LieGroup, z: LieGroup,
 
 def _is_bal_reprojection(f: Any, vals: list[Any]) -> bool:
     """A :func:`~jaxpose.graph.reprojection_residual` factor (pose, intrinsics, point)."""
-    from ._ba import reprojection_residual  # _ba imports the solver, which imports this
 
     return (f.residual is reprojection_residual and len(vals) == 3
             and isinstance(vals[0], SE3))
@@ -290,14 +290,13 @@ def _pixel_cost_derivatives(kernel: Any, pc: Array, intrinsics: Array, z: Array,
                             sqrt: Any) -> tuple[Array, Array, Array, Array]:
     """``(g_P (3,), G_PP, G_PI, G_II (3, 3))``: the gradient in P and the Hessian blocks of
     c(u) = ½ρ(|S·(pixel(u) − z)|²) in u = (P, I), I = (f, k1, k2)
-    (:func:`~jaxpose.graph._ba.pixel`), in closed form.
+    (:func:`~jaxpose.graph._reprojection.pixel`), in closed form.
 
     With p = −P_xy/P_z, pixel = f·D(r²)·p, D = 1 + k1·r² + k2·r⁴, r² = |p|², y = SᵀS·r and
     J_P = J_p·B (J_p = ∂pixel/∂p, B = ∂p/∂P), J_I = ∂pixel/∂I: the Hessian of ½|S·r|² is
     JᵀSᵀSJ plus Σₖ yₖ∇²pixelₖ, which is BᵀΨ_ppB, BᵀΨ_pI and Ψ_II from Ψ = ∇²(yᵀpixel) in
     (p, I), and in the P block Σⱼ aⱼ∇²pⱼ = (e_z vᵀ + v e_zᵀ)/P_z² (a = J_pᵀy,
     v = (a, a·p)); a kernel makes it ρ′·(…) + 2ρ″·(Jᵀy)(Jᵀy)ᵀ."""
-    from ._ba import pixel_terms  # see _is_bal_reprojection
 
     dtype = pc.dtype
     f, k2 = intrinsics[0], intrinsics[2]
@@ -432,17 +431,13 @@ BACKWARD_RTOL = {"float64": 1e-10, "float32": 1e-5}
 """Relative residual the backward's CG reaches (``linear_solver="pcg"``) whatever the
 forward's ``PCG.rtol``: derivatives are as exact as the dtype allows."""
 
-Inner = Callable[[Callable[[Array], Array], Array], Array]
-"""``inner(matvec, rhs) -> x``: the solver inside ``jax.lax.custom_linear_solve``."""
-
-
 def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
                    rhs: Array) -> Array:
     """H⁻¹·rhs, H the exact Hessian at ``xs``, by the forward's linear solver: ``dense``
     Cholesky, ``pcg`` (block-Jacobi CG to :data:`BACKWARD_RTOL` on any backend),
     ``schur`` (the eliminated type's blocks eliminated as in the forward,
     :func:`_schur_solve`), else (``sparse``) the sparse direct solver. Each inside
-    ``jax.lax.custom_linear_solve`` and :func:`_checked`: a solve that fails raises."""
+    ``jax.lax.custom_linear_solve``, checked: a solve that fails raises."""
     st = graph.structure
     solver = options.get("linear_solver")
     method = solver.resolve(graph) if solver is not None else "sparse"
@@ -457,24 +452,12 @@ def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
     else:
         direct = solve_dense if method == "dense" else solve_sparse_direct
         inner = lambda _, b: direct(hess, idx, ptr, b)  # noqa: E731
-    return solve_sparse_spd(hess, idx, ptr, rhs, _checked(inner, method))
-
-
-def _checked(inner: Inner, method: str) -> Inner:
-    """``inner`` raising (``eqx.error_if``, also under jit) where it returns a non-finite
-    solution for a finite right-hand side: a Cholesky factorisation of a matrix that is
-    not positive definite, or CG that has not converged (both give NaN). Never a NaN
-    derivative that looks like a number (or a step of a training loop)."""
-
-    def solve(matvec: Callable[[Array], Array], rhs: Array) -> Array:
-        x = inner(matvec, rhs)
-        failed = jnp.all(jnp.isfinite(rhs)) & ~jnp.all(jnp.isfinite(x))
-        return eqx.error_if(x, failed, _backward_failure(method, rhs.dtype))
-
-    return solve
+    return solve_sparse_spd(hess, idx, ptr, rhs,
+                            checked(inner, _backward_failure(method, rhs.dtype)))
 
 
 def _backward_failure(method: str, dtype: Any) -> str:
+    """The error of a failed backward solve by ``method`` in ``dtype``: cause, remedies."""
     name = jnp.dtype(dtype).name
     why = ("CG did not reach its tolerance in PCG.max_iters iterations, or H is not "
            "positive definite" if method == "pcg" else
@@ -505,7 +488,8 @@ def _schur_solve(graph: FactorGraph, xs: Variables, rhs: Array, dense_max: int) 
     def inner(_: object, b: Array) -> Array:
         return schur_step(graph, parts, -b, add, reduced_solver(graph, dense_max))
 
-    return jax.lax.custom_linear_solve(matvec, rhs, _checked(inner, "schur"), symmetric=True)
+    return jax.lax.custom_linear_solve(
+        matvec, rhs, checked(inner, _backward_failure("schur", rhs.dtype)), symmetric=True)
 
 
 def _exact_schur_parts(graph: FactorGraph, xs: Variables) -> SchurParts:

@@ -109,6 +109,25 @@ def jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple
     return jax.jvp(f_live, ([xs[i] for i in live],), ([ts[i] for i in live],))
 
 
+Inner = Callable[[Callable[[jax.Array], jax.Array], jax.Array], jax.Array]
+"""``inner(matvec, rhs) -> x``: the solver inside ``jax.lax.custom_linear_solve``."""
+
+
+def checked(inner: Inner, message: str) -> Inner:
+    """``inner`` raising ``message`` (``eqx.error_if``, also under jit) where it returns a
+    non-finite solution for a finite right-hand side (a failed Cholesky, a singular LU, CG
+    that has not converged): never a NaN derivative. The solver of a
+    ``custom_linear_solve`` is evaluated, never transposed, so the check works in forward
+    and reverse mode."""
+
+    def solve(matvec: Callable[[jax.Array], jax.Array], rhs: jax.Array) -> jax.Array:
+        x = inner(matvec, rhs)
+        failed = jnp.all(jnp.isfinite(rhs)) & ~jnp.all(jnp.isfinite(x))
+        return eqx.error_if(x, failed, message)
+
+    return solve
+
+
 def _adjoint_solve(solver: LinearSolver, hess: Any, b: jax.Array) -> jax.Array:
     """H⁻¹ b by ``solver`` (``solve(jac, res, hess, grad, diag)`` returns
     −(hess + diag)⁻¹ grad). :class:`SVD` (the default) is the pseudo-inverse, defined for
@@ -128,11 +147,10 @@ def _adjoint_solve(solver: LinearSolver, hess: Any, b: jax.Array) -> jax.Array:
                f"ImplicitAdjoint(linear_solver=SVD()) gives the minimum-norm derivative there.")
 
     def inner(_: object, rhs: jax.Array) -> jax.Array:
-        x = -solver.solve(hess, rhs, hess, rhs, zero)
-        failed = jnp.all(jnp.isfinite(rhs)) & ~jnp.all(jnp.isfinite(x))
-        return eqx.error_if(x, failed, message)
+        return -solver.solve(hess, rhs, hess, rhs, zero)
 
-    return jax.lax.custom_linear_solve(lambda v: hess @ v, b, inner, symmetric=True)
+    return jax.lax.custom_linear_solve(lambda v: hess @ v, b, checked(inner, message),
+                                       symmetric=True)
 
 
 @eqx.filter_custom_jvp
@@ -224,4 +242,5 @@ def implicit_solve(
     return _implicit((args, problem), params0, run=run, adjoint=adjoint)
 
 
-__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "first_order_only", "implicit_solve", "jvp_where"]
+__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "checked", "first_order_only", "implicit_solve",
+           "jvp_where"]
