@@ -243,7 +243,6 @@ def _between_hessian(kernel: Any, xi: LieGroup, xj: LieGroup, z: LieGroup,
 
 def _is_bal_reprojection(f: Any, vals: list[Any]) -> bool:
     """A :func:`~jaxpose.graph.reprojection_residual` factor (pose, intrinsics, point)."""
-
     return (f.residual is reprojection_residual and len(vals) == 3
             and isinstance(vals[0], SE3))
 
@@ -297,7 +296,6 @@ def _pixel_cost_derivatives(kernel: Any, pc: Array, intrinsics: Array, z: Array,
     JᵀSᵀSJ plus Σₖ yₖ∇²pixelₖ, which is BᵀΨ_ppB, BᵀΨ_pI and Ψ_II from Ψ = ∇²(yᵀpixel) in
     (p, I), and in the P block Σⱼ aⱼ∇²pⱼ = (e_z vᵀ + v e_zᵀ)/P_z² (a = J_pᵀy,
     v = (a, a·p)); a kernel makes it ρ′·(…) + 2ρ″·(Jᵀy)(Jᵀy)ᵀ."""
-
     dtype = pc.dtype
     f, k2 = intrinsics[0], intrinsics[2]
     iz = 1.0 / pc[2]
@@ -430,6 +428,7 @@ def _refuse_open_gauge(graph: FactorGraph) -> None:
 BACKWARD_RTOL = {"float64": 1e-10, "float32": 1e-5}
 """Relative residual the backward's CG reaches (``linear_solver="pcg"``) whatever the
 forward's ``PCG.rtol``: derivatives are as exact as the dtype allows."""
+
 
 def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
                    rhs: Array) -> Array:
