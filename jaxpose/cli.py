@@ -290,24 +290,42 @@ def _note_slow_blas(prog: str) -> None:
               "JAXPOSE_BLAS=PATH of an LP64 BLAS)", file=sys.stderr)
 
 
-def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, poses=None):
-    """Solve a PoseGraph, print the table and summary; returns (poses, solution)."""
+def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, init="odometry"):
+    """Solve a PoseGraph from its ``init`` start (in the compiled solve where
+    ``start_in_solve``, else on the host), print the table and summary; returns
+    (poses, solution)."""
     import jax
 
     from .graph import _pgo as pgo
     from .graph import default_stopping, solve
 
-    problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, poses=poses)
     stopping = default_stopping(max_steps, dtype)
-    run = jax.jit(lambda p: solve(p, linear_solver=solver, stopping=stopping,
-                                  verbose=verbose))
+    in_solve = pgo.start_in_solve(graph, init)
+    if in_solve:
+        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype)
+        run = jax.jit(lambda p: pgo.solve_from_start(
+            p, init, linear_solver=solver, stopping=stopping, verbose=verbose))
+    else:
+        from .graph._init import initial_poses, pose_graph_cost
+
+        t0 = time.perf_counter()
+        start, method = initial_poses(graph, init)
+        init_s = time.perf_counter() - t0
+        print(f"initialisation: {method} ({init_s:.3f} s), cost "
+              f"{pose_graph_cost(graph, start):.6e}")
+        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, poses=start)
+        run = jax.jit(lambda p: (solve(p, linear_solver=solver, stopping=stopping,
+                                       verbose=verbose), None))
     t0 = time.perf_counter()
     compiled = _compile(run.lower(problem))
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sol = compiled(problem)
+    sol, chordal = compiled(problem)
     jax.block_until_ready(sol.cost)
     solve_s = time.perf_counter() - t0
+    if in_solve:
+        print(f"initialisation: {'chordal' if bool(chordal) else 'odometry'} (in the "
+              "compiled solve)")
     print(f"initial cost {float(sol.initial_cost):.6e}  final cost {float(sol.cost):.6e}  "
           f"iterations {int(sol.iterations)}  status {sol.status_name}")
     print(f"time: solve {solve_s:.3f} s, compile {compile_s:.2f} s")
@@ -391,16 +409,9 @@ def pgo_command(args: argparse.Namespace) -> int:
                                   max_steps=args.max_steps, dtype=dtype,
                                   surrogate=args.gnc_surrogate, init=args.init)
     else:
-        from .graph._init import initial_poses, pose_graph_cost
-
-        t0 = time.perf_counter()
-        start, method = initial_poses(graph, args.init)
-        init_s = time.perf_counter() - t0
-        print(f"initialisation: {method} ({init_s:.3f} s), cost "
-              f"{pose_graph_cost(graph, start):.6e}")
-        poses, sol = _run_pgo(graph, kernel=kernel,
-                              solver=args.solver, max_steps=args.max_steps,
-                              verbose=not args.quiet, dtype=dtype, poses=start)
+        poses, sol = _run_pgo(graph, kernel=kernel, solver=args.solver,
+                              max_steps=args.max_steps, verbose=not args.quiet, dtype=dtype,
+                              init=args.init)
     poses = np.asarray(poses, np.float64)
     if not np.isfinite(poses).all():
         raise CLIError("the optimised poses are not finite; nothing written")

@@ -2,7 +2,8 @@
 
 Marginal covariances of a solution: :func:`marginals`. The two ready-made problems are
 reached the same way: pose graphs by :func:`optimize_pose_graph` / :func:`pose_graph_problem`
-(global initialisation: :func:`chordal_initialization`, :func:`initial_poses`) and bundle
+(global initialisation: :func:`chordal_initialization`, :func:`initial_poses` on the
+host; :func:`chordal_poses`, :func:`initial_variables` in jit and vmap) and bundle
 adjustment (BAL camera model, Schur elimination of the points) by :func:`optimize_bal` /
 :func:`bundle_adjustment_problem`. Outlier-robust solves by graduated non-convexity:
 :func:`gnc`. Every name is exported here; the implementation modules are private.
@@ -17,6 +18,7 @@ from ._ba import (
     reprojection_rmse,
     variables_to_bal,
 )
+from ._chordal import chordal_poses, initial_variables
 from ._factor import (
     Factor,
     between_jacobian,
@@ -58,10 +60,12 @@ __all__ = [
     "bundle_adjustment_problem",
     "chi2_quantile",
     "chordal_initialization",
+    "chordal_poses",
     "cost",
     "default_rtol",
     "default_stopping",
     "initial_poses",
+    "initial_variables",
     "gm_weights",
     "gnc",
     "linearize",

@@ -18,12 +18,14 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..io._g2o import _apply_policy
 from ..lie import SE2, SE3
+from ._chordal import DENSE_MAX, initial_variables
 from ._factor import Factor, between_residual
 from ._init import gauge_anchors, initial_poses
 from ._problem import FactorGraph
@@ -101,6 +103,26 @@ def pose_graph_problem(
     return FactorGraph([factor], {"pose": poses}, fixed=fixed)
 
 
+def start_in_solve(graph: Any, init: str, fix: str = "first") -> bool:
+    """Whether :func:`optimize_pose_graph` and ``jaxpose pgo`` compute the starting poses
+    inside the compiled solve (:func:`solve_from_start`): ``init`` ``"auto"`` or
+    ``"chordal"``, a held pose per piece (``fix`` ``"first"`` or ``"file"``) and at most
+    600 tangent dimensions (the graphs ``solve`` solves densely); otherwise on the host
+    (:func:`~jaxpose.graph.initial_poses`, sparse). Same poses either way."""
+    dim = _GROUPS[graph.kind].tangent_dim if graph.kind in _GROUPS else 0
+    return (init in ("auto", "chordal") and fix in ("first", "file") and graph.n_edges > 0
+            and 0 < graph.n_poses * dim <= DENSE_MAX)
+
+
+@eqx.filter_jit
+def solve_from_start(problem: FactorGraph, init: str, **solve_kwargs: Any) -> tuple[Any, Any]:
+    """``(solution, chordal)``: :func:`~jaxpose.graph.solve` of a pose-graph ``problem``
+    from :func:`~jaxpose.graph.initial_variables` ``(problem, init)`` in one program
+    (``chordal``: a bool array, whether the chordal poses were used)."""
+    start, chordal = initial_variables(problem, init)
+    return solve(problem, start, **solve_kwargs), chordal
+
+
 def odometry_edges(graph: Any) -> np.ndarray:
     """(m,) booleans: edges joining consecutive poses (``|i − j| = 1``), the odometry
     (known inliers for :func:`~jaxpose.graph.gnc`); the others are loop closures."""
@@ -123,8 +145,10 @@ def optimize_pose_graph(
     """Optimise a pose graph; returns (poses as numpy (n, storage), solution).
 
     ``init``: ``"auto"`` (default), ``"chordal"`` or ``"odometry"``, the starting poses of
-    :func:`jaxpose.graph.initial_poses` (with ``robust="gnc"``, ``"auto"`` starts from
-    the file's/odometry poses: outliers corrupt the chordal relaxation); ``information``:
+    :func:`jaxpose.graph.initial_poses` (computed in the compiled solve for graphs of at
+    most 600 tangent dimensions: :func:`start_in_solve`; with ``robust="gnc"``,
+    ``"auto"`` starts from the file's/odometry poses: outliers corrupt the chordal
+    relaxation); ``information``:
     as in :func:`pose_graph_problem`; other keywords go to :func:`jaxpose.graph.solve`.
 
     ``robust="gnc"``: graduated non-convexity (:func:`~jaxpose.graph.gnc`, TLS by default)
@@ -141,6 +165,10 @@ def optimize_pose_graph(
         graph = replace(graph, information=info)
     if robust == "gnc" and init == "auto":
         init = "odometry"
+    if robust is None and start_in_solve(graph, init, fix):
+        problem = pose_graph_problem(graph, kernel=kernel, fix=fix, dtype=dtype)
+        sol = solve_from_start(problem, init, **solve_kwargs)[0]
+        return np.asarray(sol.variables["pose"].data), sol
     start, _ = initial_poses(graph, init, fix=fix)  # after the policy: chordal uses Ω
     problem = pose_graph_problem(graph, kernel=kernel, fix=fix, dtype=dtype, poses=start)
     if robust == "gnc":
