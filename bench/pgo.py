@@ -457,7 +457,8 @@ def report(results: dict[str, dict[str, dict]], args: argparse.Namespace,
                                                               + ")"))
     lines.append(markdown_table(["file", "checks"], bar_rows))
     failed = sum(row[1].count("FAIL") for row in bar_rows)
-    lines += ["", f"Result: bar {'met' if not failed else f'NOT met ({failed} checks fail)'}; "
+    fails = "1 check fails" if failed == 1 else f"{failed} checks fail"
+    lines += ["", f"Result: bar {'met' if not failed else f'NOT met ({fails})'}; "
               f"per graph: {', '.join(verdicts) or 'nothing run'}"]
     lines += ["", "jaxpose iterations count every LM trial (accepted or rejected); GTSAM's "
               "count outer iterations. Solve = one whole solve after compilation; total = "
