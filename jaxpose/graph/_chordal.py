@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -258,7 +259,9 @@ def chordal_poses(graph: FactorGraph) -> Variables:
         poses unchanged. Matches the host :func:`~jaxpose.graph.chordal_initialization`
         (module docstring)."""
     name, group, i, j, z, info, held = _pose_graph(graph, "chordal_poses")
-    x = graph.variables[name].data
+    x = eqx.error_if(graph.variables[name].data, ~jnp.any(held),
+                     "chordal_poses(graph): no pose is held; the relaxation needs an anchor "
+                     "in every connected piece (pose_graph_problem(fix='first' or 'file'))")
     relax = _chordal_se3 if group is SE3 else _chordal_se2
     return {name: group(relax(x, z, info, i, j, held))}
 

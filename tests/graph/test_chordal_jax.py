@@ -216,5 +216,9 @@ def test_bad_input_is_refused_with_a_clear_message():
     with pytest.raises(ValueError, match="at most DENSE_MAX = 600.*chordal_initialization"):
         chordal_poses(pose_graph_problem(big))
     assert not start_in_solve(big, "auto")
+    free = pose_graph_problem(_graph("SE2", n=4)[0], fix="none")
+    with pytest.raises(Exception, match="no pose is held"):
+        jax.block_until_ready(jax.jit(chordal_poses)(free))
+    assert not start_in_solve(_graph("SE2", n=4)[0], "auto", fix="none")
     with pytest.raises(ValueError, match=r"initial_variables\(init='spanning'\)"):
         initial_variables(pose_graph_problem(_graph("SE2", n=4)[0]), "spanning")
