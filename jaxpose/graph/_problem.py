@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..lie import manifold
-from ..lie._base import LieGroup, small_matmul
+from ..lie._base import LieGroup, small_matmul, small_matvec
 from ..lie.series import computed_once
 from ._analysis import (
     Structure,
@@ -132,13 +132,6 @@ class GraphLinearization(eqx.Module):
     cost: Array  # scalar 0.5·Σ ρ(|r̃|²)
 
 
-def _matvec(a: Array, v: Array) -> Array:
-    """Batched (m, r, c) @ (m, c) → (m, r) as :func:`~jaxpose.lie._base.small_matmul`
-    (one fused loop; XLA:CPU's batched dot runs per matrix: eight per LM iteration were
-    a sixth of a tiny graph's solve)."""
-    return small_matmul(a, v[..., None])[..., 0]
-
-
 def _rho(kernel: Any, r: Array) -> Array:
     """ρ(s) per row, s = |r|² (s itself when kernel is None)."""
     s = jnp.sum(r * r, -1)
@@ -150,7 +143,7 @@ def factor_residuals(factor: Factor, variables: Variables) -> Array:
     vals = [_gather(variables[s], i) for s, i in zip(factor.slots, factor.indices, strict=True)]
     r = jax.vmap(lambda *a: factor.residual(*a[:-1], a[-1]))(*vals, factor.data)
     if factor.sqrt_info is not None:
-        r = _matvec(factor.sqrt_info.astype(r.dtype), r)
+        r = small_matvec(factor.sqrt_info.astype(r.dtype), r)
     return r
 
 
@@ -212,7 +205,7 @@ def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
         r, jac = jax.vmap(one)(*vals, f.data)
         if f.sqrt_info is not None:
             s = f.sqrt_info.astype(r.dtype)
-            r = _matvec(s, r)
+            r = small_matvec(s, r)
             jac = tuple(small_matmul(s, j) for j in jac)
         rho = _rho(f.kernel, r)
         if f.kernel is not None:
@@ -264,7 +257,7 @@ def gradient(graph: FactorGraph, lin: GraphLinearization) -> Array:
     for f, r, jac in zip(graph.factors, lin.residuals, lin.jacobians, strict=True):
         for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
             k = type_of[slot]
-            out[k] = out[k].at[idx].add(_matvec(j.mT, r))
+            out[k] = out[k].at[idx].add(small_matvec(j.mT, r))
     return join(out)
 
 
@@ -303,10 +296,10 @@ def hessian_vector(graph: FactorGraph, lin: GraphLinearization, v: Array) -> Arr
     for f, jac in zip(graph.factors, lin.jacobians, strict=True):
         u = 0.0
         for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
-            u = u + _matvec(j, vb[type_of[slot]][idx])
+            u = u + small_matvec(j, vb[type_of[slot]][idx])
         for slot, idx, j in zip(f.slots, f.indices, jac, strict=True):
             k = type_of[slot]
-            out[k] = out[k].at[idx].add(_matvec(j.mT, u))
+            out[k] = out[k].at[idx].add(small_matvec(j.mT, u))
     return join(out)
 
 

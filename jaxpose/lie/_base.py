@@ -179,6 +179,15 @@ def small_matmul(a: Array, b: Array) -> Array:
     return sum(a[..., :, i, None] * b[..., None, i, :] for i in range(k))
 
 
+def small_matvec(a: Array, v: Array) -> Array:
+    """Batched (..., n, k) @ (..., k) → (..., n) as :func:`small_matmul` (one fused loop
+    where XLA:CPU's batched dot runs per matrix: eight per LM iteration of the graph path
+    were a sixth of a tiny graph's solve). Not always faster: XLA recomputes a fused
+    result in each of its consumers (PCG's block-Jacobi preconditioner, whose output
+    several CG updates read, ran 5 % slower on parking-garage with it)."""
+    return small_matmul(a, v[..., None])[..., 0]
+
+
 # Gauss–Legendre nodes/weights on [0, 1], used for Jl(ξ) = ∫₀¹ Ad(Exp(uξ)) du on groups
 # without a closed form (Sim3). Exact to float64 precision for |ξ| up to ~10.
 _GL_N = 16
