@@ -44,15 +44,16 @@ from ..lie._base import small_matmul
 from ._factor import between_residual
 from ._init import INIT_METHODS
 from ._problem import FactorGraph, Variables, factor_residuals
+from ._solve import GraphLinearSolver
 
 Array = jax.Array
 
 __all__ = ["chordal_poses", "initial_variables"]
 
-DENSE_MAX = 600
-"""Largest tangent dimension (6 per SE3 pose, 3 per SE2 pose) :func:`chordal_poses`
-takes: the dense solver's default limit (``GraphLinearSolver().dense_max``), so the
-graphs it takes are those :func:`~jaxpose.graph.solve` solves densely by default."""
+DENSE_MAX = GraphLinearSolver().dense_max
+"""Largest tangent dimension (6 per SE3 pose, 3 per SE2 pose) :func:`chordal_poses` takes:
+the dense solver's default limit (``GraphLinearSolver().dense_max``, 600), so the graphs it
+takes are those :func:`~jaxpose.graph.solve` solves densely by default."""
 
 
 def _t(a: Array) -> Array:
