@@ -290,8 +290,7 @@ def initial_variables(graph: FactorGraph, init: str = "auto") -> tuple[Variables
     chordal = chordal_poses(graph)
     if init == "chordal":
         return chordal, jnp.asarray(True)
-    # the costs only choose (a boolean): no derivative through them (JAX 0.10 also fails
-    # to transpose the residuals' splits here under jit)
+    # the costs only choose (a boolean): no derivative through them
     fixed = jax.lax.stop_gradient(graph)
     c_file, c_chordal = _plain_costs(fixed, fixed.variables, jax.lax.stop_gradient(chordal))
     use = jnp.isfinite(c_chordal) & ~(c_file < c_chordal)

@@ -127,7 +127,11 @@ def _log_value(q: Array) -> Array:
     n_safe = jnp.where(positive, n, 1.0)
     aw = jnp.abs(w)
     f = jnp.where(positive, 2.0 * jnp.arctan2(n_safe, aw) / n_safe, 2.0 / aw)
-    return q[..., :3] * jnp.where(w < 0, -f, f)[..., None]
+    f = jnp.where(w < 0, -f, f)
+    # stacked like _log_smooth's result: where the two laid out their batch axis
+    # differently under vmap, jax 0.10 failed to transpose grad(jit(vmap(log))) ("Sum of
+    # sizes 3 must be equal to dimension 1"; jit(grad(...)) was fine)
+    return _stack([x * f, y * f, z * f])
 
 
 def with_derivatives_of(smooth: Callable[[Array], Array]):
