@@ -15,18 +15,16 @@ Differences of form, not of result (tests/graph/test_chordal_jax.py: 1e-9 of the
 poses): the normal equations come from one product with the dense incidence matrix; the
 weights enter as ``BᵀQB`` with Q = M (rotations) and Ω_tt (translations), no square roots,
 and the translation target needs no pseudo-inverse (Ω_tt·Ω_tt⁺·Ω_tR = Ω_tR for a positive
-semi-definite Ω); the rotations are projected by Horn's 4×4 eigenproblem (the SVD
-projection's rotation, det +1 built in), which gives the quaternions directly.
+semi-definite Ω); the rotations are projected by
+:func:`~jaxpose.geometry.optimal_rotation` (SVD, det +1, its own derivative rule).
 
 Anchors are the graph's held poses (``fixed``); every connected piece needs one (as
 ``pose_graph_problem(fix="first")`` arranges). Where the weights leave a pose's rotation
 or translation free the normal matrix is singular: the solve is then retried with a
 ridge of 1e-12 (float64; 10·eps in float32) of its largest diagonal entry, as on the
 host. Information matrices are ``SᵀS`` of the factors' whitening ``S``; robust kernels
-play no part. Differentiable by autodiff (the top eigenvector's derivative by its own
-rule: eigh's divides by every eigenvalue gap, infinite for an exact rotation's 4×4
-matrix); a solve started from it does not depend on it (:func:`~jaxpose.graph.solve`'s
-derivative with respect to the start is zero).
+play no part. Differentiable by autodiff; a solve started from it does not depend on it
+(:func:`~jaxpose.graph.solve`'s derivative with respect to the start is zero).
 """
 
 from __future__ import annotations
@@ -38,6 +36,7 @@ import jax
 import jax.numpy as jnp
 
 from .._precision import FULL
+from ..geometry._registration import optimal_rotation
 from ..lie import SE2, SE3, series
 from ..lie import _quaternion as quat
 from ..lie._base import small_matmul
@@ -166,56 +165,17 @@ def _translations(i: Array, j: Array, rot: Array, zr: Array, zt: Array, info: Ar
     return _block_lstsq(i, j, -b, b, o_tt, qc, held, t_held[..., None])[..., 0]
 
 
-@jax.custom_jvp
-def _top_eigenvector(k: Array) -> Array:
-    """Unit eigenvector (..., n) of the largest eigenvalue of each symmetric (..., n, n)."""
-    return jnp.linalg.eigh(k)[1][..., :, -1]
-
-
-@_top_eigenvector.defjvp
-def _top_eigenvector_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple:
-    """dv = (λI − K + vvᵀ)⁻¹·(I − vvᵀ)·dK·v: the perturbation of a simple eigenvalue's
-    eigenvector alone (eigh's rule divides by every eigenvalue gap, infinite where the
-    others repeat, as for an exact rotation's 4×4 matrix, whose other three are −1)."""
-    (k,), (dk,) = primals, tangents
-    v = _top_eigenvector(k)
-    kv = _mm(k, v[..., None])[..., 0]
-    lam = jnp.sum(v * kv, -1)
-    outer = v[..., :, None] * v[..., None, :]
-    eye = jnp.eye(k.shape[-1], dtype=k.dtype)
-    dkv = _mm(dk, v[..., None])[..., 0]
-    rhs = dkv - v * jnp.sum(v * dkv, -1, keepdims=True)
-    dv = jnp.linalg.solve(lam[..., None, None] * eye - k + outer, rhs[..., None])[..., 0]
-    return v, dv
-
-
-def _nearest_quaternion(m: Array) -> Array:
-    """Unit quaternion (..., 4) ``[x, y, z, w]`` of the rotation nearest (Frobenius) to
-    each (..., 3, 3) matrix, the R maximising tr(Rᵀ·M): the eigenvector of the largest
-    eigenvalue of a symmetric 4×4 matrix (Horn 1987; the SVD projection's rotation, with
-    det R = +1 built in)."""
-    sxx, sxy, sxz = m[..., 0, 0], m[..., 1, 0], m[..., 2, 0]
-    syx, syy, syz = m[..., 0, 1], m[..., 1, 1], m[..., 2, 1]
-    szx, szy, szz = m[..., 0, 2], m[..., 1, 2], m[..., 2, 2]
-    rows = [[sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
-            [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
-            [szx - sxz, sxy + syx, syy - sxx - szz, syz + szy],
-            [sxy - syx, szx + sxz, syz + szy, szz - sxx - syy]]
-    wxyz = _top_eigenvector(jnp.stack([jnp.stack(r, -1) for r in rows], -2))
-    q = jnp.concatenate([wxyz[..., 1:], wxyz[..., :1]], -1)
-    return q * jnp.where(q[..., 3:] < 0, -1.0, 1.0)
-
-
 def _chordal_se3(x: Array, z: Array, info: Array, i: Array, j: Array, held: Array) -> Array:
     zr = quat.to_matrix(z[:, 3:])
     o_rr = info[:, 3:, 3:]
     mm = 0.5 * jnp.trace(o_rr, axis1=1, axis2=2)[:, None, None] * jnp.eye(3, dtype=x.dtype) - o_rr
     # unknowns X_v = R_vᵀ: (R_jᵀ − Z_ijᵀ·R_iᵀ) weighted by M = ½tr(Ω_R)·I − Ω_R
     eye = jnp.broadcast_to(jnp.eye(3, dtype=x.dtype), zr.shape)
+    r_held = quat.to_matrix(x[:, 3:])
     xr = _block_lstsq(i, j, -_t(zr), eye, _psd_clipped(mm), jnp.zeros_like(zr), held,
-                      _t(quat.to_matrix(x[:, 3:])))
-    q = jnp.where(held[:, None], x[:, 3:], _nearest_quaternion(_t(xr)))
-    rot = quat.to_matrix(q)
+                      _t(r_held))
+    rot = jnp.where(held[:, None, None], r_held, optimal_rotation(_t(xr)))
+    q = quat.from_matrix(rot)
     phi = quat.log(quat.multiply(quat.conjugate(z[:, 3:]),
                                  quat.multiply(quat.conjugate(q[i]), q[j])))
     t = _translations(i, j, rot, zr, z[:, :3], info, phi, quat.jl_inv(phi, principal=True),

@@ -26,7 +26,6 @@ from jaxpose.graph import (
     prior_residual,
     solve,
 )
-from jaxpose.graph._init import _project_so
 from jaxpose.graph._pgo import solve_from_start, start_in_solve
 from jaxpose.io import PoseGraph
 from jaxpose.lie import SE3
@@ -86,18 +85,6 @@ def test_noise_free_graph_recovered_exactly(kind):
 def test_shared_graphs_match_the_host(name):
     graph = read_g2o(data_file(name))
     assert _pose_error(graph.kind, _jax_chordal(graph), chordal_initialization(graph)) < 1e-9
-
-
-def test_nearest_rotation_is_the_svd_projection():
-    """Random matrices, half of them with negative determinant: the quaternion of the
-    4×4 eigenproblem is the rotation of the SVD projection onto SO(3)."""
-    from jaxpose.graph._chordal import _nearest_quaternion
-    from jaxpose.lie import _quaternion as quat
-
-    m = np.random.default_rng(1).normal(size=(200, 3, 3))
-    assert np.any(np.linalg.det(m) < 0) and np.any(np.linalg.det(m) > 0)
-    got = np.asarray(quat.to_matrix(_nearest_quaternion(jnp.asarray(m))))
-    np.testing.assert_allclose(got, _project_so(m), atol=1e-10)
 
 
 def test_vmap_over_graphs_of_one_structure_matches_one_by_one():
