@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 
 from .._precision import FULL
-from ..geometry._registration import optimal_rotation
+from ..geometry._registration import _det3, optimal_rotation
 from ..lie import SE2, SE3, series
 from ..lie import _quaternion as quat
 from ..lie._base import small_matmul
@@ -53,10 +53,6 @@ DENSE_MAX = GraphLinearSolver().dense_max
 """Largest tangent dimension (6 per SE3 pose, 3 per SE2 pose) :func:`chordal_poses` takes:
 the dense solver's default limit (``GraphLinearSolver().dense_max``, 600), so the graphs it
 takes are those :func:`~jaxpose.graph.solve` solves densely by default."""
-
-
-def _t(a: Array) -> Array:
-    return jnp.swapaxes(a, -1, -2)
 
 
 _mm = small_matmul
@@ -87,7 +83,7 @@ def _pose_graph(graph: Any, where: str) -> tuple[str, type, Array, Array, Array,
     s = jnp.eye(r, dtype=x.data.dtype) if f.sqrt_info is None else f.sqrt_info
     s = jnp.broadcast_to(s.astype(x.data.dtype), (m, r, r))
     held = graph.structure.free[0] == 0
-    return name, group, f.indices[0], f.indices[1], f.data.data, _mm(_t(s), s), held
+    return name, group, f.indices[0], f.indices[1], f.data.data, _mm(s.mT, s), held
 
 
 def _psd_clipped(m: Array) -> Array:
@@ -98,15 +94,14 @@ def _psd_clipped(m: Array) -> Array:
     c = jax.lax.stop_gradient(m)  # the test picks a branch; both are differentiable
     a, b, d = c[:, 0, 0], c[:, 1, 1], c[:, 2, 2]
     ab, ad, bd = c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]
-    det = a * (b * d - bd * bd) - ab * (ab * d - bd * ad) + ad * (ab * bd - b * ad)
     psd = jnp.all(jnp.stack([a, b, d, a * b - ab * ab, a * d - ad * ad, b * d - bd * bd,
-                             det]) >= 0, axis=0)
+                             _det3(c)]) >= 0, axis=0)
 
     def clip() -> Array:
         safe = jnp.where(psd[:, None, None], jnp.diag(jnp.arange(1.0, 4.0, dtype=m.dtype)), m)
         w, v = jnp.linalg.eigh(safe)
         return jnp.where(psd[:, None, None], m,
-                         _mm(v * jnp.clip(w, 0.0, None)[:, None, :], _t(v)))
+                         _mm(v * jnp.clip(w, 0.0, None)[:, None, :], v.mT))
 
     return jax.lax.cond(jnp.all(psd), lambda: m, clip)
 
@@ -159,8 +154,8 @@ def _translations(i: Array, j: Array, rot: Array, zr: Array, zt: Array, info: Ar
     so Q·C = Ω_tt·V⁻¹·Z_Rᵀ·t_z − Ω_tR·φ needs no pseudo-inverse."""
     dt = zt.shape[-1]
     o_tt, o_tr = info[:, :dt, :dt], info[:, :dt, dt:]
-    a = _mm(vinv, _t(zr))  # V⁻¹·Z_Rᵀ
-    b = _mm(a, _t(rot[i]))
+    a = _mm(vinv, zr.mT)  # V⁻¹·Z_Rᵀ
+    b = _mm(a, rot[i].mT)
     qc = _mm(o_tt, _mm(a, zt[..., None])) - _mm(o_tr, phi[..., None])
     return _block_lstsq(i, j, -b, b, o_tt, qc, held, t_held[..., None])[..., 0]
 
@@ -172,9 +167,9 @@ def _chordal_se3(x: Array, z: Array, info: Array, i: Array, j: Array, held: Arra
     # unknowns X_v = R_vᵀ: (R_jᵀ − Z_ijᵀ·R_iᵀ) weighted by M = ½tr(Ω_R)·I − Ω_R
     eye = jnp.broadcast_to(jnp.eye(3, dtype=x.dtype), zr.shape)
     r_held = quat.to_matrix(x[:, 3:])
-    xr = _block_lstsq(i, j, -_t(zr), eye, _psd_clipped(mm), jnp.zeros_like(zr), held,
-                      _t(r_held))
-    rot = jnp.where(held[:, None, None], r_held, optimal_rotation(_t(xr)))
+    xr = _block_lstsq(i, j, -zr.mT, eye, _psd_clipped(mm), jnp.zeros_like(zr), held,
+                      r_held.mT)
+    rot = jnp.where(held[:, None, None], r_held, optimal_rotation(xr.mT))
     q = quat.from_matrix(rot)
     phi = quat.log(quat.multiply(quat.conjugate(z[:, 3:]),
                                  quat.multiply(quat.conjugate(q[i]), q[j])))
