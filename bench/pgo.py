@@ -13,7 +13,7 @@ read) is printed too.
   (``start_in_solve``) the same relaxation and choice run inside the compiled solve
   (``solve_from_start``), whose time then includes them (init column "in the solve").
   Reported: initialisation time, compile time (trace, lower
-  and XLA compile with the CLI's compiler options), steady-state solve time (all
+  and XLA compile with the CLI's compiler options and XLA flags, ``WHOLE_LOOP_FLAGS``), steady-state solve time (all
   iterations, the problem held on the device and called through ``jax.jit``'s dispatch,
   best of ``--repeats`` after a warm-up run), total = initialisation +
   solve (compilation reported separately), time per iteration = solve / iterations.
@@ -279,6 +279,9 @@ def _worker(args: argparse.Namespace) -> int:
     path = Path(args.file)
     try:
         if args.worker == "jaxpose":
+            from jaxpose._compile import use_whole_loops
+
+            use_whole_loops()  # the jaxpose command's XLA flags, before JAX starts its backend
             out = run_jaxpose(path, args.solver, args.float32, args.repeats, args.max_steps)
         else:
             out = run_gtsam(path, args.repeats, args.max_steps)

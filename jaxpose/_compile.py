@@ -12,17 +12,75 @@ not in a long training loop. They are XLA *debug* options: jaxpose never sets th
 a user's back; pass them to your own ``jax.jit``::
 
     step = jax.jit(jax.grad(loss), compiler_options=jaxpose.compile_options())
+
+The ``jaxpose pgo`` command also sets :data:`WHOLE_LOOP_FLAGS` (process-wide XLA flags,
+read when JAX starts its backend): XLA:CPU then compiles a ``while`` loop whose body holds no
+library call (LAPACK, a host callback) and touches at most :data:`WHOLE_LOOP_BYTES` bytes into
+one function, instead of dispatching each of its operations separately (~0.1 µs each, ~190
+per Levenberg–Marquardt iteration of a tiny pose graph). :func:`loops_compile_whole` tells
+whether they are in effect for programs compiled with :func:`compile_options` (XLA's newer
+fusion emitters keep a scatter, so a loop, split); the graph solver then factorises small
+dense systems without LAPACK (:func:`jaxpose.graph._linear.cholesky_solve_loops`) so that its whole loop compiles
+into one function (pose3example 19 → 9 µs per iteration). Set them yourself before
+starting JAX, and compile with :func:`compile_options`, to get the same.
 """
 
 from __future__ import annotations
 
 import functools
+import os
 from typing import Any
 
 import jax
 import numpy as np
 
 _CPU_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
+
+
+WHOLE_LOOP_BYTES = 1 << 22
+"""Bytes a loop may touch (XLA's cost analysis of its body) to compile into one function."""
+
+WHOLE_LOOP_FLAGS = (
+    f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={WHOLE_LOOP_BYTES} "
+    # YNNPACK's dot fusions are library calls too: one in a loop keeps it split
+    "--xla_cpu_experimental_ynn_fusion_type="
+)
+
+
+def use_whole_loops() -> None:
+    """Append :data:`WHOLE_LOOP_FLAGS` to ``XLA_FLAGS`` (the ``jaxpose pgo`` command's
+    setting). Takes effect only if JAX has not started its backend yet; left alone when
+    ``XLA_FLAGS`` already sets ``xla_backend_extra_options`` (the user's choice)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_backend_extra_options" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {WHOLE_LOOP_FLAGS}".strip()
+
+
+@functools.cache
+def loops_compile_whole() -> bool:
+    """Whether this process's XLA, with :func:`compile_options`, compiles a loop of this
+    library's small dense solves into one function (:data:`WHOLE_LOOP_FLAGS` in effect on
+    a CPU backend), checked once by compiling a probe loop with the operations that keep
+    one split otherwise (a scatter-add, which XLA's newer fusion emitters keep out, and
+    the identity product of :func:`jaxpose.lie.series.computed_once`, a YNNPACK call)."""
+    if jax.default_backend() != "cpu":
+        return False
+    from .lie.series import computed_once
+
+    def probe(x: jax.Array, index: jax.Array) -> jax.Array:
+        def body(_: Any, y: jax.Array) -> jax.Array:
+            return computed_once(y * 0.5 + 1.0)[0].at[index].add(1.0)
+
+        return jax.lax.fori_loop(0, 2, body, x)
+
+    lowered = jax.jit(probe).lower(np.zeros((64, 64)), np.zeros(8, np.int32))
+    text = lowered.compile(compiler_options=compile_options()).as_text()
+    return "xla_cpu_small_call" in text and " while(" not in _entry(text)
+
+
+def _entry(hlo: str) -> str:
+    """The ENTRY computation of an HLO module's text."""
+    return hlo[hlo.index("ENTRY"):] if "ENTRY" in hlo else hlo
 
 
 def compile_options() -> dict[str, Any]:

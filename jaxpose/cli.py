@@ -616,7 +616,10 @@ def _message(err: BaseException) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``jaxpose`` command line; returns the exit status (0 success, 1 failure, 2 bad
-    command line). Failures print one line to stderr, no traceback unless ``--debug``."""
+    command line). Failures print one line to stderr, no traceback unless ``--debug``.
+    ``pgo`` run as the process's own command (``argv`` None) adds
+    :data:`jaxpose._compile.WHOLE_LOOP_FLAGS` to ``XLA_FLAGS`` before JAX starts; called
+    with ``argv`` from Python it leaves the environment alone."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -626,6 +629,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     prog = f"jaxpose {args.command}"
+    if args.command == "pgo" and argv is None:  # the process is the command: its XLA flags
+        from ._compile import use_whole_loops
+
+        use_whole_loops()
     # JAX logs a callback's exception (an equinox check) with its traceback before raising it
     callback_log = logging.getLogger("jax._src.callback")
     level = callback_log.level

@@ -12,7 +12,8 @@
 * :func:`solve_pcg` — matrix-free conjugate gradient with a block-Jacobi preconditioner,
   ``lineax.CG`` on lineax function operators (jit/vmap/differentiable, any backend).
 * :func:`solve_dense` — assembles H densely and uses Cholesky (small problems; fully
-  differentiable and vmappable).
+  differentiable and vmappable); :func:`cholesky_solve_loops`, the same without LAPACK for
+  the graph solver's loop when it compiles whole.
 """
 
 from __future__ import annotations
@@ -201,10 +202,70 @@ def block_jacobi(blocks: tuple[Array, ...]) -> Callable[[Array], Array]:
     return apply
 
 
+SMALL_DENSE = 64
+"""Largest system (tangent dimensions) the graph solver factorises with
+:func:`cholesky_solve_loops` when loops compile whole
+(:func:`jaxpose._compile.loops_compile_whole`): its N³ operations cost more than LAPACK's
+N³/3 above (measured per solve in a compiled loop: N = 30 4.7 µs against 3.9, 54 14 against
+8.9, 96 68 against 19), more than the ~10–20 µs of operation dispatch per iteration that a
+loop compiled whole saves."""
+
+
+def dense_index(indices: Array, indptr: Array, size: int) -> Array:
+    """(size·size,) position in the CSR values of each entry of the dense row-major matrix,
+    ``nnz`` where the pattern holds none: :func:`densify` is then one gather (a scatter is a
+    serial loop on XLA:CPU). Compute it once per pattern, outside a solver's loop."""
+    nnz = indices.shape[0]
+    rows = jnp.repeat(jnp.arange(size), jnp.diff(indptr), total_repeat_length=nnz)
+    return (jnp.full((size * size,), nnz, jnp.int32)
+            .at[rows * size + indices].set(jnp.arange(nnz, dtype=jnp.int32)))
+
+
+def densify(data: Array, index: Array, size: int) -> Array:
+    """The dense (size, size) matrix of CSR values ``data`` (:func:`dense_index`)."""
+    padded = jnp.concatenate([data, jnp.zeros((1,), data.dtype)])
+    return padded[index].reshape(size, size)
+
+
 def solve_dense(data: Array, indices: Array, indptr: Array, b: Array) -> Array:
     """Densify the CSR matrix and solve with Cholesky (small problems only)."""
     n = b.shape[0]
-    rows = jnp.repeat(jnp.arange(n), jnp.diff(indptr), total_repeat_length=data.shape[0])
-    dense = jnp.zeros((n, n), data.dtype).at[rows, indices].add(data)
-    factor = jax.scipy.linalg.cho_factor(dense)
-    return jax.scipy.linalg.cho_solve(factor, b)
+    dense = densify(data, dense_index(indices, indptr, n), n)
+    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(dense), b)
+
+
+def cholesky_solve_loops(a: Array, b: Array, segment: int = 16) -> Array:
+    """Solve ``a x = b`` for a symmetric positive-definite (n, n) ``a`` by Cholesky
+    (Crout, one column per step) and two triangular substitutions, each a ``fori_loop`` of
+    vector operations: no LAPACK call, so a solver loop around it can compile into one
+    XLA:CPU function (:func:`jaxpose._compile.loops_compile_whole`). The columns go in
+    segments of ``segment``: a segment's steps read only the rows and columns of L it can
+    reach (about n³/3 multiply-adds in all, as LAPACK's, instead of n³). Not positive
+    definite (a pivot ≤ 0): NaN, as JAX's LAPACK Cholesky. Small systems only
+    (:data:`SMALL_DENSE`)."""
+    a, b = jnp.asarray(a), jnp.asarray(b)
+    n = a.shape[0]
+    low = jnp.zeros_like(a)
+    for start in range(0, n, segment):
+        stop = min(start + segment, n)
+        row = jnp.arange(start, n)
+
+        def column(j: Array, low: Array, start: int = start, stop: int = stop,
+                   row: Array = row) -> Array:
+            v = a[start:, j] - low[start:, :stop] @ low[j, :stop]
+            pivot = jax.lax.dynamic_index_in_dim(v, j - start, keepdims=False)
+            col = jnp.where(row >= j, v / jnp.sqrt(pivot), 0.0)
+            return jax.lax.dynamic_update_slice(low, col[:, None], (start, j))
+
+        low = jax.lax.fori_loop(start, stop, column, low)
+
+    def forward(i: Array, y: Array) -> Array:
+        return y.at[i].set((b[i] - low[i] @ y) / low[i, i])
+
+    y = jax.lax.fori_loop(0, n, forward, jnp.zeros_like(b))
+
+    def backward(k: Array, x: Array) -> Array:
+        i = n - 1 - k
+        return x.at[i].set((y[i] - low[:, i] @ x) / low[i, i])
+
+    return jax.lax.fori_loop(0, n, backward, jnp.zeros_like(b))

@@ -32,6 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._compile import loops_compile_whole
 from .._precision import full_precision
 from ..optim import _iterate
 from ..optim._solver import LevenbergMarquardt
@@ -181,31 +182,35 @@ class _SparseLinear:
     on the sparse path: solves ``(H + diag(diag_add)) δ = −grad`` with H from the
     linearisation (fixed variables get an identity row). Records CG iterations."""
 
-    def __init__(self, kind: str, dense_max: int, graph: FactorGraph, lin: Any, free: Array,
-                 cg_rtol: Any, cg_max_iters: int):
-        self.kind, self.dense_max, self.graph, self.lin = kind, dense_max, graph, lin
-        self.free, self.cg_rtol, self.cg_max_iters = free, cg_rtol, cg_max_iters
+    def __init__(self, path: _GraphPath, lin: Any, cg_rtol: Any):
+        self.path, self.lin, self.cg_rtol = path, lin, cg_rtol
         self.iterations = jnp.asarray(0, jnp.int32)
 
     def solve(self, jac: Any, res: Any, hess: Any, grad: Array, diag_add: Array) -> Array:
-        graph, lin, st = self.graph, self.lin, self.graph.structure
-        add = diag_add + (1.0 - self.free)
-        if self.kind == "pcg":
+        path, lin = self.path, self.lin
+        graph, st = path.graph, path.graph.structure
+        add = diag_add + (1.0 - path.free)
+        if path.method == "pcg":
             blocks = block_diagonal(graph, lin)
             damped = tuple(b + jax.vmap(jnp.diag)(a) for b, a in
                            zip(blocks, split(graph, add), strict=True))
             x, its = linear.solve_pcg(
                 lambda v: hessian_vector(graph, lin, v) + add * v, -grad,
-                linear.block_jacobi(damped), rtol=self.cg_rtol, max_iters=self.cg_max_iters,
+                linear.block_jacobi(damped), rtol=self.cg_rtol, max_iters=path.cg.max_iters,
             )
             self.iterations = self.iterations + jnp.asarray(its, jnp.int32)
             return x
-        if self.kind == "schur":
+        if path.method == "schur":
             return schur_step(graph, schur_parts(graph, jtj_blocks(lin), grad.dtype), grad, add,
-                              reduced_solver(graph, self.dense_max))
+                              reduced_solver(graph, path.dense_max))
+        if path.method == "dense":
+            h = linear.densify(csr_values(graph, lin).at[st.diag_pos].add(add),
+                               path.dense_index, st.size)
+            if path.dense_loops:
+                return linear.cholesky_solve_loops(h, -grad)
+            return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(h), -grad)
         data = csr_values(graph, lin).at[st.diag_pos].add(add)
-        direct = linear.solve_sparse_direct if self.kind == "sparse" else linear.solve_dense
-        return direct(data, st.csr_indices, st.csr_indptr, -grad)
+        return linear.solve_sparse_direct(data, st.csr_indices, st.csr_indptr, -grad)
 
 
 class _GraphPath:
@@ -216,6 +221,13 @@ class _GraphPath:
                  cg: PCG, free: Array, g0_norm: Array | None):
         self.graph, self.method, self.dense_max, self.damping = graph, method, dense_max, damping
         self.cg, self.free, self.g0_norm = cg, free, g0_norm
+        st = graph.structure
+        # "dense": H gathered from its CSR values (positions computed here, once, outside
+        # the loop); without LAPACK when the loop then compiles whole (small systems)
+        self.dense_index = (linear.dense_index(st.csr_indices, st.csr_indptr, st.size)
+                            if method == "dense" else None)
+        self.dense_loops = (method == "dense" and st.size <= linear.SMALL_DENSE
+                            and loops_compile_whole())
 
     def linearize(self, variables: Variables) -> tuple[Any, Array, Array]:
         lin = linearize(self.graph, variables)
@@ -241,8 +253,7 @@ class _GraphPath:
                                             / jnp.maximum(self.g0_norm, 1e-300)))
         else:
             eta = self.cg.rtol
-        solver = _SparseLinear(self.method, self.dense_max, self.graph, lin, self.free, eta,
-                               self.cg.max_iters)
+        solver = _SparseLinear(self, lin, eta)
         step = rule._propose(sstate, normal, solver) * self.free
         return step, solver.iterations
 
