@@ -12,8 +12,8 @@ read) is printed too.
   ``solve`` under ``jax.jit``; on graphs of at most 600 tangent dimensions
   (``start_in_solve``) the same relaxation and choice run inside the compiled solve
   (``solve_from_start``), whose time then includes them (init column "in the solve").
-  Reported: initialisation time, compile time (trace, lower
-  and XLA compile with the CLI's compiler options and XLA flags, ``WHOLE_LOOP_FLAGS``), steady-state solve time (all
+  Reported: initialisation time, compile time (trace, lower and XLA compile with the
+  CLI's compiler options and XLA flags, ``WHOLE_LOOP_FLAGS``), steady-state solve time (all
   iterations, the problem held on the device and called through ``jax.jit``'s dispatch,
   best of ``--repeats`` after a warm-up run), total = initialisation +
   solve (compilation reported separately), time per iteration = solve / iterations.

@@ -20,9 +20,9 @@ one function, instead of dispatching each of its operations separately (~0.1 µs
 per Levenberg–Marquardt iteration of a tiny pose graph). :func:`loops_compile_whole` tells
 whether they are in effect for programs compiled with :func:`compile_options` (XLA's newer
 fusion emitters keep a scatter, so a loop, split); the graph solver then factorises small
-dense systems without LAPACK (:func:`jaxpose.graph._linear.cholesky_solve_loops`) so that its whole loop compiles
-into one function (pose3example 19 → 9 µs per iteration). Set them yourself before
-starting JAX, and compile with :func:`compile_options`, to get the same.
+dense systems without LAPACK (:func:`jaxpose.graph._linear.cholesky_solve_loops`) so that
+its whole loop compiles into one function (pose3example 19 → 9 µs per iteration). Set them
+yourself before starting JAX, and compile with :func:`compile_options`, to get the same.
 """
 
 from __future__ import annotations
