@@ -218,16 +218,17 @@ class _GraphPath:
     carried linearisation is ``(GraphLinearization, g)``, H a block-sparse operator."""
 
     def __init__(self, graph: FactorGraph, method: str, dense_max: int, damping: Damping,
-                 cg: PCG, free: Array, g0_norm: Array | None):
+                 cg: PCG, free: Array, g0_norm: Array | None, verbose: bool = False):
         self.graph, self.method, self.dense_max, self.damping = graph, method, dense_max, damping
         self.cg, self.free, self.g0_norm = cg, free, g0_norm
         st = graph.structure
         # "dense": H gathered from its CSR values (positions computed here, once, outside
-        # the loop); without LAPACK when the loop then compiles whole (small systems)
+        # the loop); without LAPACK when the loop then compiles whole (small systems; not
+        # with verbose's printing, a host callback that keeps the loop split)
         self.dense_index = (linear.dense_index(st.csr_indices, st.csr_indptr, st.size)
                             if method == "dense" else None)
         self.dense_loops = (method == "dense" and st.size <= linear.SMALL_DENSE
-                            and loops_compile_whole())
+                            and not verbose and loops_compile_whole())
 
     def linearize(self, variables: Variables) -> tuple[Any, Array, Array]:
         lin = linearize(self.graph, variables)
@@ -367,7 +368,8 @@ def _run(
     g0_norm = None
     if method == "pcg" and cg.rtol == "inexact":  # its forcing term: relative to ‖g(x0)‖
         g0_norm = jnp.linalg.norm(gradient(graph, linearize(graph, x0)))
-    path = _GraphPath(graph, method, linear_solver.dense_max, damping, cg, free, g0_norm)
+    path = _GraphPath(graph, method, linear_solver.dense_max, damping, cg, free, g0_norm,
+                      verbose)
     # the loop's first trial linearises at x0 (the Jacobians are traced once, in the
     # body; compilation time scales with the traced program); until then the carried
     # system is a zero placeholder of its layout

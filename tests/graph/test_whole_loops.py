@@ -103,7 +103,12 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 from jaxpose.graph import _pgo as pgo
 from jaxpose.io import read_g2o
+from jaxpose.graph import _solve
 out = {"whole": _compile.loops_compile_whole()}
+tiny = pgo.pose_graph_problem(read_g2o(sys.argv[1]))
+out["without_lapack"] = [  # verbose prints from the loop: a host call keeps it split
+    _solve._GraphPath(tiny, "dense", 600, _solve.Damping(), _solve.PCG(), None, None,
+                      verbose).dense_loops for verbose in (False, True)]
 for path in sys.argv[1:]:
     problem = pgo.pose_graph_problem(read_g2o(path))
     run = jax.jit(lambda p: pgo.solve_from_start(p, "auto")[0],
@@ -129,6 +134,7 @@ def test_solves_with_whole_loops_equal_the_lapack_solves():
     assert proc.returncode == 0, proc.stderr[-2000:]
     child = json.loads(proc.stdout.strip().splitlines()[-1])
     assert child["whole"] is True
+    assert child["without_lapack"] == [True, False]
     for path in paths:
         problem = pgo.pose_graph_problem(read_g2o(path))
         run = jax.jit(lambda p: pgo.solve_from_start(p, "auto")[0],
