@@ -118,6 +118,9 @@ for path in sys.argv[1:]:
     out[path] = {"loop_in_entry": " while(" in _compile._entry(text),
                  "cost": float(sol.cost), "iterations": int(sol.iterations),
                  "poses": np.asarray(sol.variables["pose"].data).tolist()}
+problem = pgo.pose_graph_problem(read_g2o(sys.argv[-1]), dtype=jax.numpy.float32)
+out["float32"] = float(jax.jit(lambda p: pgo.solve_from_start(p, "auto")[0].cost,
+                               compiler_options=_compile.compile_options())(problem))
 print(json.dumps(out))
 """
 
@@ -146,3 +149,5 @@ def test_solves_with_whole_loops_equal_the_lapack_solves():
         np.testing.assert_allclose(there["cost"], float(here.cost), rtol=1e-10)
         np.testing.assert_allclose(there["poses"], here.variables["pose"].data, rtol=0,
                                    atol=1e-8)
+    # float32 (the last graph, tinyGrid3D): the float64 minimum to float32's resolution
+    np.testing.assert_allclose(child["float32"], float(here.cost), rtol=1e-5)
