@@ -205,10 +205,10 @@ def block_jacobi(blocks: tuple[Array, ...]) -> Callable[[Array], Array]:
 SMALL_DENSE = 64
 """Largest system (tangent dimensions) the graph solver factorises with
 :func:`cholesky_solve_loops` when loops compile whole
-(:func:`jaxpose._compile.loops_compile_whole`): its N³ operations cost more than LAPACK's
-N³/3 above (measured per solve in a compiled loop: N = 30 4.7 µs against 3.9, 54 14 against
-8.9, 96 68 against 19), more than the ~10–20 µs of operation dispatch per iteration that a
-loop compiled whole saves."""
+(:func:`jaxpose._compile.loops_compile_whole`). Its column steps take 1.4–2.6x LAPACK's
+time (per solve in a compiled loop: N = 30 5.4 µs against 3.9, 54 14 against 8.6, 96 49
+against 19); above this size that costs more than the ~10–20 µs of operation dispatch per
+iteration that a loop compiled whole saves."""
 
 
 def dense_index(indices: Array, indptr: Array, size: int) -> Array:
@@ -230,8 +230,13 @@ def densify(data: Array, index: Array, size: int) -> Array:
 def solve_dense(data: Array, indices: Array, indptr: Array, b: Array) -> Array:
     """Densify the CSR matrix and solve with Cholesky (small problems only)."""
     n = b.shape[0]
-    dense = densify(data, dense_index(indices, indptr, n), n)
-    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(dense), b)
+    return cholesky_solve(densify(data, dense_index(indices, indptr, n), n), b)
+
+
+def cholesky_solve(a: Array, b: Array) -> Array:
+    """Solve ``a x = b`` for a symmetric positive-definite (n, n) ``a`` by LAPACK's (the
+    backend's) Cholesky; NaN where ``a`` is not positive definite."""
+    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b)
 
 
 def cholesky_solve_loops(a: Array, b: Array, segment: int = 16) -> Array:

@@ -206,9 +206,8 @@ class _SparseLinear:
         if path.method == "dense":
             h = linear.densify(csr_values(graph, lin).at[st.diag_pos].add(add),
                                path.dense_index, st.size)
-            if path.dense_loops:
-                return linear.cholesky_solve_loops(h, -grad)
-            return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(h), -grad)
+            cholesky = linear.cholesky_solve_loops if path.dense_loops else linear.cholesky_solve
+            return cholesky(h, -grad)
         data = csr_values(graph, lin).at[st.diag_pos].add(add)
         return linear.solve_sparse_direct(data, st.csr_indices, st.csr_indptr, -grad)
 
