@@ -14,7 +14,8 @@ a user's back; pass them to your own ``jax.jit``::
     step = jax.jit(jax.grad(loss), compiler_options=jaxpose.compile_options())
 
 The ``jaxpose pgo`` command also sets :data:`WHOLE_LOOP_FLAGS` (process-wide XLA flags,
-read when JAX starts its backend): XLA:CPU then compiles a ``while`` loop whose body holds no
+read when JAX starts its backend; :func:`compile_options` then adds an option): XLA:CPU
+then compiles a ``while`` loop whose body holds no
 library call (LAPACK, a host callback) and touches at most :data:`WHOLE_LOOP_BYTES` bytes into
 one function, instead of dispatching each of its operations separately (~0.1 µs each, ~190
 per Levenberg–Marquardt iteration of a tiny pose graph). :func:`loops_compile_whole` tells
@@ -40,11 +41,16 @@ _CPU_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 WHOLE_LOOP_BYTES = 1 << 22
 """Bytes a loop may touch (XLA's cost analysis of its body) to compile into one function."""
 
-WHOLE_LOOP_FLAGS = (
-    f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={WHOLE_LOOP_BYTES} "
-    # YNNPACK's dot fusions are library calls too: one in a loop keeps it split
-    "--xla_cpu_experimental_ynn_fusion_type="
-)
+_THRESHOLD = "xla_cpu_small_while_loop_byte_threshold"
+
+WHOLE_LOOP_FLAGS = f"--xla_backend_extra_options={_THRESHOLD}={WHOLE_LOOP_BYTES}"
+"""An XLA backend option (one an XLA does not know is ignored; an unknown flag would abort
+the process): loops touching at most :data:`WHOLE_LOOP_BYTES` compile into one function."""
+
+# With the flags, compile_options() also turns off YNNPACK's dot fusions: library calls,
+# one in a loop keeps it split. A compile option, so an XLA without it raises (and is
+# probed) instead of aborting.
+_WHOLE_LOOP_OPTIONS: dict[str, Any] = {"xla_cpu_experimental_ynn_fusion_type": ""}
 
 
 def use_whole_loops() -> None:
@@ -86,19 +92,25 @@ def _entry(hlo: str) -> str:
 def compile_options() -> dict[str, Any]:
     """Options for ``jax.jit(..., compiler_options=...)`` / ``lowered.compile(...)`` on the
     default backend: ``{"xla_cpu_use_fusion_emitters": False}`` on a CPU whose XLA knows
-    that option (checked once by compiling a one-operation program), else ``{}``."""
-    return dict(_supported(jax.default_backend()))
+    that option (checked once by compiling a one-operation program), else ``{}``; with
+    :data:`WHOLE_LOOP_FLAGS` in ``XLA_FLAGS``, also no YNNPACK dot fusions (where known)."""
+    backend = jax.default_backend()
+    options = dict(_supported(backend, tuple(_CPU_OPTIONS.items())))
+    if _THRESHOLD in os.environ.get("XLA_FLAGS", ""):
+        options.update(_supported(backend, tuple(_WHOLE_LOOP_OPTIONS.items())))
+    return options
 
 
 @functools.cache
-def _supported(backend: str) -> tuple[tuple[str, Any], ...]:
+def _supported(backend: str, options: tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...]:
+    """``options`` where this backend's XLA compiles with them (CPU only), else ()."""
     if backend != "cpu":
         return ()
     try:
-        jax.jit(lambda x: x + 1).lower(np.float32(0)).compile(compiler_options=_CPU_OPTIONS)
+        jax.jit(lambda x: x + 1).lower(np.float32(0)).compile(compiler_options=dict(options))
     except jax.errors.JaxRuntimeError:  # an XLA without the option: its defaults
         return ()
-    return tuple(_CPU_OPTIONS.items())
+    return options
 
 
 __all__ = ["compile_options"]

@@ -33,4 +33,16 @@ def test_an_xla_without_the_option_gets_no_options(monkeypatch):
 
 
 def test_other_backends_get_no_options():
-    assert _compile._supported("gpu") == ()
+    assert _compile._supported("gpu", (("xla_cpu_use_fusion_emitters", False),)) == ()
+
+
+def test_whole_loop_flags_add_the_ynn_option(monkeypatch):
+    """With the whole-loop flags in XLA_FLAGS the options also turn YNNPACK's dot fusions
+    off where this XLA knows that option; an unknown one is dropped, not fatal."""
+    monkeypatch.setenv("XLA_FLAGS", _compile.WHOLE_LOOP_FLAGS)
+    assert jp.compile_options() == {"xla_cpu_use_fusion_emitters": False,
+                                    "xla_cpu_experimental_ynn_fusion_type": ""}
+    monkeypatch.setattr(_compile, "_WHOLE_LOOP_OPTIONS", {"xla_no_such_option_zz": ""})
+    assert jp.compile_options() == {"xla_cpu_use_fusion_emitters": False}
+    monkeypatch.delenv("XLA_FLAGS")
+    assert jp.compile_options() == {"xla_cpu_use_fusion_emitters": False}
