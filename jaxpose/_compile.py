@@ -13,17 +13,18 @@ a user's back; pass them to your own ``jax.jit``::
 
     step = jax.jit(jax.grad(loss), compiler_options=jaxpose.compile_options())
 
-The ``jaxpose pgo`` command also sets :data:`WHOLE_LOOP_FLAGS` (process-wide XLA flags,
-read when JAX starts its backend; :func:`compile_options` then adds an option): XLA:CPU
-then compiles a ``while`` loop whose body holds no
-library call (LAPACK, a host callback) and touches at most :data:`WHOLE_LOOP_BYTES` bytes into
-one function, instead of dispatching each of its operations separately (~0.1 µs each, ~190
-per Levenberg–Marquardt iteration of a tiny pose graph). :func:`loops_compile_whole` tells
-whether they are in effect for programs compiled with :func:`compile_options` (XLA's newer
-fusion emitters keep a scatter, so a loop, split); the graph solver then factorises small
-dense systems without LAPACK (:func:`jaxpose.graph._linear.cholesky_solve_loops`) so that
-its whole loop compiles into one function (pose3example 19 → 9 µs per iteration). Set them
-yourself before starting JAX, and compile with :func:`compile_options`, to get the same.
+The ``jaxpose pgo`` command also sets :data:`WHOLE_LOOP_FLAGS` (a process-wide XLA
+backend option, read when JAX starts its backend; :func:`compile_options` then turns
+YNNPACK's dot fusions off): XLA:CPU then compiles a ``while`` loop whose body holds no
+library call (LAPACK, YNNPACK, a host callback) and touches at most
+:data:`WHOLE_LOOP_BYTES` bytes into one function, instead of dispatching each of its
+operations separately (~0.1 µs each, ~190 per Levenberg–Marquardt iteration of a tiny pose
+graph). :func:`loops_compile_whole` tells whether that is in effect for programs compiled
+with :func:`compile_options` (XLA's newer fusion emitters keep a scatter, so a loop,
+split); the graph solver then factorises small dense systems without LAPACK
+(:func:`jaxpose.graph._linear.cholesky_solve_loops`) so that its whole loop compiles into
+one function (pose3example 19 → 9 µs per iteration). Call :func:`use_whole_loops` before
+JAX starts, and compile with :func:`compile_options`, to get the same in your process.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ WHOLE_LOOP_FLAGS = f"--xla_backend_extra_options={_THRESHOLD}={WHOLE_LOOP_BYTES}
 """An XLA backend option (one an XLA does not know is ignored; an unknown flag would abort
 the process): loops touching at most :data:`WHOLE_LOOP_BYTES` compile into one function."""
 
-# With the flags, compile_options() also turns off YNNPACK's dot fusions: library calls,
+# With the flag, compile_options() also turns off YNNPACK's dot fusions: library calls,
 # one in a loop keeps it split. A compile option, so an XLA without it raises (and is
 # probed) instead of aborting.
 _WHOLE_LOOP_OPTIONS: dict[str, Any] = {"xla_cpu_experimental_ynn_fusion_type": ""}
