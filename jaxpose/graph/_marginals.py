@@ -191,7 +191,9 @@ def marginals(
         :class:`Marginals`: covariances in the tangent chart at the solution (right
         perturbation, jaxpose's tangent layout; :func:`se3_to_gtsam` maps se3 blocks to
         GTSAM's order); fixed variables have zero blocks. A singular H (an unobserved
-        direction with no gauge fixed) gives non-finite values.
+        direction with no gauge fixed) gives non-finite values; with ``"pcg"`` a column
+        whose CG does not reach ``cg_rtol`` (checked on its true residual) within
+        ``cg_max_iters`` raises instead of returning an inexact covariance.
 
     The selection is checked eagerly; the computation is compiled (``eqx.filter_jit``), so
     a repeated call on a graph of the same structure with new values reuses the program.
@@ -383,11 +385,16 @@ def _pcg_entries(graph: FactorGraph, lin: Any, free: Array, i: np.ndarray, j: np
     n = graph.size
     cols, inv = np.unique(j, return_inverse=True)
 
+    inner = linear.pcg_spd(precond, rtol, max_iters)  # NaN where rtol is not reached
+
     def column(c: Array) -> Array:
         e = jnp.zeros((n,), add.dtype).at[c].set(1.0)
-        x, _ = linear.solve_pcg(lambda v: hessian_vector(graph, lin, v) + add * v, e,
-                                precond, rtol=rtol, max_iters=max_iters)
-        return x
+        return inner(lambda v: hessian_vector(graph, lin, v) + add * v, e)
 
     solved = jax.lax.map(column, jnp.asarray(cols), batch_size=batch_size)  # (k, n)
-    return solved[inv, i]
+    return eqx.error_if(
+        solved[inv, i], ~jnp.all(jnp.isfinite(solved)),
+        f"marginals(method='pcg'): conjugate gradients did not reach cg_rtol={rtol} within "
+        f"cg_max_iters={max_iters} iterations for some columns (H ill-conditioned for its "
+        "block-Jacobi preconditioner, or singular: no gauge fixed); raise cg_max_iters, or "
+        "use method='sparse' or 'dense'")

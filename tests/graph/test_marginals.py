@@ -88,6 +88,22 @@ def test_mixed_graph_matches_dense_inverse():
         assert np.all(np.asarray(m.joint[2])[:6] == 0)
 
 
+
+def test_pcg_that_does_not_converge_raises():
+    """A CG budget too small for the requested accuracy raises (eagerly and under jit),
+    never returns an inexact covariance; enough iterations give the dense answer."""
+    graph, info = mixed_problem(seed=3, fixed={"pose3": [0], "pose2": [1], "sim3": [0]})
+    with pytest.raises(Exception, match=r"did not reach cg_rtol=1e-12 within cg_max_iters=2"):
+        jax.block_until_ready(marginals(graph, None, method="pcg", cg_max_iters=2).covariances)
+    run = jax.jit(lambda g: marginals(g, None, method="pcg", cg_max_iters=2).covariances,
+                  compiler_options=FAST_COMPILE)
+    with pytest.raises(Exception, match="raise cg_max_iters, or use method='sparse'"):
+        jax.block_until_ready(run(graph))
+    ref = _dense_covariance(graph, info)
+    got = marginals(graph, None, method="pcg", cg_max_iters=500).covariances["pose2"]
+    np.testing.assert_allclose(got, _blocks(ref, graph, "pose2"), rtol=1e-8,
+                               atol=1e-11 * np.abs(ref).max())
+
 def test_selected_inverse_all_entries():
     """Selected inversion (supernodal Takahashi) + off-pattern solves = numpy's inverse."""
     rng = np.random.default_rng(1)
