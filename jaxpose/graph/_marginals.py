@@ -47,6 +47,9 @@ from ._solve import GraphLinearSolver, GraphSolution
 
 Array = jax.Array
 METHODS = ("auto", "dense", "sparse", "pcg", "schur")
+FLOAT32_CG_RTOL = 1e-5
+"""Smallest ``cg_rtol`` used in float32 (the backward's float32 tolerance): the default
+1e-12 is below float32's resolution, so its CG could never be shown to converge."""
 
 
 class Marginals(eqx.Module):
@@ -184,7 +187,8 @@ def marginals(
             named in ``variables``, or a sequence of ``((type_a, i), (type_b, j))``.
         method: ``"auto"``, ``"dense"``, ``"sparse"``, ``"pcg"`` or ``"schur"`` (module
             docstring).
-        cg_rtol, cg_max_iters: tolerance and budget of each CG solve (``"pcg"``).
+        cg_rtol, cg_max_iters: tolerance and budget of each CG solve (``"pcg"``; in
+            float32 at least :data:`FLOAT32_CG_RTOL`).
         batch_size: columns solved at once by ``"pcg"`` (``lax.map`` batches).
 
     Returns:
@@ -385,6 +389,8 @@ def _pcg_entries(graph: FactorGraph, lin: Any, free: Array, i: np.ndarray, j: np
     n = graph.size
     cols, inv = np.unique(j, return_inverse=True)
 
+    if jnp.dtype(add.dtype).itemsize < 8:  # float32 cannot reach the float64 default
+        rtol = max(rtol, FLOAT32_CG_RTOL)
     inner = linear.pcg_spd(precond, rtol, max_iters)  # NaN where rtol is not reached
 
     def column(c: Array) -> Array:

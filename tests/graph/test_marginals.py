@@ -103,6 +103,12 @@ def test_pcg_that_does_not_converge_raises():
     got = marginals(graph, None, method="pcg", cg_max_iters=500).covariances["pose2"]
     np.testing.assert_allclose(got, _blocks(ref, graph, "pose2"), rtol=1e-8,
                                atol=1e-11 * np.abs(ref).max())
+    # float32 with the default cg_rtol (1e-12, below its resolution): CG to 1e-5, no error
+    g32, g64 = _small_se2(jnp.float32), _small_se2()
+    c32 = marginals(g32, None, "pose", method="pcg").covariances["pose"]
+    c64 = marginals(g64, None, "pose", method="dense").covariances["pose"]
+    assert c32.dtype == jnp.float32
+    np.testing.assert_allclose(c32, c64, rtol=2e-3, atol=2e-3 * np.abs(np.asarray(c64)).max())
 
 def test_selected_inverse_all_entries():
     """Selected inversion (supernodal Takahashi) + off-pattern solves = numpy's inverse."""
