@@ -128,8 +128,7 @@ def solve_sparse_spd(data: Array, indices: Array, indptr: Array, b: Array,
     the solver (default :func:`solve_sparse_direct`, CHOLMOD on the host; e.g.
     :func:`pcg_spd` on any backend)."""
     n = b.shape[0]
-    rows = jnp.repeat(jnp.arange(n), jnp.diff(jnp.asarray(indptr)),
-                      total_repeat_length=data.shape[0])
+    rows = csr_rows(indptr, data.shape[0])
 
     def matvec(v: Array) -> Array:
         return jax.ops.segment_sum(data * v[indices], rows, num_segments=n,
@@ -211,12 +210,19 @@ against 19); above this size that costs more than the ~10–20 µs of operation 
 iteration that a loop compiled whole saves."""
 
 
+def csr_rows(indptr: Array, nnz: int) -> Array:
+    """(nnz,) row index of each stored entry of a CSR matrix with row pointers ``indptr``."""
+    indptr = jnp.asarray(indptr)
+    return jnp.repeat(jnp.arange(indptr.shape[0] - 1), jnp.diff(indptr),
+                      total_repeat_length=nnz)
+
+
 def dense_index(indices: Array, indptr: Array, size: int) -> Array:
     """(size·size,) position in the CSR values of each entry of the dense row-major matrix,
     ``nnz`` where the pattern holds none: :func:`densify` is then one gather (a scatter is a
     serial loop on XLA:CPU). Compute it once per pattern, outside a solver's loop."""
     nnz = indices.shape[0]
-    rows = jnp.repeat(jnp.arange(size), jnp.diff(indptr), total_repeat_length=nnz)
+    rows = csr_rows(indptr, nnz)
     return (jnp.full((size * size,), nnz, jnp.int32)
             .at[rows * size + indices].set(jnp.arange(nnz, dtype=jnp.int32)))
 

@@ -360,13 +360,10 @@ def _reduced(graph: FactorGraph, lin: Any, free: Array) -> Any:
 def _dense_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,
                    j: np.ndarray) -> Array:
     n = indptr.shape[0] - 1
-    rows = jnp.repeat(jnp.arange(n), jnp.diff(indptr), total_repeat_length=data.shape[0])
-    dense = jnp.zeros((n, n), data.dtype).at[rows, indices].add(data)
-    factor = jax.scipy.linalg.cho_factor(dense)
+    dense = linear.densify(data, linear.dense_index(indices, indptr, n), n)
     cols, inv = np.unique(j, return_inverse=True)
     rhs = jnp.zeros((n, cols.size), data.dtype).at[cols, np.arange(cols.size)].set(1.0)
-    solved = jax.scipy.linalg.cho_solve(factor, rhs)
-    return solved[i, inv]
+    return linear.cholesky_solve(dense, rhs)[i, inv]
 
 
 def _sparse_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,

@@ -203,12 +203,10 @@ class _SparseLinear:
         if path.method == "schur":
             return schur_step(graph, schur_parts(graph, jtj_blocks(lin), grad.dtype), grad, add,
                               reduced_solver(graph, path.dense_max))
-        if path.method == "dense":
-            h = linear.densify(csr_values(graph, lin).at[st.diag_pos].add(add),
-                               path.dense_index, st.size)
-            cholesky = linear.cholesky_solve_loops if path.dense_loops else linear.cholesky_solve
-            return cholesky(h, -grad)
         data = csr_values(graph, lin).at[st.diag_pos].add(add)
+        if path.method == "dense":
+            cholesky = linear.cholesky_solve_loops if path.dense_loops else linear.cholesky_solve
+            return cholesky(linear.densify(data, path.dense_index, st.size), -grad)
         return linear.solve_sparse_direct(data, st.csr_indices, st.csr_indptr, -grad)
 
 
