@@ -358,9 +358,11 @@ def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
           f"{float(sol.cost):.6e}  robust cost {float(sol.robust_cost):.6e}  "
           f"GNC iterations {int(sol.iterations)}  LM iterations {int(sol.inner_iterations)}  "
           f"mu {float(sol.mu):.3g}  status {sol.status_name}")
+    deleted = int(sol.deletions)
     print(f"loop closures: {int(loops.sum()) - rejected.size} inliers, {rejected.size} "
-          f"rejected" + (f" (edges {', '.join(map(str, rejected[:10]))}"
-                         f"{', ...' if rejected.size > 10 else ''})" if rejected.size else ""))
+          f"rejected" + (f", {deleted} of them by the deletion test" if deleted else "")
+          + (f" (edges {', '.join(map(str, rejected[:10]))}"
+             f"{', ...' if rejected.size > 10 else ''})" if rejected.size else ""))
     print(f"time: {total_s:.3f} s (including compilation)")
     _note_slow_blas("jaxpose pgo")
     return poses, sol

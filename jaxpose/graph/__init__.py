@@ -6,7 +6,8 @@ reached the same way: pose graphs by :func:`optimize_pose_graph` / :func:`pose_g
 host; :func:`chordal_poses`, :func:`initial_variables` in jit and vmap) and bundle
 adjustment (BAL camera model, Schur elimination of the points) by :func:`optimize_bal` /
 :func:`bundle_adjustment_problem`. Outlier-robust solves by graduated non-convexity:
-:func:`gnc`. Every name is exported here; the implementation modules are private.
+:func:`gnc`; outlier tests of a solution: :func:`deletion_statistics`. Every name is
+exported here; the implementation modules are private.
 """
 
 from ._ba import (
@@ -31,6 +32,7 @@ from ._marginals import Marginals, marginals, se3_to_gtsam
 from ._pgo import optimize_pose_graph, pose_graph_problem
 from ._problem import FactorGraph, GraphLinearization, cost, linearize
 from ._robust import GNCSolution, chi2_quantile, gm_weights, gnc, tls_weights, weighted_graph
+from ._snooping import deletion_statistics
 from ._solve import (
     PCG,
     Damping,
@@ -64,6 +66,7 @@ __all__ = [
     "cost",
     "default_rtol",
     "default_stopping",
+    "deletion_statistics",
     "initial_poses",
     "initial_variables",
     "gm_weights",
