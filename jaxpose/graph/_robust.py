@@ -465,7 +465,7 @@ def _run(
         init["status"] = jnp.where(init["status"] < 0, Results.MAX_STEPS, init["status"])
     if deleting_on:  # phase 0: GNC, 1: deletion test; `final`: GNC's status
         init.update(final=init["status"], tls=tls(x1), phase=jnp.asarray(0, jnp.int32))
-        init = _enter_deletions(init, init["status"] >= 0, tls)
+        init = _enter_deletions(init, init["status"] >= 0)
     weight_fn = tls_weights if surrogate == "tls" else gm_weights
 
     def gnc_weights(x: Any, mu: Array) -> Array:
@@ -540,7 +540,7 @@ def _run(
         if not deleting_on:
             return out
         out.update(final=status, tls=tls(out["x"]), phase=state["phase"])
-        out = _enter_deletions(out, status >= 0, tls=None)
+        out = _enter_deletions(out, status >= 0)
         # a deletion step: kept only if the TLS objective decreased
         tls_new = tls(x_new)
         accept = worth & finite & (tls_new < state["tls"])
@@ -580,17 +580,14 @@ def _run(
     )
 
 
-def _enter_deletions(state: dict[str, Any], ended: Array, tls: Any) -> dict[str, Any]:
+def _enter_deletions(state: dict[str, Any], ended: Array) -> dict[str, Any]:
     """Where GNC's loop has ``ended`` (not non-finite), record its status in ``final``
-    and go on with the deletion test (phase 1, running); ``tls`` recomputes the
-    objective at the state's estimate (None: ``state["tls"]`` already is)."""
+    and go on with the deletion test (phase 1, running)."""
     go = ended & (state["status"] != Results.NON_FINITE) & (state["phase"] == 0)
     out = dict(state)
     out["final"] = jnp.where(go, state["status"], state["final"]).astype(jnp.int32)
     out["status"] = jnp.where(go, Results.RUNNING, state["status"]).astype(jnp.int32)
     out["phase"] = jnp.where(go, 1, state["phase"]).astype(jnp.int32)
-    if tls is not None:
-        out["tls"] = tls(state["x"])
     return out
 
 

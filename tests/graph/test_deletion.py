@@ -196,6 +196,7 @@ def test_deletion_test_alone_finds_the_outliers(seed):
     w = np.asarray(sol.weights[0])
     np.testing.assert_array_equal(np.flatnonzero(w < 0.5), outliers)
     assert int(sol.deletions) == outliers.size and np.all(w[odo] == 1.0)
+    assert sol.status_name == "max_steps" and int(sol.iterations) == 0  # GNC's, kept
     one = gnc(problem, known_inliers=odo, max_iterations=0, initial_solve=True,
               max_deletions=1, stopping=default_stopping(100))
     assert int(one.deletions) == 1
