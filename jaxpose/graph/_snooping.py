@@ -11,10 +11,10 @@ removing factor k and re-solving takes off the total cost ``Σ |r̃|²``: the ot
 drops by ``T_k − |r̃_k|²``, and the factor's own residual after the re-solve, whitened by
 the covariance of that prediction, has squared norm T_k (the deleted, studentised
 residual; its plain squared norm ``r̃_kᵀ(I − L_k)⁻²r̃_k`` is larger still). For an inlier
-with Gaussian noise T_k is χ² with the residual's dimension as degrees of freedom (Baarda
-1968; Pope's τ test for a group of observations), so T_k > χ²₀.₉₉ flags an outlier;
-unlike the residual itself it also flags a wrong factor that the others cannot contradict
-much (high leverage: the solution bent to fit it). ``I − L_k`` (the redundancy) is
+with Gaussian noise T_k is χ² with the residual's dimension as degrees of freedom (Baarda's
+data snooping, 1968, in its form for a group of observations), so T_k > χ²₀.₉₉ flags an
+outlier; unlike the residual itself it also flags a wrong factor that the others cannot
+contradict much (high leverage: the solution bent to fit it). ``I − L_k`` (the redundancy) is
 singular for a factor that alone constrains some direction (a bridge of the graph):
 removing it would leave that direction free and the test cannot see it; T_k is then NaN.
 
