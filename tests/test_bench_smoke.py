@@ -264,3 +264,28 @@ def test_time_jax_counts_the_optimised_program_only_when_asked():
     assert timing.hlo_lines == expected > 0
     assert jnp.allclose(out, f(x))
     assert time_jax(f, x, repeats=1, min_time=0.0)[0].hlo_lines is None
+
+
+def test_outlier_bench_counts_draws_and_objectives():
+    # --seeds: the summary counts lower / tie / higher by the 1 % tie rule and the cells
+    # where jaxpose's TLS objective is at most GTSAM's (made-up results, no solve)
+    pgo_outliers = pytest.importorskip("bench.pgo_outliers")
+
+    def cell(ape_al, tls):
+        return dict(ape=2 * ape_al, ape_pct=1.0, ape_al=ape_al, ape_al_pct=1.0, tls=tls)
+
+    def draw(jp_ape, jp_tls):
+        cells = {"outliers": 3, "jaxpose-gnc": cell(jp_ape, jp_tls),
+                 "gtsam-gnc": cell(1.0, 100.0)}
+        return {"g": {"extent": 10.0, "loops": 6, "rates": {0.5: cells}}}
+
+    draws = {0: draw(0.5, 90.0), 1: draw(1.005, 100.0), 2: draw(1.5, 101.0)}
+    args = pgo_outliers.build_parser().parse_args(["--contestants", "jaxpose-gnc,gtsam-gnc"])
+    args.contestants = ["jaxpose-gnc", "gtsam-gnc"]
+    text = pgo_outliers.draws_report(draws, args, ((0.0,) * 3, (0.0,) * 3))
+    assert text.splitlines()[-1] == (
+        "Result: over 3 cells jaxpose GNC is lower on 1, ties on 1, higher on 1 (aligned "
+        "APE); its TLS objective is at most GTSAM's on 2 of 3")
+    assert "| g | 50% | 0.5 / 1 (lower) | 1 / 1 (tie) | 1.5 / 1 (higher; GTSAM objective " \
+           "lower) |" in text
+    assert sum(line.startswith("Result:") for line in text.splitlines()) == 1
