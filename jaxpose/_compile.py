@@ -54,6 +54,11 @@ the process): loops touching at most :data:`WHOLE_LOOP_BYTES` compile into one f
 _WHOLE_LOOP_OPTIONS: dict[str, Any] = {"xla_cpu_experimental_ynn_fusion_type": ""}
 
 
+def _whole_loop_flag() -> bool:
+    """Whether :data:`WHOLE_LOOP_FLAGS`'s option is in this process's ``XLA_FLAGS``."""
+    return _THRESHOLD in os.environ.get("XLA_FLAGS", "")
+
+
 def use_whole_loops() -> None:
     """Append :data:`WHOLE_LOOP_FLAGS` to ``XLA_FLAGS`` (the ``jaxpose pgo`` command's
     setting). Takes effect only if JAX has not started its backend yet; left alone when
@@ -70,7 +75,7 @@ def loops_compile_whole() -> bool:
     a CPU backend), checked once by compiling a probe loop with the operations that keep
     one split otherwise (a scatter-add, which XLA's newer fusion emitters keep out, and
     the identity product of :func:`jaxpose.lie.series.computed_once`, a YNNPACK call)."""
-    if jax.default_backend() != "cpu" or _THRESHOLD not in os.environ.get("XLA_FLAGS", ""):
+    if jax.default_backend() != "cpu" or not _whole_loop_flag():
         return False  # without the flag XLA's threshold (1 KiB) cannot pass the probe
     from .lie.series import computed_once
 
@@ -97,7 +102,7 @@ def compile_options() -> dict[str, Any]:
     :data:`WHOLE_LOOP_FLAGS` in ``XLA_FLAGS``, also no YNNPACK dot fusions (where known)."""
     backend = jax.default_backend()
     options = dict(_supported(backend, tuple(_CPU_OPTIONS.items())))
-    if _THRESHOLD in os.environ.get("XLA_FLAGS", ""):
+    if _whole_loop_flag():
         options.update(_supported(backend, tuple(_WHOLE_LOOP_OPTIONS.items())))
     return options
 

@@ -42,8 +42,8 @@ import numpy as np
 from .._precision import full_precision
 from . import _linear as linear
 from . import _selinv as selinv
-from ._problem import FactorGraph, block_diagonal, csr_values, hessian_vector, linearize, split
-from ._solve import GraphLinearSolver, GraphSolution
+from ._problem import FactorGraph, csr_values, hessian_vector, linearize
+from ._solve import GraphLinearSolver, GraphSolution, damped_block_jacobi
 
 Array = jax.Array
 METHODS = ("auto", "dense", "sparse", "pcg", "schur")
@@ -379,10 +379,7 @@ def _sparse_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,
 def _pcg_entries(graph: FactorGraph, lin: Any, free: Array, i: np.ndarray, j: np.ndarray,
                  rtol: float, max_iters: int, batch_size: int | None) -> Array:
     add = 1.0 - free
-    blocks = block_diagonal(graph, lin)
-    damped = tuple(b + jax.vmap(jnp.diag)(a) for b, a in
-                   zip(blocks, split(graph, add), strict=True))
-    precond = linear.block_jacobi(damped)
+    precond = damped_block_jacobi(graph, lin, add)
     n = graph.size
     cols, inv = np.unique(j, return_inverse=True)
 

@@ -177,6 +177,14 @@ class _Hessian:
         return hessian_vector(self.graph, self.lin, v)
 
 
+def damped_block_jacobi(graph: FactorGraph, lin: Any, add: Array) -> Any:
+    """Block-Jacobi preconditioner of ``H + diag(add)`` (``add``: (N,) flat), H's diagonal
+    blocks from the linearisation ``lin`` (:func:`~jaxpose.graph._linear.block_jacobi`)."""
+    blocks = block_diagonal(graph, lin)
+    return linear.block_jacobi(tuple(b + jax.vmap(jnp.diag)(a) for b, a in
+                                     zip(blocks, split(graph, add), strict=True)))
+
+
 class _SparseLinear:
     """The ``solve(jac, res, hess, grad, diag_add)`` protocol of the optim linear solvers
     on the sparse path: solves ``(H + diag(diag_add)) δ = −grad`` with H from the
@@ -191,12 +199,10 @@ class _SparseLinear:
         graph, st = path.graph, path.graph.structure
         add = diag_add + (1.0 - path.free)
         if path.method == "pcg":
-            blocks = block_diagonal(graph, lin)
-            damped = tuple(b + jax.vmap(jnp.diag)(a) for b, a in
-                           zip(blocks, split(graph, add), strict=True))
             x, its = linear.solve_pcg(
                 lambda v: hessian_vector(graph, lin, v) + add * v, -grad,
-                linear.block_jacobi(damped), rtol=self.cg_rtol, max_iters=path.cg.max_iters,
+                damped_block_jacobi(graph, lin, add), rtol=self.cg_rtol,
+                max_iters=path.cg.max_iters,
             )
             self.iterations = self.iterations + jnp.asarray(its, jnp.int32)
             return x
