@@ -320,10 +320,14 @@ class _Plan:
 def _entries(graph: FactorGraph, values: Any, plan: _Plan) -> list[Array]:
     """The requested entries of H⁻¹ at ``values``, one array per request (compiled: a
     repeated call with new values of the same structure reuses the program)."""
+    return inverse_entries(graph, linearize(graph, values), plan)
+
+
+def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan) -> list[Array]:
+    """:func:`_entries` at a linearisation ``lin`` of ``graph`` (traceable)."""
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
     flat_i, flat_j = plan.flat_i, plan.flat_j
-    lin = linearize(graph, values)
     dtype = lin.cost.dtype
     free = jnp.concatenate(
         [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]).astype(dtype)

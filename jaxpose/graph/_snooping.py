@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._precision import full_precision
-from ._marginals import _entries, _Plan
+from ._marginals import _Plan, inverse_entries
 from ._problem import FactorGraph, linearize
 from ._solve import GraphLinearSolver
 
@@ -62,9 +62,7 @@ def plan(graph: FactorGraph, method: str, caller: str = "deletion_statistics") -
         ) from None
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
-    base, off = {}, 0
-    for n, c, d in zip(st.names, st.counts, st.dims, strict=True):
-        base[n], off = off, off + c * d
+    base = dict(zip(st.names, st.offsets[:-1], strict=True))
     rows, cols, shapes = [], [], []
     for f, idx in zip(graph.factors, indices, strict=True):
         scalars = np.concatenate(
@@ -109,8 +107,8 @@ def deletion_statistics(graph: FactorGraph, values: Any = None, *,
 def statistics(graph: FactorGraph, values: Any, blocks_plan: _Plan) -> tuple[Array, ...]:
     """:func:`deletion_statistics` with the covariance blocks' :func:`plan` made
     beforehand (traceable: ``graph`` may be traced, the plan is static)."""
-    blocks = _entries(graph, values, blocks_plan)
     lin = linearize(graph, values)
+    blocks = inverse_entries(graph, lin, blocks_plan)
     out = []
     for r, jac, cov in zip(lin.residuals, lin.jacobians, blocks, strict=True):
         j = jnp.concatenate(jac, axis=-1)  # (m, rdim, D)
