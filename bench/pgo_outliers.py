@@ -155,11 +155,12 @@ def tls_objective(graph: Any, poses: np.ndarray) -> float:
     inliers) + ``½ Σ min(s, c̄²)`` over the loop closures, ``s = rᵀΩr``."""
     from jaxpose.graph import _pgo as pgo
     from jaxpose.graph._robust import _squared_norms
+    from jaxpose.graph._robust import tls_objective as objective
 
     problem = pgo.pose_graph_problem(graph, poses=poses)
-    s = np.asarray(_squared_norms(problem, problem.variables))
     odo = pgo.odometry_edges(graph)
-    return 0.5 * float(np.sum(np.where(odo, s, np.minimum(s, _threshold(graph.kind)))))
+    s = _squared_norms(problem, problem.variables)
+    return float(objective(s, _threshold(graph.kind), odo, np.zeros_like(odo)))
 
 
 # ----------------------------------------------------------------------------------

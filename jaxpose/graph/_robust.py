@@ -391,6 +391,19 @@ def _inner_dense(graph: FactorGraph, free: dict[str, Any], options: dict[str, An
 # ----------------------------------------------------------------------------------
 # The outer loop
 # ----------------------------------------------------------------------------------
+def tls_objective(s: Array, barc_sq: Array, known_in: Array, known_out: Array) -> Array:
+    """The objective TLS-GNC minimises, from squared whitened residuals ``s`` (M,):
+    ``½ Σ s`` over known inliers + ``½ Σ min(s, c̄²)`` over the unknown factors (known
+    outliers count nothing)."""
+    return 0.5 * jnp.sum(jnp.where(known_in, s,
+                                   jnp.where(known_out, 0.0, jnp.minimum(s, barc_sq))))
+
+
+def _select(pred: Array, new: Any, old: Any) -> Any:
+    """``new`` where ``pred`` else ``old``, leaf by leaf (one scalar predicate)."""
+    return jax.tree.map(lambda a, b: jnp.where(pred, a, b), new, old)
+
+
 def _robust_cost(surrogate: str, s: Array, barc_sq: Array) -> Array:
     if surrogate == "tls":
         return 0.5 * jnp.sum(jnp.minimum(s, barc_sq))
@@ -429,7 +442,8 @@ def _run(
         x1, ist, iits = inner(x0, _split(w_init, counts))
     else:
         x1, ist, iits = x0, jnp.asarray(Results.CONVERGED), jnp.asarray(0)
-    cost1 = 0.5 * jnp.sum(w_init * _squared_norms(graph, x1))
+    s1 = _squared_norms(graph, x1)
+    cost1 = 0.5 * jnp.sum(w_init * s1)
     mu0 = initial_mu(surrogate, s0, barc_sq, unknown).astype(dtype)
     # nothing to decide (no unknown factor, or none above the threshold): the plain
     # weighted solve is the answer (already done with initial_solve; else one iteration
@@ -443,12 +457,6 @@ def _run(
         jnp.where(solved, Results.CONVERGED, Results.RUNNING),
     ).astype(jnp.int32)
     deleting_on = surrogate == "tls" and config["max_deletions"] > 0
-
-    def tls(x: Any) -> Array:
-        """The TLS objective GNC minimises: known inliers in full, unknown truncated."""
-        s = _squared_norms(graph, x)
-        return 0.5 * jnp.sum(jnp.where(unknown, jnp.minimum(s, barc_sq),
-                                       jnp.where(known_in, s, 0.0)))
 
     init = dict(
         x=x1,
@@ -464,7 +472,8 @@ def _run(
     if config["max_iterations"] <= 0:
         init["status"] = jnp.where(init["status"] < 0, Results.MAX_STEPS, init["status"])
     if deleting_on:  # phase 0: GNC, 1: deletion test; `final`: GNC's status
-        init.update(final=init["status"], tls=tls(x1), phase=jnp.asarray(0, jnp.int32))
+        init.update(final=init["status"], tls=tls_objective(s1, barc_sq, known_in, known_out),
+                    phase=jnp.asarray(0, jnp.int32))
         init = _enter_deletions(init, init["status"] >= 0)
     weight_fn = tls_weights if surrogate == "tls" else gm_weights
 
@@ -491,7 +500,7 @@ def _run(
             w_del, worth = jax.lax.cond(deleting, deletion_candidate,
                                         lambda x, w: (w, jnp.asarray(False)), x, state["w"])
             w = jnp.where(deleting, w_del, gnc_weights(x, mu))
-            start = jax.tree.map(lambda a, b: jnp.where(deleting, a, b), x, start)
+            start = _select(deleting, x, start)
             x_new, ist, iits = jax.lax.cond(
                 ~deleting | worth,
                 lambda: inner(start, _split(w, counts)),
@@ -500,7 +509,8 @@ def _run(
         else:
             w = gnc_weights(x, mu)
             x_new, ist, iits = inner(start, _split(w, counts))
-        cost_new = 0.5 * jnp.sum(w * _squared_norms(graph, x_new))
+        s_new = _squared_norms(graph, x_new)
+        cost_new = 0.5 * jnp.sum(w * s_new)
         finite = jnp.isfinite(cost_new)
         prev = state["cost"]
         cost_conv = jnp.abs(cost_new - prev) / jnp.maximum(prev, 1e-7) < config["cost_rtol"]
@@ -523,12 +533,9 @@ def _run(
                 jnp.where(k >= config["max_iterations"], Results.MAX_STEPS, Results.RUNNING),
             ),
         ).astype(jnp.int32)
-        keep = lambda new, old: jax.tree.map(  # noqa: E731
-            lambda a, b: jnp.where(finite, a, b), new, old
-        )
         out = dict(
-            x=keep(x_new, x),
-            w=keep(w, state["w"]),
+            x=_select(finite, x_new, x),
+            w=_select(finite, w, state["w"]),
             mu=jnp.where(done, mu, mu_next),
             k=k,
             cost=jnp.where(finite, cost_new, prev),
@@ -539,19 +546,17 @@ def _run(
         )
         if not deleting_on:
             return out
-        out.update(final=status, tls=tls(out["x"]), phase=state["phase"])
+        tls_new = tls_objective(s_new, barc_sq, known_in, known_out)
+        out.update(final=status, tls=jnp.where(finite, tls_new, state["tls"]),
+                   phase=state["phase"])
         out = _enter_deletions(out, status >= 0)
         # a deletion step: kept only if the TLS objective decreased
-        tls_new = tls(x_new)
         accept = worth & finite & (tls_new < state["tls"])
-        took = lambda new, old: jax.tree.map(  # noqa: E731
-            lambda a, b: jnp.where(accept, a, b), new, old
-        )
         n = state["deletions"] + accept.astype(jnp.int32)
         step = dict(
             state,
-            x=took(x_new, x),
-            w=took(w, state["w"]),
+            x=_select(accept, x_new, x),
+            w=_select(accept, w, state["w"]),
             cost=jnp.where(accept, cost_new, prev),
             tls=jnp.where(accept, tls_new, state["tls"]),
             inner_status=jnp.where(accept, jnp.asarray(ist, jnp.int32), state["inner_status"]),
@@ -560,7 +565,7 @@ def _run(
             status=jnp.where(accept & (n < config["max_deletions"]), Results.RUNNING,
                              state["final"]).astype(jnp.int32),
         )
-        return jax.tree.map(lambda a, b: jnp.where(deleting, a, b), step, out)
+        return _select(deleting, step, out)
 
     out = jax.lax.while_loop(lambda st: st["status"] < 0, body, init)
     s = _squared_norms(graph, out["x"])

@@ -54,14 +54,13 @@ def _linear_graph(seed=0, n=9, d=2, dtype=None):
 
 def _numpy_system(edges, z, info, n, d, drop=None):
     """Whitened rows A x = b of the linear graph (prior σ = 1/2 on x0), optionally
-    without edge ``drop``; returns (A, b, rows of each edge)."""
-    rows, rhs, where = [], [], []
+    without edge ``drop``."""
+    rows, rhs = [], []
     for k, ((i, j), zk, om) in enumerate(zip(edges, z, info, strict=True)):
         root = np.linalg.cholesky(om).T  # rootᵀroot = Ω
         block = np.zeros((d, n * d))
         block[:, j * d:(j + 1) * d] = root
         block[:, i * d:(i + 1) * d] = -root
-        where.append(len(rows))
         if k != drop:
             rows.append(block)
             rhs.append(root @ zk)
@@ -69,20 +68,20 @@ def _numpy_system(edges, z, info, n, d, drop=None):
     prior[:, :d] = 2.0 * np.eye(d)
     rows.append(prior)
     rhs.append(np.zeros(d))
-    return np.concatenate(rows), np.concatenate(rhs), where
+    return np.concatenate(rows), np.concatenate(rhs)
 
 
 def test_linear_graph_statistic_is_the_deleted_residual():
     jax.config.update("jax_enable_x64", True)
     graph, edges, z, info = _linear_graph()
     n, d = 9, 2
-    a, b, _ = _numpy_system(edges, z, info, n, d)
+    a, b = _numpy_system(edges, z, info, n, d)
     xs = np.linalg.lstsq(a, b, rcond=None)[0]
     x = xs.reshape(n, d)
     total = np.sum((a @ xs - b) ** 2)
     t_edges, t_prior = deletion_statistics(graph, {"x": jnp.asarray(x)})
     for k, ((i, j), zk, om) in enumerate(zip(edges, z, info, strict=True)):
-        a_k, b_k, _ = _numpy_system(edges, z, info, n, d, drop=k)
+        a_k, b_k = _numpy_system(edges, z, info, n, d, drop=k)
         ys = np.linalg.lstsq(a_k, b_k, rcond=None)[0]
         assert np.linalg.matrix_rank(a_k) == n * d  # every chain edge is in a loop
         assert float(t_edges[k]) == pytest.approx(total - np.sum((a_k @ ys - b_k) ** 2),
@@ -101,7 +100,7 @@ def test_linear_graph_statistic_is_the_deleted_residual():
 def test_bridge_is_untestable_and_a_removed_factor_is_zero():
     jax.config.update("jax_enable_x64", True)
     graph, edges, z, info = _linear_graph()
-    a, b, _ = _numpy_system(edges, z, info, 9, 2)
+    a, b = _numpy_system(edges, z, info, 9, 2)
     x = {"x": jnp.asarray(np.linalg.lstsq(a, b, rcond=None)[0].reshape(9, 2))}
     w = np.ones(edges.shape[0])
     w[[9, 10, 12]] = 0.0  # loops (2, 7), (1, 8), (0, 8) out
@@ -137,7 +136,7 @@ def test_pose_graph_statistic_predicts_the_re_solve():
 def test_jit_vmap_and_float32():
     jax.config.update("jax_enable_x64", True)
     graph, edges, z, info = _linear_graph()
-    a, b, _ = _numpy_system(edges, z, info, 9, 2)
+    a, b = _numpy_system(edges, z, info, 9, 2)
     x = jnp.asarray(np.linalg.lstsq(a, b, rcond=None)[0].reshape(9, 2))
     eager = np.asarray(deletion_statistics(graph, {"x": x})[0])
     jitted = jax.jit(lambda v: deletion_statistics(graph, {"x": v})[0])(x)
