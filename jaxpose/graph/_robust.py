@@ -161,7 +161,9 @@ class GNCSolution(eqx.Module):
       binary at convergence with TLS); ``inliers``: ``weights > 0.5``;
     * ``barc_sq``: per factor group, (m,) inlier thresholds c̄² on ``s = rᵀΩr``;
     * ``cost``: weighted cost ``0.5·Σ w s`` at ``variables``; ``robust_cost``: the
-      surrogate's limit ``0.5·Σ ρ(s)`` (TLS ``min(s, c̄²)``, GM ``c̄² s/(c̄² + s)``);
+      objective GNC minimises (:func:`objective`): ``0.5·Σ s`` over known inliers plus
+      the surrogate's limit ``0.5·Σ ρ(s)`` over the other factors (TLS ``min(s, c̄²)``,
+      GM ``c̄² s/(c̄² + s)``), known outliers counting nothing;
       ``initial_cost``: ``0.5·Σ s`` at the initial variables;
     * ``mu``: the last control parameter (−1: nothing to reject, one plain weighted solve);
       ``iterations``: outer GNC iterations;
@@ -395,19 +397,23 @@ def tls_objective(s: Array, barc_sq: Array, known_in: Array, known_out: Array) -
     """The objective TLS-GNC minimises, from squared whitened residuals ``s`` (M,):
     ``½ Σ s`` over known inliers + ``½ Σ min(s, c̄²)`` over the unknown factors (known
     outliers count nothing)."""
-    return 0.5 * jnp.sum(jnp.where(known_in, s,
-                                   jnp.where(known_out, 0.0, jnp.minimum(s, barc_sq))))
+    return objective("tls", s, barc_sq, known_in, known_out)
+
+
+def objective(surrogate: str, s: Array, barc_sq: Array, known_in: Array,
+              known_out: Array) -> Array:
+    """The objective GNC with ``surrogate`` minimises (``GNCSolution.robust_cost``), from
+    squared whitened residuals ``s`` (M,): ``½ Σ s`` over known inliers + ``½ Σ ρ(s)``
+    over the unknown factors, ρ(s) = ``min(s, c̄²)`` (TLS) or ``c̄² s / (c̄² + s)`` (GM);
+    known outliers count nothing."""
+    rho = (jnp.minimum(s, barc_sq) if surrogate == "tls"
+           else barc_sq * s / (barc_sq + s))
+    return 0.5 * jnp.sum(jnp.where(known_in, s, jnp.where(known_out, 0.0, rho)))
 
 
 def _select(pred: Array, new: Any, old: Any) -> Any:
     """``new`` where ``pred`` else ``old``, leaf by leaf (one scalar predicate)."""
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), new, old)
-
-
-def _robust_cost(surrogate: str, s: Array, barc_sq: Array) -> Array:
-    if surrogate == "tls":
-        return 0.5 * jnp.sum(jnp.minimum(s, barc_sq))
-    return 0.5 * jnp.sum(barc_sq * s / (barc_sq + s))
 
 
 @eqx.filter_jit
@@ -574,7 +580,7 @@ def _run(
         weights=_split(out["w"], counts),
         barc_sq=_split(barc_sq, counts),
         cost=out["cost"],
-        robust_cost=_robust_cost(surrogate, s, barc_sq),
+        robust_cost=objective(surrogate, s, barc_sq, known_in, known_out),
         initial_cost=0.5 * jnp.sum(s0),
         mu=out["mu"],
         iterations=out["k"],

@@ -26,7 +26,7 @@ from jaxpose.graph import (
     weighted_graph,
 )
 from jaxpose.graph._problem import cost, factor_residuals
-from jaxpose.graph._robust import initial_mu
+from jaxpose.graph._robust import initial_mu, objective
 from jaxpose.optim import Huber
 
 
@@ -189,6 +189,31 @@ def test_gnc_recovers_inliers_and_clean_solution(outlier_case):
     # the weighted cost never exceeds the TLS cost at the result (w = 0 only above c̄²)
     assert float(sol.cost) <= float(sol.robust_cost) + 1e-9
     assert float(sol.robust_cost) < float(sol.initial_cost)
+
+
+def _squared_residuals_np(graph, poses):
+    """s = rᵀΩr per edge of an SE2 graph at ``poses``, in NumPy."""
+    e = graph.edges
+    r = _se2_log_np(_se2_between_np(graph.measurements,
+                                    _se2_between_np(poses[e[:, 0]], poses[e[:, 1]])))
+    return np.einsum("ni,nij,nj->n", r, graph.information, r)
+
+
+def test_robust_cost_is_the_objective_gnc_minimises(outlier_case):
+    clean, bad, outliers, poses, sol = outlier_case
+    s = _squared_residuals_np(bad, poses)
+    c = chi2_quantile(0.99, 3)
+    odo = pgo.odometry_edges(bad)
+    ref = 0.5 * (np.sum(s[odo]) + np.sum(np.minimum(s[~odo], c)))
+    assert float(sol.robust_cost) == pytest.approx(ref, rel=1e-9)
+    # known inliers count in full and known outliers not at all, whatever their residual
+    s = np.array([0.5, 30.0, 40.0, 2.0, 50.0])
+    known_in = np.array([True, True, False, False, False])
+    known_out = np.array([False, False, True, False, False])
+    tls = 0.5 * (0.5 + 30.0 + 2.0 + 9.0)
+    assert float(objective("tls", s, 9.0, known_in, known_out)) == pytest.approx(tls, rel=1e-14)
+    gm = 0.5 * (0.5 + 30.0 + 9.0 * 2.0 / 11.0 + 9.0 * 50.0 / 59.0)
+    assert float(objective("gm", s, 9.0, known_in, known_out)) == pytest.approx(gm, rel=1e-14)
 
 
 def test_nothing_to_reject_gives_the_plain_solution(outlier_case):
