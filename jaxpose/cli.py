@@ -290,6 +290,11 @@ def _note_slow_blas(prog: str) -> None:
               "JAXPOSE_BLAS=PATH of an LP64 BLAS)", file=sys.stderr)
 
 
+FIX = "file"
+"""Gauge of ``jaxpose pgo``: the file's FIX vertices held constant (pose 0 when it has
+none), and the first pose of every other disconnected piece; written back with --out."""
+
+
 def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, init="odometry"):
     """Solve a PoseGraph from its ``init`` start (in the compiled solve where
     ``start_in_solve``, else on the host), print the table and summary; returns
@@ -300,20 +305,21 @@ def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, init="odometry
     from .graph import default_stopping, solve
 
     stopping = default_stopping(max_steps, dtype)
-    in_solve = pgo.start_in_solve(graph, init)
+    in_solve = pgo.start_in_solve(graph, init, FIX)
     if in_solve:
-        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype)
+        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, fix=FIX)
         run = jax.jit(lambda p: pgo.solve_from_start(
             p, init, linear_solver=solver, stopping=stopping, verbose=verbose))
     else:
         from .graph._init import initial_poses, pose_graph_cost
 
         t0 = time.perf_counter()
-        start, method = initial_poses(graph, init)
+        start, method = initial_poses(graph, init, fix=FIX)
         init_s = time.perf_counter() - t0
         print(f"initialisation: {method} ({init_s:.3f} s), cost "
               f"{pose_graph_cost(graph, start):.6e}")
-        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, poses=start)
+        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, poses=start,
+                                         fix=FIX)
         run = jax.jit(lambda p: (solve(p, linear_solver=solver, stopping=stopping,
                                        verbose=verbose), None))
     t0 = time.perf_counter()
@@ -346,7 +352,7 @@ def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
         raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
     t0 = time.perf_counter()
     poses, sol = pgo.optimize_pose_graph(
-        graph, robust="gnc", init=init, dtype=dtype, gnc_options={"surrogate": surrogate},
+        graph, robust="gnc", init=init, dtype=dtype, gnc_options={"surrogate": surrogate}, fix=FIX,
         linear_solver=solver, stopping=default_stopping(max_steps, dtype),
     )
     jax.block_until_ready(sol.cost)
@@ -428,7 +434,7 @@ def pgo_command(args: argparse.Namespace) -> int:
         from .plot import plot_pose_graphs
 
         # pose marginals at the solution for the 2σ position ellipses
-        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype)
+        problem = pgo.pose_graph_problem(graph, kernel=kernel, dtype=dtype, fix=FIX)
         if hasattr(sol, "weights"):  # GNC: the graph as weighted at the solution
             from .graph._robust import weighted_graph
 
@@ -546,7 +552,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=demo)
 
     q = _solve_command(add, "pgo", "optimise a g2o pose graph",
-                       "input .g2o file (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or SE2)",
+                       "input .g2o file (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or SE2; its FIX vertices "
+                       "are held constant, else the first pose)",
                        "graph to this .g2o file")
     q.add_argument("--plot", help="write a before/after plot with 2σ position ellipses of the "
                    "pose marginals (PNG; needs matplotlib; directory checked before solving)")

@@ -75,6 +75,20 @@ def slot_pairs(n_slots: int) -> list[tuple[int, int]]:
     return [(s, t) for s in range(n_slots) for t in range(n_slots)]
 
 
+def fixed_indices(value: Any, what: str) -> np.ndarray:
+    """Indices of fixed variables as int64 (flattened), ``what`` naming the argument in
+    errors: integers only (a boolean mask or floats would be cast to indices silently),
+    concrete."""
+    if isinstance(value, jax.core.Tracer):
+        raise TypeError(f"{what}: indices must be concrete (numpy or Python ints), not "
+                        f"traced: a graph's structure is static")
+    idx = np.asarray(value)
+    if idx.size and not np.issubdtype(idx.dtype, np.integer):
+        hint = " (a boolean mask: pass np.flatnonzero(mask))" if idx.dtype == bool else ""
+        raise ValueError(f"{what}: expected integer indices, got dtype {idx.dtype}{hint}")
+    return idx.astype(np.int64).reshape(-1)
+
+
 def build_structure(
     factors: Sequence[Any], variables: Variables, fixed: Mapping[str, Any],
     eliminate: str | None = None,
@@ -93,7 +107,7 @@ def build_structure(
     for n, c in zip(names, counts, strict=True):
         mask = np.ones(c)
         if n in fixed:
-            idx = np.asarray(fixed[n], dtype=np.int64).reshape(-1)
+            idx = fixed_indices(fixed[n], f"FactorGraph(fixed[{n!r}])")
             if idx.size and (idx.min() < 0 or idx.max() >= c):
                 raise IndexError(f"FactorGraph(fixed[{n!r}]): index out of range for {c} variables")
             mask[idx] = 0.0

@@ -25,6 +25,7 @@ import numpy as np
 from ..io._bal import BALProblem
 from ..lie import SE3, SO3
 from ..optim._strategies import Nielsen
+from ._analysis import fixed_indices
 from ._factor import Factor
 from ._problem import FactorGraph
 from ._reprojection import reprojection_jacobian, reprojection_residual
@@ -107,7 +108,7 @@ def bundle_adjustment_problem(
         name="reprojection_bal",
         jacobian=reprojection_jacobian,
     )
-    cams = np.unique(np.asarray(fixed_cameras, np.int64).reshape(-1))
+    cams = np.unique(fixed_indices(fixed_cameras, "bundle_adjustment_problem(fixed_cameras)"))
     fixed: dict[str, Any] = {}
     if cams.size:
         fixed = {"pose": cams, "intrinsics": cams}
@@ -120,6 +121,10 @@ def bundle_adjustment_problem(
 def reprojection_rmse(problem: BALProblem, variables: dict[str, Any] | None = None) -> float:
     """Root-mean-square reprojection error per coordinate (pixels), numpy float64."""
     from ..io._bal import _bal_project_numpy
+
+    if problem.observations.shape[0] == 0:
+        raise ValueError("reprojection_rmse(problem): the problem has no observations, so "
+                         "there is no error to average")
 
     cams, pts = (problem.cameras, problem.points) if variables is None else (
         variables_to_bal(variables))

@@ -372,6 +372,10 @@ INIT_METHODS = ("auto", "chordal", "odometry")
 def pose_graph_cost(graph: Any, poses: Any = None) -> float:
     """``0.5·Σ rᵀΩr`` with ``r = Log(Z⁻¹·Xi⁻¹·Xj)`` at ``poses`` (default ``graph.poses``),
     in NumPy float64 on the host (no compilation; used to choose an initialisation)."""
+    if poses is not None and np.shape(getattr(poses, "data", poses)) != np.shape(graph.poses):
+        raise ValueError(
+            f"pose_graph_cost(poses): expected shape {np.shape(graph.poses)} like graph.poses, "
+            f"got {np.shape(getattr(poses, 'data', poses))}")
     return _pose_graph_costs(graph, [graph.poses if poses is None else poses])[0]
 
 

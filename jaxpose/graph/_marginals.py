@@ -42,7 +42,7 @@ import numpy as np
 from .._precision import full_precision
 from . import _linear as linear
 from . import _selinv as selinv
-from ._problem import FactorGraph, csr_values, hessian_vector, linearize
+from ._problem import FactorGraph, check_variables, csr_values, hessian_vector, linearize
 from ._solve import GraphLinearSolver, GraphSolution, damped_block_jacobi
 
 Array = jax.Array
@@ -217,11 +217,7 @@ def marginals(
             f"marginals(solution): expected a GraphSolution, a variables mapping or None, got "
             f"{type(solution).__name__}"
         )
-    if set(values) != set(graph.variables):
-        raise KeyError(
-            f"marginals(solution): variable types {sorted(values)} do not match the graph's "
-            f"{sorted(graph.variables)}"
-        )
+    check_variables(graph, values, "marginals(solution)")
     st = graph.structure
     schur = st.schur
     kept_names = (st.names if schur is None

@@ -110,6 +110,7 @@ class FactorGraph(eqx.Module):
                         f"{int(idx_np.max() if idx_np.max() >= n else idx_np.min())}, but only "
                         f"{n} variables of that type exist"
                     )
+            _check_information(f, variables)
         self.factors = tuple(factors)
         self.variables = variables
         self.structure = build_structure(self.factors, variables, dict(fixed or {}), eliminate)
@@ -123,6 +124,69 @@ class FactorGraph(eqx.Module):
 # ----------------------------------------------------------------------------------
 # Evaluation
 # ----------------------------------------------------------------------------------
+def _check_information(f: Factor, variables: Variables) -> None:
+    """Raise unless ``f``'s information matrices are r × r, r its residual's dimension
+    (the whitening product would otherwise use only the first k components)."""
+    if f.sqrt_info is None:
+        return
+    dim, k = _residual_dim(f, variables), f.sqrt_info.shape[-1]
+    if dim is not None and dim != k:
+        raise ValueError(
+            f"FactorGraph: factor {f.name!r} has {dim}-dimensional residuals but {k} × {k} "
+            f"information matrices; Factor(information) must be ({f.count}, {dim}, {dim}) or "
+            f"({dim}, {dim})")
+
+
+_RESIDUAL_DIMS: dict[Any, int | None] = {}
+
+
+def _residual_dim(f: Factor, variables: Variables) -> int | None:
+    """Dimension of one residual of ``f`` (None unless it is 1-D), from its shapes alone
+    (``jax.eval_shape`` of one factor), remembered per residual function and argument
+    types and shapes (tracing it costs tens of milliseconds)."""
+    args = [variables[s] for s in f.slots] + [f.data]
+    one = [jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), x) for x in args]
+    try:
+        key = (f.residual, tuple(jax.tree.structure(x) for x in one),
+               tuple(jax.tree.leaves(one)))
+        hash(key)
+    except TypeError:  # an unhashable residual function: not remembered
+        key = None
+    if key is None or key not in _RESIDUAL_DIMS:
+        res = jax.eval_shape(lambda *a: f.residual(*a[:-1], a[-1]), *one)
+        dim = res.shape[0] if res.ndim == 1 else None
+        if key is None:
+            return dim
+        if len(_RESIDUAL_DIMS) >= 256:  # residuals defined anew in a loop: stay small
+            _RESIDUAL_DIMS.clear()
+        _RESIDUAL_DIMS[key] = dim
+    return _RESIDUAL_DIMS[key]
+
+
+def check_variables(graph: FactorGraph, variables: Any, caller: str) -> None:
+    """Raise unless ``variables`` holds the graph's variable types, each of the same kind
+    (group class or plain array) and shape as ``graph.variables``: the factors' index
+    gathers would clamp a shorter batch silently. Shapes are static: works under jit."""
+    if not isinstance(variables, Mapping) or set(variables) != set(graph.variables):
+        got = sorted(variables) if isinstance(variables, Mapping) else type(variables).__name__
+        raise ValueError(f"{caller}: expected a mapping with the graph's variable types "
+                         f"{sorted(graph.variables)}, got {got}")
+    for name, ref in graph.variables.items():
+        value = variables[name]
+        if _kind(value) != _kind(ref):
+            raise ValueError(f"{caller}: variables[{name!r}]: expected {_kind(ref)} like "
+                             f"graph.variables, got {_kind(value)}")
+
+
+def _kind(value: Any) -> str:
+    """"SE3 of batch shape (n,)", "array of shape (n, d)" or the type's name."""
+    if isinstance(value, LieGroup):
+        return f"{type(value).__name__} of batch shape {value.shape}"
+    if isinstance(value, (jax.Array, np.ndarray)):
+        return f"array of shape {value.shape}"
+    return type(value).__name__
+
+
 class GraphLinearization(eqx.Module):
     """A factor graph linearised at one point (:func:`linearize`): whitened residuals and
     Jacobian blocks of every factor group, and the cost."""
@@ -149,6 +213,7 @@ def factor_residuals(factor: Factor, variables: Variables) -> Array:
 
 def cost(graph: FactorGraph, variables: Variables) -> Array:
     """0.5 · Σ ρ(rᵀΩr) over all factors."""
+    check_variables(graph, variables, "cost(variables)")
     return residual_cost(graph, [factor_residuals(f, variables) for f in graph.factors])
 
 
@@ -180,6 +245,7 @@ def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
     Robust kernels enter through each factor's corrector (default FastTriggs: residual
     and Jacobian rows scaled by sqrt(ρ'(s)), square-root IRLS); ``cost`` is the robust
     cost 0.5·Σ ρ(s)."""
+    check_variables(graph, variables, "linearize(variables)")
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
     residuals, jacobians, total = [], [], 0.0

@@ -66,7 +66,7 @@ from .._precision import full_precision
 from ..optim._solve import least_squares
 from ..results import Results
 from . import _snooping as snooping
-from ._problem import FactorGraph, factor_residuals
+from ._problem import FactorGraph, check_variables, factor_residuals
 from ._solve import solve
 
 Array = jax.Array
@@ -693,6 +693,7 @@ def gnc(
         )
     free = _free_indices(graph) if inner == "dense" else None
     x0 = graph.variables if variables is None else variables
+    check_variables(graph, x0, "gnc(variables)")
     config = dict(
         surrogate=surrogate,
         inner=inner,

@@ -31,7 +31,7 @@ import numpy as np
 
 from .._precision import full_precision
 from ._marginals import _Plan, inverse_entries
-from ._problem import FactorGraph, linearize
+from ._problem import FactorGraph, check_variables, linearize
 from ._solve import GraphLinearSolver
 
 Array = jax.Array
@@ -99,8 +99,9 @@ def deletion_statistics(graph: FactorGraph, values: Any = None, *,
     if not isinstance(graph, FactorGraph):
         raise TypeError(
             f"deletion_statistics(graph): expected a FactorGraph, got {type(graph).__name__}")
-    return statistics(graph, graph.variables if values is None else values,
-                      plan(graph, method))
+    values = graph.variables if values is None else values
+    check_variables(graph, values, "deletion_statistics(values)")
+    return statistics(graph, values, plan(graph, method))
 
 
 @full_precision

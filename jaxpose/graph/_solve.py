@@ -45,6 +45,7 @@ from ._problem import (
     FactorGraph,
     Variables,
     block_diagonal,
+    check_variables,
     csr_values,
     factor_residuals,
     free_flat,
@@ -338,6 +339,7 @@ def solve(
             f"solve(stopping): expected a jaxpose.optim Stopping, got {type(stopping).__name__}"
         )
     x0 = graph.variables if variables is None else variables
+    check_variables(graph, x0, "solve(variables)")
     return solve_differentiable(
         _run, graph, x0, strategy=strategy, stopping=stopping, linear_solver=linear_solver,
         damping=damping, cg=cg, verbose=verbose,

@@ -708,6 +708,9 @@ def _fmt(values: list[float]) -> str:
 def _check_writable_graph(graph: PoseGraph, poses: np.ndarray) -> None:
     """Raise ValueError for what read_g2o would reject (see write_g2o)."""
     ids = graph.vertex_ids
+    if ids.size == 0:
+        raise ValueError("write_g2o(graph): the graph has no vertices (an empty file); "
+                         "read_g2o would reject the file")
     rot = slice(3, 7) if graph.kind == "SE3" else slice(2, 4)
     what = "quaternion" if graph.kind == "SE3" else "(cos θ, sin θ)"
     for name, arr, label in (
@@ -778,7 +781,7 @@ def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
         ValueError: before the file is opened, for anything :func:`read_g2o` would reject:
             non-finite poses, measurements or information, zero quaternions (SE3) or
             ``(cos θ, sin θ) = (0, 0)`` (SE2), information matrices that are not positive
-            definite, self-loop edges or duplicate vertex ids.
+            definite, self-loop edges, duplicate vertex ids or a graph without vertices.
     """
     t = _DIMS[graph.kind][1]
     if poses is None:

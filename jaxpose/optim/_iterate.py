@@ -247,6 +247,7 @@ def trial(rule: Rule, path: Path, state: SolverState, stopping: Stopping, *,
             rejects=rejects,
             plateau_count=plateau,
             nonfinite_run=~accepted & bad_run,
+            trial_cost=cost_new,
         ),
     )
     status = jnp.where(fresh, start_status(finite, grad_inf, stopping), status)

@@ -59,7 +59,10 @@ class Stopping(eqx.Module):
       floating-point resolution (16·eps·cost) → CONVERGED (no measurable decrease is
       left); and a rejected finite trial once the cost is at rounding level,
       cost ≤ eps²·initial cost (the residual has shrunk by the dtype's precision, as in
-      zero-residual problems: further "decreases" are rounding noise) → CONVERGED;
+      zero-residual problems: further "decreases" are rounding noise) → CONVERGED; and a
+      rejected finite trial whose cost equals the current one exactly (the step is below
+      the variables' floating-point resolution, or the cost is flat along it: a larger
+      damping cannot do better) → CONVERGED;
     * ``max_rejects``: that many consecutive rejected trials → DIVERGED (or NON_FINITE
       if the last one was not finite). When ``max_steps`` runs out first while every trial
       since the last accepted one was not finite, the status is NON_FINITE too (not
@@ -114,6 +117,7 @@ class Trial(NamedTuple):
     plateau_count: Array  # consecutive non-decreasing iterations so far (int32)
     nonfinite_run: Array | bool = False  # bool: every trial since the last accepted one
     # (at least this one) was not finite
+    trial_cost: Array | None = None  # the trial's own cost (accepted or not)
 
 
 def nonfinite_run(previous: Array, accepted: Array, finite: Array) -> Array:
@@ -144,6 +148,8 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     eps = jnp.finfo(t.last.dtype).eps
     noise = (t.predicted <= 16 * eps * jnp.abs(t.last)) | (t.last <= eps * eps * t.initial)
     conv = conv | (t.finite & ~t.accepted & noise)
+    if t.trial_cost is not None:  # a step that changes the cost not even by its last bit
+        conv = conv | (t.finite & ~t.accepted & (t.trial_cost == t.last))
     if stopping.plateau is not None:
         conv = conv | (t.plateau_count >= stopping.plateau.patience)
     stalled = t.rejects >= stopping.max_rejects

@@ -3,6 +3,8 @@ before anything is traced or compiled)."""
 
 from __future__ import annotations
 
+import re
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -139,3 +141,81 @@ def test_file_containers_refuse_traced_data_naming_the_differentiable_path():
         jax.grad(bal)(jnp.asarray(prob.observations))
     with pytest.raises(TypeError, match=r"PoseGraph\.measurements: got a traced array"):
         jax.jit(pose_graph)(jnp.asarray(graph.measurements))
+
+
+def test_information_must_match_the_residual_dimension():
+    # a 3 × 3 information on a 6-dimensional residual used to whiten only its first three
+    # components (the translation): a cost without the rotation, silently
+    for info in (np.eye(3), np.tile(np.eye(1), (2, 1, 1))):
+        with pytest.raises(ValueError, match=r"6-dimensional residuals but (3 × 3|1 × 1) "
+                                             r"information.*\(2, 6, 6\) or \(6, 6\)"):
+            FactorGraph([_between([0, 1], [1, 2], info)], {"pose": _poses()})
+    FactorGraph([_between([0, 1], [1, 2], np.eye(6))], {"pose": _poses()})
+
+
+def test_variables_of_another_shape_are_refused_everywhere():
+    # the factors' index gathers clamp: 2 of 4 poses gave a cost, a linearisation, marginals
+    # and deletion statistics of the wrong poses, without an error
+    import jax
+
+    from jaxpose.graph import cost, deletion_statistics, gnc, linearize, marginals
+    from jaxpose.lie import SO3
+
+    graph = FactorGraph([_between([0, 1, 2], [1, 2, 3])], {"pose": _poses()},
+                        fixed={"pose": [0]})
+    short = {"pose": _poses(2)}
+    calls = {"cost(variables)": lambda v: cost(graph, v),
+             "linearize(variables)": lambda v: linearize(graph, v),
+             "solve(variables)": lambda v: solve(graph, v),
+             "marginals(solution)": lambda v: marginals(graph, v),
+             "deletion_statistics(values)": lambda v: deletion_statistics(graph, v),
+             "gnc(variables)": lambda v: gnc(graph, v)}
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=re.escape(name) + r": variables\['pose'\]: "
+                           r"expected SE3 of batch shape \(4,\).*got SE3 of batch shape \(2,\)"):
+            call(short)
+    with pytest.raises(ValueError, match=r"got SO3 of batch shape \(4,\)"):
+        cost(graph, {"pose": SO3.identity((4,))})
+    with pytest.raises(ValueError, match=r"got array of shape \(4, 7\)"):
+        cost(graph, {"pose": jnp.zeros((4, 7))})
+    with pytest.raises(ValueError, match=r"variable types \['pose'\], got \['point'\]"):
+        cost(graph, {"point": _poses()})
+    with pytest.raises(ValueError, match=r"solve\(variables\)"):  # also under jit
+        jax.jit(solve)(graph, short)
+    assert np.isfinite(float(cost(graph, graph.variables)))
+
+
+def test_fixed_indices_must_be_integers():
+    # a boolean mask was cast to indices (True → 1, False → 0: poses 0 and 1 fixed), floats
+    # truncated
+    mask = np.array([True, False, False, False])
+    for fixed, dtype in ((mask, "bool.*np.flatnonzero"), ([2.9], "float64")):
+        with pytest.raises(ValueError, match=r"fixed\['pose'\]\): expected integer indices, "
+                                             r"got dtype " + dtype):
+            FactorGraph([_between([0], [1])], {"pose": _poses()}, fixed={"pose": fixed})
+    graph = FactorGraph([_between([0], [1])], {"pose": _poses()}, fixed={"pose": []})
+    assert graph.structure.fixed_counts == (0,)
+
+    from jaxpose import synthetic_bal
+    from jaxpose.graph import bundle_adjustment_problem
+
+    bal, _ = synthetic_bal(n_cameras=3, n_points=10, obs_per_point=2, seed=0)
+    with pytest.raises(ValueError, match=r"fixed_cameras\): expected integer indices"):
+        bundle_adjustment_problem(bal, fixed_cameras=[1.7])
+
+
+def test_pose_graph_cost_and_rmse_refuse_what_they_cannot_evaluate():
+    from jaxpose import synthetic_bal, synthetic_pose_graph
+    from jaxpose.graph import pose_graph_cost, reprojection_rmse
+    from jaxpose.io import BALProblem
+
+    g, _ = synthetic_pose_graph("SE3", n_poses=8, seed=1)
+    for poses in (np.vstack([g.poses, g.poses]), g.poses[:3], g.poses[:, :4]):
+        with pytest.raises(ValueError, match=r"pose_graph_cost\(poses\): expected shape "
+                                             r"\(8, 7\)"):
+            pose_graph_cost(g, poses)
+    bal, _ = synthetic_bal(n_cameras=2, n_points=3, obs_per_point=2, seed=0)
+    empty = BALProblem(bal.cameras, bal.points, bal.camera_index[:0], bal.point_index[:0],
+                       bal.observations[:0])
+    with pytest.raises(ValueError, match="no observations"):
+        reprojection_rmse(empty)

@@ -45,6 +45,26 @@ def test_cli_pgo_tinygrid3d_writes_a_lower_cost_graph(tmp_path, capsys):
     np.testing.assert_allclose(float(m.group(1)), c_init, rtol=1e-6)
 
 
+def test_cli_pgo_holds_the_files_fix_vertex(tmp_path, capsys):
+    """A FIX line is the file's gauge: that pose stays where it is (it moved while pose 0
+    was held instead and OUT still said FIX 5), and the graph reaches its minimum."""
+    import dataclasses
+
+    from jaxpose import synthetic_pose_graph, write_g2o
+
+    g, _ = synthetic_pose_graph("SE2", n_poses=10, seed=2, noise=(0.05, 0.1))
+    g = dataclasses.replace(g, fixed=np.array([5]))
+    src, out = tmp_path / "fix5.g2o", tmp_path / "out.g2o"
+    write_g2o(src, g)
+    assert main(["pgo", str(src), "--out", str(out), "--quiet"]) == 0
+    assert "status converged" in capsys.readouterr().out
+    before, after = read_g2o(src), read_g2o(out)
+    np.testing.assert_array_equal(after.fixed, [5])
+    np.testing.assert_allclose(after.poses[5], before.poses[5], rtol=0, atol=1e-15)
+    assert np.abs(after.poses[0] - before.poses[0]).max() > 1e-3  # pose 0 is free
+    assert numpy_pose_graph_cost(after) < numpy_pose_graph_cost(before)
+
+
 def test_cli_pgo_initialises_on_the_host_above_the_dense_size(capsys):
     """smallGrid3D (125 poses, 750 tangent dimensions: above what the in-solve relaxation
     takes) is initialised on the host, its time and the host relaxation's cost printed;
