@@ -16,7 +16,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..dynamics._checks import as_array, check_psd
+from ..dynamics._checks import as_array, check_psd, step_index
 
 Array = jax.Array
 
@@ -71,7 +71,9 @@ class QuadraticCost(Cost):
     """``ℓ_t = ½ τᵀ Q_t τ + p_tᵀ τ`` (τ = [x; u]) and ``ℓ_T = ½ xᵀ Q_T x + p_Tᵀ x``.
 
     ``Q`` (k, k) or time-varying (T, k, k), ``p`` (k,) or (T, k) with ``k = n + m``;
-    ``QT`` (n, n) and ``pT`` (n,) optional (zero). Only the symmetric parts of ``Q`` and
+    ``QT`` (n, n) and ``pT`` (n,) optional (zero). A time-varying cost at step ``t``
+    uses ``Q[t]``/``p[t]`` (a negative ``t`` raises; solvers raise when the horizon
+    needs more steps than it has). Only the symmetric parts of ``Q`` and
     ``QT`` matter (the quadratic forms are symmetrised); they must be positive
     semi-definite: concrete values are checked here (ValueError naming the
     argument); traced values are not, and a solve on an indefinite problem reports a
@@ -136,7 +138,7 @@ class QuadraticCost(Cost):
         return None
 
     def _at(self, t: Any) -> tuple[Array, Array]:
-        t = jnp.asarray(t, jnp.int32)
+        t = step_index(t) if self.time_varying is not None else t
         Q = self.Q[t] if self.Q.ndim == 3 else self.Q
         p = self.p[t] if self.p.ndim == 2 else self.p
         return _sym(Q), p

@@ -25,9 +25,10 @@ import numpy as np
 from .._precision import full_precision
 from ..dynamics._checks import as_array, is_concrete
 from ..dynamics._system import LTI, LTV, System
+from ..lie._base import runtime_check
 from ..results import Results
-from ._cost import Cost
-from ._lqr import backward_step
+from ._cost import Cost, QuadraticCost
+from ._lqr import backward_step, check_quadratic_cost
 
 Array = jax.Array
 
@@ -84,15 +85,15 @@ def _bounds(lower: Any, upper: Any, T: int, m: int, dtype: Any) -> tuple[Array, 
     lo = jnp.full((T, m), -jnp.inf, dtype) if lower is None else as_array(lower, "u_lower")
     hi = jnp.full((T, m), jnp.inf, dtype) if upper is None else as_array(upper, "u_upper")
     for arr, nm in ((lo, "u_lower"), (hi, "u_upper")):
-        try:
-            np.broadcast_shapes(arr.shape, (T, m))
-        except ValueError as err:
+        try:  # broadcasting to (T, m) itself: a (3,) limit must not widen m = 1 to 3
+            ok = np.broadcast_shapes(arr.shape, (T, m)) == (T, m)
+        except ValueError:
+            ok = False
+        if not ok:
             raise ValueError(
                 f"{nm}: expected a shape broadcastable to ({T}, {m}) "
-                f"(horizon, inputs), got {tuple(arr.shape)}"
-            ) from err
-        if arr.ndim > 2:
-            raise ValueError(f"{nm}: expected (m,) or (T, m), got {tuple(arr.shape)}")
+                f"(horizon, inputs): a scalar, ({m},) or ({T}, {m}), got {tuple(arr.shape)}"
+            )
     lo = jnp.broadcast_to(lo, (T, m)).astype(dtype)
     hi = jnp.broadcast_to(hi, (T, m)).astype(dtype)
     for arr, nm in ((lo, "u_lower"), (hi, "u_upper")):
@@ -101,6 +102,26 @@ def _bounds(lower: Any, upper: Any, T: int, m: int, dtype: Any) -> tuple[Array, 
     if is_concrete(lo) and is_concrete(hi) and bool(jnp.any(lo > hi)):
         raise ValueError("u_lower, u_upper: expected u_lower ≤ u_upper everywhere")
     return lo, hi
+
+
+def _check_t0(system: System, cost: Cost, T: int, t0: Any) -> Array:
+    """``t0`` as an array; with a time-varying cost or LTV system of k ≥ T steps, raises
+    (eagerly, or ``eqx.error_if`` under ``jit``) unless 0 ≤ t0 ≤ k − T: JAX indexing
+    would silently clamp or wrap. (k < T raises in :func:`_ilqr` naming the horizon.)"""
+    t0 = jnp.asarray(t0)
+    steps = []
+    if isinstance(cost, QuadraticCost) and cost.time_varying is not None:
+        steps.append((cost.time_varying, "cost's"))
+    if isinstance(system, LTV):
+        steps.append((system.horizon, "LTV system's"))
+    for k, what in steps:
+        if k >= T:
+            t0 = runtime_check(
+                t0, jnp.any((t0 < 0) | (t0 + T > k)),
+                f"t0: expected 0 ≤ t0 ≤ {k - T} (steps t0 … t0 + {T - 1} of the horizon "
+                f"{T} = u_init.shape[0] must lie within the {what} {k} time steps)",
+            )
+    return t0
 
 
 def ilqr(
@@ -129,6 +150,8 @@ def ilqr(
     ``x0`` (n,), ``u_init`` (T, m) (sets the horizon T; clipped to the box). For
     batches use ``jax.vmap``. ``max_iter`` may be a traced integer unless ``unroll``.
     ``tol``: relative cost decrease at which to stop (default 1e-10 for float64, 1e-5 for float32).
+    ``t0``: the step of ``x0``; a time-varying cost or LTV system must have the steps
+    ``t0 … t0 + T − 1`` (else a ``ValueError``, or ``eqx.error_if`` for a traced ``t0``).
 
     Argument checks run here (eagerly: NaN or crossed box limits raise); the solve is
     compiled with ``eqx.filter_jit`` (Python numbers and ``unroll``/``alphas`` static,
@@ -148,9 +171,10 @@ def ilqr(
     x0, u_init = x0.astype(dtype), u_init.astype(dtype)
     tol = _default_tol(dtype) if tol is None else float(tol)
     box = _bounds(u_lower, u_upper, T, m, dtype)
+    t0 = _check_t0(system, cost, T, t0)
     # t0 traced (a new start time must not recompile); the options static or traced as given
     return _ilqr(system, cost, x0, u_init, box, max_iter, tol, reg_init, reg_min, reg_max,
-                 reg_factor, alphas, box_iters, unroll, jnp.asarray(t0))
+                 reg_factor, alphas, box_iters, unroll, t0)
 
 
 @eqx.filter_jit
@@ -193,6 +217,11 @@ def _ilqr(
             f"system: state_transition maps x0 {tuple(x0.shape)} to "
             f"{tuple(x_try.shape)}; expected ({n},)"
         )
+    # as lqr/MPC: Q's size, QT/pT shapes, time-varying steps covering the horizon
+    if isinstance(cost, QuadraticCost):
+        check_quadratic_cost(cost, n, m, T, "n = x0.shape[0], m = u_init.shape[1]")
+    if isinstance(system, LTV):
+        system.matrices(T)
 
     def simulate(us: Array) -> tuple[Array, Array]:
         def step(x: Array, inp: tuple[Array, Array]):

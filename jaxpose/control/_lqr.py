@@ -248,14 +248,21 @@ def lq_problem(
             f"ilqr / MPC for general costs"
         )
     n, m = system.state_dim, system.input_dim
+    C, c, CT, cT = check_quadratic_cost(cost, n, m, horizon, f"A is {n}×{n}, B is {n}×{m}")
+    F, f = system.matrices(horizon)
+    return F, f, C, c, CT, cT
+
+
+def check_quadratic_cost(
+    cost: QuadraticCost, n: int, m: int, horizon: int, sizes: str
+) -> tuple[Array, Array, Array, Array]:
+    """:meth:`QuadraticCost.stacked` after checking its size ``n + m`` (``sizes`` says
+    where n and m come from): raises naming ``Q``, ``QT``, ``pT`` or ``horizon``."""
     if cost.size != n + m:
         raise ValueError(
-            f"Q: expected size n + m = {n} + {m} = {n + m} (A is {n}×{n}, B is "
-            f"{n}×{m}), got {cost.size}"
+            f"Q: expected size n + m = {n} + {m} = {n + m} ({sizes}), got {cost.size}"
         )
-    F, f = system.matrices(horizon)
-    C, c, CT, cT = cost.stacked(horizon, n)
-    return F, f, C, c, CT, cT
+    return cost.stacked(horizon, n)
 
 
 @eqx.filter_jit

@@ -263,6 +263,8 @@ class MPC(eqx.Module):
             )
         if isinstance(self.cost, QuadraticCost) and isinstance(self.system, (LTI, LTV)):
             lq_problem(self.system, self.cost, self.horizon)  # shape checks
+        elif isinstance(self.system, LTV):
+            self.system.matrices(self.horizon)  # its time steps cover the horizon
 
     def _m(self, x0: Array, u_init: Any) -> int:
         if u_init is not None:

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array
+from ..lie._base import runtime_check
 
 Array = jax.Array
 
@@ -98,3 +99,14 @@ def check_finite(x: Array, name: str) -> None:
     """Raise on concrete non-finite values (no-op under tracing)."""
     if is_concrete(x) and not bool(jnp.all(jnp.isfinite(x))):
         raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+
+
+def step_index(t: Any, name: str = "t") -> Array:
+    """``t`` as an int32 index into a stack of per-step arrays. A negative step raises
+    (eagerly, or by ``eqx.error_if`` under ``jit``) instead of wrapping around to the
+    last steps as JAX indexing would."""
+    t = jnp.asarray(t, jnp.int32)
+    return runtime_check(
+        t, jnp.any(t < 0), f"{name}: expected a time step index >= 0 (a negative step "
+        f"would wrap around to the last steps)"
+    )

@@ -4,6 +4,9 @@
 * :class:`Pendulum` — state ``[θ, ω]`` (θ = 0 hanging down), input ``[torque]``.
 * :class:`Bicycle` — kinematic bicycle, state ``[px, py, ψ, v]``, input ``[a, δ]``
   (acceleration, steering angle); observes ranges to fixed landmarks and the speed.
+
+Each model checks the sizes of ``x`` and ``u`` (one element, last dimension), raising a
+``ValueError`` naming the argument instead of ignoring extra components.
 """
 
 from __future__ import annotations
@@ -14,9 +17,17 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._checks import check_last
 from ._integrators import ContinuousSystem
 
 Array = jax.Array
+
+
+def _check_sizes(model: Any, x: Array, u: Array, state: str, inputs: str) -> None:
+    """``x`` and ``u`` have the model's sizes (the names of their components given)."""
+    name = type(model).__name__
+    check_last(jnp.asarray(x), len(state.split(", ")), "x", f"{name} state [{state}]")
+    check_last(jnp.asarray(u), len(inputs.split(", ")), "u", f"{name} inputs [{inputs}]")
 
 
 class CartPole(ContinuousSystem):
@@ -34,6 +45,7 @@ class CartPole(ContinuousSystem):
     substeps: int = eqx.field(static=True, default=1)
 
     def derivative(self, x: Array, u: Array, tau: Any) -> Array:
+        _check_sizes(self, x, u, "x, ẋ, θ, θ̇", "force")
         _, xd, th, thd = x[0], x[1], x[2], x[3]
         force = u[0]
         total = self.cart_mass + self.pole_mass
@@ -59,6 +71,7 @@ class Pendulum(ContinuousSystem):
     substeps: int = eqx.field(static=True, default=1)
 
     def derivative(self, x: Array, u: Array, tau: Any) -> Array:
+        _check_sizes(self, x, u, "θ, ω", "torque")
         th, om = x[0], x[1]
         acc = (
             -(self.gravity / self.length) * jnp.sin(th)
@@ -71,7 +84,9 @@ class Pendulum(ContinuousSystem):
 class Bicycle(ContinuousSystem):
     """Kinematic bicycle: ``ṗx = v cos ψ``, ``ṗy = v sin ψ``, ``ψ̇ = v tan δ / L``,
     ``v̇ = a``. Observation: distances to ``landmarks`` (k, 2) followed by the speed,
-    shape (k + 1,)."""
+    shape (k + 1,). A distance is a safe norm: exact everywhere, and at a landmark
+    (distance 0, where ‖d‖ has no derivative) its derivative is the subgradient 0 instead
+    of NaN, so an EKF linearising there stays finite."""
 
     dt: Any = 0.1
     wheelbase: Any = 2.5
@@ -82,6 +97,7 @@ class Bicycle(ContinuousSystem):
     substeps: int = eqx.field(static=True, default=1)
 
     def derivative(self, x: Array, u: Array, tau: Any) -> Array:
+        _check_sizes(self, x, u, "px, py, ψ, v", "a, δ")
         psi, v = x[2], x[3]
         a, delta = u[0], u[1]
         return jnp.stack(
@@ -89,6 +105,9 @@ class Bicycle(ContinuousSystem):
         )
 
     def observation(self, x: Array, u: Array, t: Any = 0) -> Array:
+        _check_sizes(self, x, u, "px, py, ψ, v", "a, δ")
         d = x[None, :2] - self.landmarks
-        ranges = jnp.sqrt(jnp.sum(d * d, -1))
+        sq = jnp.sum(d * d, -1)
+        pos = sq > 0  # double where: sqrt's derivative at 0 would be inf · 0 = NaN
+        ranges = jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
         return jnp.concatenate([ranges, x[3:4]])

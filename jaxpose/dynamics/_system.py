@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import as_array, check_last
+from ._checks import as_array, check_last, step_index
 
 Array = jax.Array
 
@@ -212,8 +212,8 @@ class LTI(_Linear):
 class LTV(_Linear):
     """Linear time-varying system: the matrices of :class:`LTI` with a leading time axis
     ``T``: ``A`` (T, n, n), ``B`` (T, n, m), ``C`` (T, p, n), ``D`` (T, p, m), ``c1``
-    (T, n), ``c2`` (T, p). ``t`` selects the step (JAX indexing: out-of-range ``t``
-    clamps to the last step)."""
+    (T, n), ``c2`` (T, p). ``t`` selects the step: a ``t`` past the last step clamps to
+    it; a negative ``t`` raises (``ValueError``, or ``eqx.error_if`` under ``jit``)."""
 
     def __init__(
         self, A: Any, B: Any, C: Any = None, D: Any = None, c1: Any = None, c2: Any = None
@@ -233,7 +233,7 @@ class LTV(_Linear):
         return self.A.shape[0]
 
     def _at(self, t: Any) -> tuple[Array, ...]:
-        t = jnp.asarray(t, jnp.int32)
+        t = step_index(t)
         return self.A[t], self.B[t], self.C[t], self.D[t], self.c1[t], self.c2[t]
 
     def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:

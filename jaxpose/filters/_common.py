@@ -55,6 +55,16 @@ def check_cov(P: Any, dim: int, name: str = "P") -> Array:
     return P
 
 
+def as_state(x: Any, name: str = "x") -> Any:
+    """An array state as a floating array (integers promoted, as every array argument;
+    autodiff linearisation needs floats); group elements and other pytrees unchanged."""
+    if isinstance(x, (jax.Array, float, int)) or (
+        hasattr(x, "__array__") and not isinstance(x, eqx.Module)
+    ):
+        return as_array(x, name)
+    return x
+
+
 def check_noise_dim(M: Array, dim: int, name: str, what: str) -> None:
     """``M`` must be (dim, dim); the error names ``name`` and what ``dim`` is."""
     if jnp.shape(M) != (dim, dim):
@@ -180,6 +190,8 @@ def check_sequence(model: Any, R: Array, x0: Any, ys: Any, us: Any, t0: Any) -> 
     if not leaves or any(jnp.ndim(a) == 0 for a in leaves):
         raise ValueError(f"ys: expected a stack of measurements (N, p), got {_describe(ys)}")
     n_y = jnp.shape(leaves[0])[0]
+    if n_y == 0:
+        raise ValueError(f"ys: expected at least one measurement (N ≥ 1), got {_describe(ys)}")
     if us.ndim != 2 or us.shape[0] != n_y:
         raise ValueError(
             f"us: expected shape ({n_y}, m) (one input per measurement), got {tuple(us.shape)}"

@@ -31,7 +31,14 @@ import jax.numpy as jnp
 
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_jacobian, tangent_space
-from ._common import check_measurement, check_noise_dim, kalman_gain, symmetrize
+from ._common import (
+    as_state,
+    check_cov,
+    check_measurement,
+    check_noise_dim,
+    kalman_gain,
+    symmetrize,
+)
 from ._kalman import KalmanFilter, safe_measurement
 
 Array = jax.Array
@@ -52,17 +59,19 @@ class EKF(KalmanFilter):
         self.joseph = joseph
 
     def predict(self, x: Any, P: Array, u: Array, t: Any = 0) -> tuple[Any, Array]:
-        """``x⁻ = f(x, u, t)``, ``P⁻ = F P Fᵀ + Q``."""
+        """``x⁻ = f(x, u, t)``, ``P⁻ = F P Fᵀ + Q`` (``P`` checked as in :meth:`step`)."""
+        x = as_state(x)
         ts = tangent_space(x)
-        check_noise_dim(P, ts.dim, "P", "state tangent size")
+        P = check_cov(P, ts.dim, "P")
         check_noise_dim(self.Q, ts.dim, "Q", "state tangent size")
         xp, F = tangent_jacobian(lambda s: self.model.state_transition(s, u, t), x, ts, ts)
         return xp, symmetrize(F @ P @ F.T + self.Q)
 
     def _update(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         """:meth:`update` and whether the measurement was used."""
+        x = as_state(x)
         ts = tangent_space(x)
-        check_noise_dim(P, ts.dim, "P", "state tangent size")
+        P = check_cov(P, ts.dim, "P")
         yh = self.model.observation(x, u, t)
         ys = tangent_space(yh)
         check_noise_dim(self.R, ys.dim, "R", f"measurement noise: h(x) gives {ys.dim} values")

@@ -16,6 +16,7 @@ from ..dynamics._system import System
 from ..dynamics._tangent import TangentSpace, tangent_space
 from ._common import (
     FilterResult,
+    as_state,
     check_cov,
     check_sequence,
     finite_tree,
@@ -57,13 +58,17 @@ class KalmanFilter(NoisyModelFilter):
 
     def update(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """Correct ``(x, P)`` with a measurement ``y`` (p,) of ``h(x, u, t)``; returns the
-        posterior estimate and covariance (k, k)."""
+        posterior estimate and covariance (k, k). ``P`` is checked as in :meth:`step`."""
         return self._update(x, P, y, u, t)[:2]
 
     def step(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """Predict with ``u`` then update with ``y``; also ``filter(x, P, y, u, t)``.
+        ``P`` is checked as ``run``'s ``P0``: its shape always, its values (symmetric
+        positive semi-definite) where they are known (not under ``jit``).
         Compiled on first call (``eqx.filter_jit``; ``t`` is passed as an array, so a loop
         over time steps reuses one program)."""
+        x = as_state(x)
+        P = check_cov(P, tangent_space(x).dim, "P")  # eager: its values are checked
         return _compiled_step(self, x, P, y, u, jnp.asarray(t))
 
     def _step(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
@@ -78,6 +83,7 @@ class KalmanFilter(NoisyModelFilter):
         ``P0`` against ``x0``, ``ys`` against ``h(x0)`` and ``R``, ``us`` against ``ys``.
         Compiled on first call (``eqx.filter_jit``): new arrays of the same shapes reuse
         the program."""
+        x0 = as_state(x0, "x0")
         P0 = check_cov(P0, tangent_space(x0).dim, "P0")  # eager: its values are checked
         return _compiled_run(self, x0, P0, ys, us, jnp.asarray(t0))
 

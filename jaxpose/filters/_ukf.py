@@ -27,6 +27,8 @@ import jax.numpy as jnp
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_space
 from ._common import (
+    as_state,
+    check_cov,
     check_measurement,
     check_noise_dim,
     kalman_gain,
@@ -92,10 +94,12 @@ class UKF(KalmanFilter):
     def predict(self, x: Any, P: Array, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """Propagate the sigma points through ``f(·, u, t)``: predicted mean and ``P⁻`` (k, k) + Q.
 
-        ``x`` is an array (n,) or a Lie group element; ``P`` (k, k) in its tangent coordinates.
+        ``x`` is an array (n,) or a Lie group element; ``P`` (k, k) in its tangent coordinates
+        (checked as in :meth:`step`).
         """
+        x = as_state(x)
         ts = tangent_space(x)
-        check_noise_dim(P, ts.dim, "P", "state tangent size")
+        P = check_cov(P, ts.dim, "P")
         check_noise_dim(self.Q, ts.dim, "Q", "state tangent size")
         pts, _, wm, wc = self.sigma_points(x, P)
         prop = jax.vmap(lambda s: self.model.state_transition(s, u, t))(pts)
@@ -104,8 +108,9 @@ class UKF(KalmanFilter):
         return mean, symmetrize(Pp)
 
     def _update(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
+        x = as_state(x)
         ts = tangent_space(x)
-        check_noise_dim(P, ts.dim, "P", "state tangent size")
+        P = check_cov(P, ts.dim, "P")
         pts, offs, wm, wc = self.sigma_points(x, P)
         obs = jax.vmap(lambda s: self.model.observation(s, u, t))(pts)
         ymean, ydev = _mean(obs, wm)

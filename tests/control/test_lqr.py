@@ -10,6 +10,8 @@ import pytest
 from jaxpose import Results
 from jaxpose.control import (
     LQR,
+    MPC,
+    FunctionCost,
     QuadraticCost,
     box_qp,
     ilqr,
@@ -289,3 +291,66 @@ def test_issue19_overflow_status_nan_bounds_and_input_size():
         ilqr(LTI(A, B), cost, np.ones(n), np.zeros((T, m)), u_lower=np.array([np.nan, 0.0]))
     with pytest.raises(ValueError, match=r"x0, u_init: .*u_init\[t\] \(3,\)"):
         ilqr(LTI(A, B), cost, np.ones(n), np.zeros((T, 3)))
+
+
+# ----------------------------------------------------------------------------------
+# Time-varying terms shorter than the horizon; shape errors naming the argument
+# ----------------------------------------------------------------------------------
+A2, B2, X2 = np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]]), np.array([1.0, 0.5])
+
+
+def test_ilqr_time_varying_cost_or_ltv_shorter_than_horizon_raises():
+    """JAX gathers clamp ``Q[t]``/``A[t]``: iLQR (and MPC's iLQR path) silently reused the
+    last step of a time-varying cost or LTV system shorter than the horizon, where lqr
+    raised. A start step t0 must keep the horizon inside the steps (eagerly, or by
+    ``eqx.error_if`` under jit); a negative step no longer wraps around."""
+    T = 6
+    q_tv = np.stack([np.diag([1.0, 1.0, w]) for w in (0.1, 0.2, 0.3)])
+    with pytest.raises(ValueError, match="horizon: 6 exceeds the cost's 3 time steps"):
+        ilqr(LTI(A2, B2), QuadraticCost(q_tv, QT=np.eye(2)), X2, np.zeros((T, 1)))
+    ltv = LTV(np.stack([A2 * s for s in (1.0, 1.1, 1.2)]), np.stack([B2] * 3))
+    with pytest.raises(ValueError, match="horizon: 6 exceeds the LTV system's 3 time steps"):
+        ilqr(ltv, QuadraticCost(np.eye(3), QT=np.eye(2)), X2, np.zeros((T, 1)))
+    fcost = FunctionCost(lambda x, u, t: x @ x + u @ u)
+    with pytest.raises(ValueError, match="horizon: 6 exceeds the LTV system's 3 time steps"):
+        ilqr(ltv, fcost, X2, np.zeros((T, 1)))
+    with pytest.raises(ValueError, match="horizon: 6 exceeds the LTV system's 3 time steps"):
+        MPC(ltv, fcost, T)
+    q4 = QuadraticCost(np.tile(np.eye(3), (4, 1, 1)))
+    for t0 in (2, -1):
+        with pytest.raises(ValueError, match="t0: expected 0 ≤ t0 ≤ 1"):
+            ilqr(LTI(A2, B2), q4, X2, np.zeros((3, 1)), t0=t0)
+    with pytest.raises(RuntimeError, match="t0: expected 0 ≤ t0 ≤ 1"):
+        jax.jit(lambda t0: ilqr(LTI(A2, B2), q4, X2, np.zeros((3, 1)), t0=t0).u)(2)
+    with pytest.raises(ValueError, match="t: expected a time step index >= 0"):
+        QuadraticCost(q_tv).stage(np.zeros(2), np.zeros(1), -1)
+
+
+def test_ilqr_time_varying_cost_from_t0_equals_dense_kkt():
+    """The last allowed start (t0 = steps − T) uses Q[t0 : t0 + T] (dense KKT in numpy)."""
+    rng = np.random.default_rng(7)
+    T, t0 = 4, 2
+    M = rng.normal(size=(T + t0, 3, 3))
+    Q = M @ M.transpose(0, 2, 1) + 0.5 * np.eye(3)
+    sol = ilqr(LTI(A2, B2), QuadraticCost(Q, QT=np.eye(2)), X2, np.zeros((T, 1)), t0=t0)
+    F = np.tile(np.c_[A2, B2], (T, 1, 1))
+    xs, us = dense_kkt(F, np.zeros((T, 2)), Q[t0:], np.zeros((T, 3)), X2, np.eye(2), np.zeros(2))
+    assert int(sol.status) == Results.CONVERGED
+    np.testing.assert_allclose(sol.u, us, atol=1e-9)
+    np.testing.assert_allclose(sol.x, xs, atol=1e-9)
+
+
+def test_ilqr_and_mpc_shape_errors_name_the_argument():
+    """A QT or Q of the wrong size reached iLQR's dot products (raw TypeError); limits of
+    shape (3,) with m = 1 passed the broadcast check ((3,) with (T, 1) gives (T, 3))."""
+    T, cost = 6, QuadraticCost(np.eye(3))
+    with pytest.raises(ValueError, match=r"QT: expected shape \(2, 2\)"):
+        ilqr(LTI(A2, B2), QuadraticCost(np.eye(3), QT=np.eye(3)), X2, np.zeros((T, 1)))
+    with pytest.raises(ValueError, match=r"Q: expected size n \+ m = 2 \+ 1 = 3"):
+        ilqr(LTI(A2, B2), QuadraticCost(np.eye(4)), X2, np.zeros((T, 1)))
+    with pytest.raises(ValueError, match=r"u_lower: expected a shape broadcastable to \(6, 1\)"):
+        ilqr(LTI(A2, B2), cost, X2, np.zeros((T, 1)), u_lower=np.zeros(3))
+    with pytest.raises(ValueError, match=r"u_upper: expected a shape broadcastable to \(6, 1\)"):
+        MPC(LTI(A2, B2), cost, T, u_upper=np.ones(3))(X2)
+    with pytest.raises(ValueError, match=r"u_lower: expected a shape broadcastable to \(6, 1\)"):
+        ilqr(LTI(A2, B2), cost, X2, np.zeros((T, 1)), u_lower=np.zeros((1, 6, 1)))

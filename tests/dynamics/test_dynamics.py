@@ -10,6 +10,7 @@ from jaxpose.dynamics import (
     LTI,
     LTV,
     NLS,
+    Bicycle,
     CartPole,
     Discretized,
     Pendulum,
@@ -85,6 +86,91 @@ def test_ltv_indexes_time():
     lin = sys.linearize(np.zeros((3, n)), np.zeros(m), t=np.array([0, 2, 3]))
     np.testing.assert_allclose(lin.A[1], A[2])
     assert sys.horizon == T
+
+
+def test_ltv_negative_step_raises_instead_of_wrapping():
+    """``A[-1]`` is the last step in JAX: a negative t silently used it. Now a ValueError
+    (eagerly) or eqx.error_if (traced t); t within [0, T) indexes as before."""
+    T, n, m = 3, 2, 1
+    A = np.eye(n) + 0.1 * RNG.normal(size=(T, n, n))
+    B = RNG.normal(size=(T, n, m))
+    sys = LTV(A, B)
+    x, u = RNG.normal(size=n), RNG.normal(size=m)
+    with pytest.raises(ValueError, match="t: expected a time step index >= 0"):
+        sys.state_transition(x, u, -1)
+    with pytest.raises(ValueError, match="t: expected a time step index >= 0"):
+        sys.linearize(np.zeros((2, n)), np.zeros(m), t=np.array([1, -2]))
+    step = jax.jit(lambda t: sys.state_transition(x, u, t))
+    with pytest.raises(RuntimeError, match="t: expected a time step index >= 0"):
+        step(-1)
+    np.testing.assert_allclose(step(1), A[1] @ x + B[1] @ u, rtol=1e-13)
+
+
+def test_benchmark_models_check_state_and_input_sizes():
+    """Extra input components were silently ignored (u[1] of the 1-input pendulum) and a
+    scalar u gave an IndexError; sizes are shapes, so the check also runs under jit."""
+    cases = [
+        (Pendulum(), 2, 1, "Pendulum"),
+        (CartPole(), 4, 1, "CartPole"),
+        (Bicycle(), 4, 2, "Bicycle"),
+    ]
+    for model, n, m, name in cases:
+        x, u = jnp.zeros(n), jnp.zeros(m)
+        for bad_u in (jnp.zeros(m + 1), jnp.array(1.0)):
+            with pytest.raises(ValueError, match=rf"u: expected last dimension {m} \({name}"):
+                model.state_transition(x, bad_u)
+            with pytest.raises(ValueError, match=rf"u: expected last dimension {m} \({name}"):
+                eqx.filter_jit(model.state_transition)(x, bad_u)
+        with pytest.raises(ValueError, match=rf"x: expected last dimension {n} \({name}"):
+            model.state_transition(jnp.zeros(n + 1), u)
+        assert model.state_transition(x, u).shape == (n,)
+    with pytest.raises(ValueError, match=r"u: expected last dimension 2 \(Bicycle inputs"):
+        Bicycle().observation(jnp.zeros(4), jnp.zeros(3))
+
+
+def test_bicycle_ranges_exact_and_differentiable_at_a_landmark():
+    """sqrt(Σd²) had a NaN Jacobian on a landmark (the default landmarks include the
+    origin). Values stay exact; the derivative is d/|d| away from it (closed form and
+    central differences) and the subgradient 0 on it, in forward and reverse mode."""
+    model = Bicycle()
+    L = np.asarray(model.landmarks)
+    h = jax.jit(lambda x: model.observation(x, jnp.zeros(2)))
+    for x in (np.array([3.0, -2.0, 0.4, 1.5]), np.array([19.0, 0.5, -1.0, 0.2])):
+        d = x[:2] - L
+        r = np.hypot(d[:, 0], d[:, 1])
+        np.testing.assert_allclose(h(x), np.r_[r, x[3]], rtol=1e-15)
+        J = np.zeros((5, 4))
+        J[:4, :2], J[4, 3] = d / r[:, None], 1.0
+        np.testing.assert_allclose(jax.jacfwd(h)(x), J, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(jax.jacrev(h)(x), J, rtol=1e-13, atol=1e-15)
+        eps, E = 1e-6, np.eye(4)
+        fd = np.stack([(h(x + eps * e) - h(x - eps * e)) / (2 * eps) for e in E], -1)
+        np.testing.assert_allclose(jax.jacfwd(h)(x), fd, atol=1e-8)
+    x = np.array([20.0, 20.0, 0.3, 1.0])  # on landmark 3
+    y = np.asarray(h(x))
+    assert y[3] == 0.0
+    for jac in (jax.jacfwd(h), jax.jacrev(h)):
+        J = np.asarray(jac(x))
+        assert np.all(np.isfinite(J)) and np.all(J[3] == 0.0)
+        np.testing.assert_allclose(J[:3, :2], (x[:2] - L[:3]) / y[:3, None], rtol=1e-13)
+
+
+def _pendulum_rk4_numpy(x, u, dt=0.05, g=9.81, length=1.0, mass=1.0, b=0.1):
+    def f(s):
+        return np.array([s[1], -(g / length) * np.sin(s[0]) - b * s[1] + u / (mass * length**2)])
+
+    k1 = f(x)
+    k2 = f(x + 0.5 * dt * k1)
+    k3 = f(x + 0.5 * dt * k2)
+    k4 = f(x + dt * k3)
+    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def test_pendulum_step_matches_numpy_rk4():
+    x = np.array([0.5, -0.3])
+    np.testing.assert_allclose(
+        Pendulum().state_transition(jnp.asarray(x), jnp.array([0.7])),
+        _pendulum_rk4_numpy(x, 0.7), rtol=1e-13)
 
 
 class Pend(NLS):

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from jaxpose.dynamics import LTI
+from jaxpose.dynamics import LTI, Bicycle
 from jaxpose.filters import EKF, UKF, ParticleFilter
 from jaxpose.filters._common import psd_cholesky
 
@@ -271,3 +271,77 @@ def test_tangent_space_of_lie_elements_under_jit():
 
     dim = eqx.filter_jit(lambda a, g: (tangent_space(a).dim, tangent_space(g).dim))
     assert dim(jp.so3(jnp.zeros(3)), jp.SE2.identity()) == (3, 3)
+
+
+def test_ekf_step_on_a_bicycle_landmark_matches_numpy():
+    """At rest on landmark 0 (x0 = 0, the default origin) the range Jacobian was NaN and
+    the EKF step all NaN. Reference: the textbook Kalman step in numpy with F = I + dt·e₀e₃ᵀ
+    (the RK4 step of the linearisation ṗx = v, exact since it is nilpotent) and H of
+    rows d/|d| (0 on the landmark: the subgradient) and e₃ (speed)."""
+    model, dt = Bicycle(dt=0.1), 0.1
+    Q, R, P = np.eye(4) * 1e-3, np.eye(5) * 0.1, np.eye(4) * 0.1
+    x0, u = np.zeros(4), np.zeros(2)
+    L = np.asarray(model.landmarks)
+    h0 = np.r_[np.hypot(L[:, 0], L[:, 1]), 0.0]
+    y = h0 + 0.01
+    F = np.eye(4)
+    F[0, 3] = dt
+    H = np.zeros((5, 4))
+    H[1:4, :2] = -L[1:] / h0[1:4, None]
+    H[4, 3] = 1.0
+    Pp = F @ P @ F.T + Q
+    S = H @ Pp @ H.T + R
+    K = Pp @ H.T @ np.linalg.inv(S)
+    x_ref = K @ (y - h0)
+    IKH = np.eye(4) - K @ H
+    P_ref = IKH @ Pp @ IKH.T + K @ R @ K.T
+    x1, P1 = EKF(model, Q, R).step(x0, P, y, u)
+    np.testing.assert_allclose(x1, x_ref, atol=1e-14)
+    np.testing.assert_allclose(P1, P_ref, atol=1e-14)
+    res = EKF(model, Q, R).run(x0, P, np.tile(y, (3, 1)), np.zeros((3, 2)))
+    assert bool(np.all(res.ok)) and np.all(np.isfinite(res.P))
+
+
+@pytest.mark.parametrize("Filter", [EKF, UKF])
+def test_single_step_methods_check_P_like_run(Filter):
+    """step/predict/update never checked P (only run's P0): UKF.step(P = −I) returned the
+    numbers of P = 0 (the semidefinite Cholesky zeroes negative directions), EKF.step NaN.
+    As for P0: values checked eagerly, the shape also under jit."""
+    d, sys = _setup()
+    flt = Filter(sys, d["Q"], d["R"])
+    x, y, u = d["x0"], d["ys"][0], d["us"][0]
+    calls = {
+        "step": lambda P: flt.step(x, P, y, u),
+        "predict": lambda P: flt.predict(x, P, u),
+        "update": lambda P: flt.update(x, P, y, u),
+    }
+    asym = np.eye(3) + np.triu(np.ones((3, 3)), 1)
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match="P: expected a positive semi-definite"):
+            call(-np.eye(3))
+        with pytest.raises(ValueError, match="P: expected a symmetric matrix"):
+            call(asym)
+        with pytest.raises(ValueError, match=r"P: expected shape \(3, 3\)"):
+            jax.jit(call)(np.eye(2))
+    # a valid P: one step equals the numpy Kalman filter's first step
+    xr, Pr = kalman_reference(d)
+    x1, P1 = flt.step(x, d["P0"], y, u)
+    np.testing.assert_allclose(x1, xr[0], atol=1e-12)
+    np.testing.assert_allclose(P1, Pr[0], atol=1e-12)
+
+
+def test_integer_state_and_empty_sequence_errors():
+    """An integer x0 reached jacfwd ("requires real-valued inputs"): it is promoted like
+    every array argument. N = 0 measurements gave a bare IndexError."""
+    d, sys = _setup()
+    d["x0"] = np.array([1, -2, 0])
+    xr, Pr = kalman_reference(d)
+    for flt in (EKF(sys, d["Q"], d["R"]), UKF(sys, d["Q"], d["R"])):
+        x1, P1 = flt.step(d["x0"], d["P0"], d["ys"][0], d["us"][0])
+        np.testing.assert_allclose(x1, xr[0], atol=1e-12)
+        res = flt.run(d["x0"], d["P0"], d["ys"][:2], d["us"][:2])
+        np.testing.assert_allclose(res.x, xr[:2], atol=1e-12)
+        np.testing.assert_allclose(res.P, Pr[:2], atol=1e-12)
+    for flt in (EKF(sys, d["Q"], d["R"]), UKF(sys, d["Q"], d["R"]), _pf(sys, d)):
+        with pytest.raises(ValueError, match="ys: expected at least one measurement"):
+            _run_any(flt, d["x0"], d["P0"], d["ys"][:0], d["us"][:0])
