@@ -1,6 +1,7 @@
 """Input validation for the IMU functions (internal): trace-time shape and type checks
 with messages naming the function and argument, and run-time value checks through
-:func:`equinox.error_if`."""
+:func:`equinox.error_if` (under tracing) or returned flags (an eager call raises
+:class:`~jaxpose.lie.InvalidValueError` from them after the compiled call)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array as as_float
+from ..lie import InvalidValueError
 
 Array = jax.Array
 
@@ -76,36 +78,69 @@ def broadcast_samples(
     )
 
 
-def check_values(g: Array, a: Array, d: Array, fn: str) -> tuple[Array, Array, Array]:
-    """Run-time value checks with :func:`equinox.error_if` (also under jit/vmap)."""
-    g = eqx.error_if(g, ~jnp.all(jnp.isfinite(g)),
-                     f"{fn}(gyro): samples contain NaN or inf")
-    a = eqx.error_if(a, ~jnp.all(jnp.isfinite(a)),
-                     f"{fn}(acc): samples contain NaN or inf")
-    d = eqx.error_if(d, ~jnp.all((d > 0) & jnp.isfinite(d)),
-                     f"{fn}(dt): every time step must be positive and finite (found dt <= 0, "
-                     f"inf or NaN)")
+def _message(name: str, fn: str) -> str:
+    if name in ("gyro", "acc"):
+        return f"{fn}({name}): samples contain NaN or inf"
+    if name == "dt":
+        return (f"{fn}(dt): every time step must be positive and finite (found dt <= 0, "
+                f"inf or NaN)")
+    if name == "result":
+        return (f"{fn}: the result overflows (not finite) although every input is finite: "
+                f"samples, dt or noise densities of extreme magnitude (such as 1e200, or "
+                f"|gyro·dt| beyond ~1e150)")
+    return f"{fn}({name}): contains NaN or inf"
+
+
+# the order in which an eager call reports failed checks (inputs before the result)
+_ORDER = ("gyro", "acc", "dt", "gyro_bias", "acc_bias", "gyro_noise", "acc_noise",
+          "integration_noise", "result")
+
+
+def _check(x: Any, bad: Array, name: str, fn: str, flags: dict[str, Array] | None) -> Any:
+    """``eqx.error_if(x, bad, message)``; with a dict ``flags`` (an eager call) record
+    ``bad`` there instead, for :func:`raise_flagged` after the call."""
+    if flags is None:
+        return eqx.error_if(x, bad, _message(name, fn))
+    flags[name] = bad
+    return x
+
+
+def raise_flagged(flags: dict[str, Any], fn: str) -> None:
+    """Raise the first failed check of an eager call as a one-line
+    :class:`~jaxpose.lie.InvalidValueError` (as the lie groups' eager checks do)."""
+    flags = jax.device_get(flags)
+    for name in _ORDER:
+        if name in flags and bool(flags[name]):
+            raise InvalidValueError(_message(name, fn))
+
+
+def check_values(g: Array, a: Array, d: Array, fn: str,
+                 flags: dict[str, Array] | None = None) -> tuple[Array, Array, Array]:
+    """Run-time value checks with :func:`equinox.error_if` (also under jit/vmap), or
+    recorded in ``flags`` (see :func:`_check`)."""
+    g = _check(g, ~jnp.all(jnp.isfinite(g)), "gyro", fn, flags)
+    a = _check(a, ~jnp.all(jnp.isfinite(a)), "acc", fn, flags)
+    d = _check(d, ~jnp.all((d > 0) & jnp.isfinite(d)), "dt", fn, flags)
     return g, a, d
 
 
-def check_finite_inputs(values: dict[str, Array | None], fn: str) -> dict[str, Array | None]:
+def check_finite_inputs(values: dict[str, Array | None], fn: str,
+                        flags: dict[str, Array] | None = None) -> dict[str, Array | None]:
     """Run-time check that optional inputs (noise densities, biases) are finite."""
     out: dict[str, Array | None] = {}
     for name, v in values.items():
-        out[name] = None if v is None else eqx.error_if(
-            v, ~jnp.all(jnp.isfinite(v)), f"{fn}({name}): contains NaN or inf")
+        out[name] = None if v is None else _check(v, ~jnp.all(jnp.isfinite(v)), name, fn,
+                                                  flags)
     return out
 
 
-def check_outputs(out: Any, fn: str) -> Any:
+def check_outputs(out: Any, fn: str, flags: dict[str, Array] | None = None) -> Any:
     """Run-time check that the outputs computed from finite inputs are finite: extreme
     magnitudes (e.g. samples, dt or noise densities of 1e200) overflow somewhere in the
     rotation, the deltas, the covariance or the bias Jacobians."""
     leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(out)]
     bad = ~jnp.all(jnp.stack(leaves))
-    return eqx.error_if(out, bad, f"{fn}: the result overflows (not finite) although every "
-                        f"input is finite: samples, dt or noise densities of extreme "
-                        f"magnitude (such as 1e200, or |gyro·dt| beyond ~1e150)")
+    return _check(out, bad, "result", fn, flags)
 
 
 def biases(gyro_bias: Any, acc_bias: Any, batch: tuple[int, ...],

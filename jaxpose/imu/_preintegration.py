@@ -55,6 +55,7 @@ from ._checks import (
     check_samples,
     check_values,
     noise_sigma,
+    raise_flagged,
     scalar_var,
 )
 from ._state import NavState
@@ -238,11 +239,12 @@ def preintegrate(
         prefix: return every cumulative delta (batch (…, N)) instead of the window's.
         scheme: ``"manifold"`` (Forster et al., exact rotation increments, associative)
             or ``"tangent"`` (GTSAM's default ``PreintegratedImuMeasurements``).
-        check: run-time value checks through ``eqx.error_if`` (also under ``jit`` and
-            ``vmap``): NaN/inf samples, biases or noise densities, dt ≤ 0, inf or NaN, and
-            outputs that overflow although the inputs are finite (extreme magnitudes such
-            as 1e200) raise. With ``check=False`` bad values propagate as NaN/inf into the
-            outputs.
+        check: run-time value checks: NaN/inf samples, biases or noise densities, dt ≤ 0,
+            inf or NaN, and outputs that overflow although the inputs are finite (extreme
+            magnitudes such as 1e200) raise: eagerly a one-line
+            :class:`~jaxpose.lie.InvalidValueError`, under ``jit`` and ``vmap`` the same
+            message through ``eqx.error_if``. With ``check=False`` bad values propagate as
+            NaN/inf into the outputs.
 
     Returns:
         :class:`Preintegrated` with batch shape (…) (or (…, N) with ``prefix``).
@@ -258,27 +260,37 @@ def preintegrate(
     gs = None if gyro_noise is None else noise_sigma(gyro_noise, f"{fn}(gyro_noise)", dtype)
     as_ = None if acc_noise is None else noise_sigma(acc_noise, f"{fn}(acc_noise)", dtype)
     iv = scalar_var(integration_noise, f"{fn}(integration_noise)", dtype)
-    return _preintegrate(g, a, d, bg, ba, gs, as_, iv, batch=batch, dtype=jnp.dtype(dtype),
-                         bias_jacobians=bool(bias_jacobians), prefix=bool(prefix),
-                         scheme=scheme, check=bool(check))
+    # eager call: the checks come back as flags and raise a one-line InvalidValueError
+    # here (eqx.error_if inside jax.jit would surface as a JaxRuntimeError dump)
+    inputs = (g, a, d, bg, ba, gs, as_, iv)
+    eager = bool(check) and not any(isinstance(x, jax.core.Tracer) for x in inputs)
+    out, flags = _preintegrate(*inputs, batch=batch, dtype=jnp.dtype(dtype),
+                               bias_jacobians=bool(bias_jacobians), prefix=bool(prefix),
+                               scheme=scheme, check=bool(check), eager=eager)
+    if eager:
+        raise_flagged(flags, fn)
+    return out
 
 
 @functools.partial(jax.jit, static_argnames=("batch", "dtype", "bias_jacobians", "prefix",
-                                             "scheme", "check"))
+                                             "scheme", "check", "eager"))
 def _preintegrate(
     g: Array, a: Array, d: Array, bg: Array | None, ba: Array | None, gs: Array | None,
     as_: Array | None, iv: Array, *, batch: tuple[int, ...], dtype: Any,
-    bias_jacobians: bool, prefix: bool, scheme: str, check: bool,
-) -> Preintegrated:
+    bias_jacobians: bool, prefix: bool, scheme: str, check: bool, eager: bool,
+) -> tuple[Preintegrated, dict[str, Array]]:
+    """The preintegration and ``check``'s flags: with ``eager`` the failed checks are
+    returned as ``{name: bool}`` (see ``_checks.raise_flagged``), else ``eqx.error_if``."""
     fn = "preintegrate"
+    flags: dict[str, Array] | None = {} if eager else None
     g, a, d = broadcast_samples(g, a, d, batch, dtype)
     zero = jnp.zeros(3, dtype)
     bg = jnp.broadcast_to(zero if bg is None else bg.astype(dtype), (*batch, 3))
     ba = jnp.broadcast_to(zero if ba is None else ba.astype(dtype), (*batch, 3))
     if check:
-        g, a, d = check_values(g, a, d, fn)
+        g, a, d = check_values(g, a, d, fn, flags)
         c = check_finite_inputs({"gyro_bias": bg, "acc_bias": ba, "gyro_noise": gs,
-                                 "acc_noise": as_, "integration_noise": iv}, fn)
+                                 "acc_noise": as_, "integration_noise": iv}, fn, flags)
         bg, ba, gs, as_, iv = (c["gyro_bias"], c["acc_bias"], c["gyro_noise"],
                                c["acc_noise"], c["integration_noise"])
     # keeps XLA from constant-folding cumulative sums of a constant dt (slow compiles)
@@ -300,12 +312,12 @@ def _preintegrate(
 
     out = _vmap_n(one, len(batch))(g, a, d, bg, ba)
     if check:
-        out = check_outputs(out, fn)
+        out = check_outputs(out, fn, flags)
     if prefix:
         n = g.shape[-2]
         bg = jnp.broadcast_to(bg[..., None, :], (*batch, n, 3))
         ba = jnp.broadcast_to(ba[..., None, :], (*batch, n, 3))
-    return _from_delta(out, bg, ba)
+    return _from_delta(out, bg, ba), flags or {}
 
 
 def predict(

@@ -726,11 +726,17 @@ def _axes_used(i: Any) -> int:
 
 
 def _check_bounds(i: Any, axis: int, x: Any, idx: Any) -> None:
-    """IndexError for an out-of-range integer index known in Python (JAX would clamp)."""
+    """IndexError for an out-of-range integer index known in Python (JAX would clamp):
+    Python and NumPy integers, integer lists, NumPy and concrete JAX arrays. A traced
+    index (under ``jit``/``vmap``) is not known and follows JAX's clamping."""
     if isinstance(i, (bool, np.bool_)):
         return
+    concrete_jax = (
+        isinstance(i, jax.Array) and not isinstance(i, jax.core.Tracer)
+        and i.is_fully_addressable
+    )
     if isinstance(i, (int, np.integer)) or (
-        isinstance(i, np.ndarray) and jnp.issubdtype(i.dtype, jnp.integer)
+        (isinstance(i, np.ndarray) or concrete_jax) and jnp.issubdtype(i.dtype, jnp.integer)
     ):
         vals = np.asarray(i)
     elif isinstance(i, list) and i and all(
@@ -738,7 +744,7 @@ def _check_bounds(i: Any, axis: int, x: Any, idx: Any) -> None:
     ):
         vals = np.asarray(i)
     else:
-        return  # slices, JAX arrays (possibly traced), boolean masks
+        return  # slices, traced arrays, boolean masks
     n = x.shape[axis]
     if vals.size and not (vals.min() >= -n and vals.max() < n):
         bad = vals[(vals < -n) | (vals >= n)].flat[0]

@@ -32,13 +32,33 @@ def euler_to_quaternion(euler: Array) -> Array:
 
 
 def quaternion_to_euler(q: Array) -> Array:
-    """Quaternion (…, 4) → roll-pitch-yaw (…, 3); pitch in [−π/2, π/2] (gimbal lock at ±π/2,
-    where the derivative of pitch is unbounded)."""
+    """Quaternion (…, 4) → roll-pitch-yaw (…, 3); pitch in [−π/2, π/2], roll and yaw in
+    [−π, π] (scipy's ``as_euler("xyz")``).
+
+    Half-angle form of Bernardes & Viollet (PLoS ONE 2022, as scipy): pitch from an
+    ``atan2`` of two norms (accurate up to ±π/2, unlike ``arcsin``), roll and yaw from
+    ``(b, a)`` and ``(d, c)``, each well conditioned on one side of the lock, so the
+    angles rebuild R to rounding at and near gimbal lock. At exact lock (pitch = ±π/2)
+    only roll ∓ yaw is defined: yaw is set to 0 as scipy does. Not differentiable there
+    (gradients are finite, not meaningful)."""
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    roll = jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = jnp.arcsin(jnp.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return jnp.stack([roll, pitch, yaw], -1)
+    a, b, c, d = w - y, x + z, w + y, z - x
+    n_ab, n_cd = a * a + b * b, c * c + d * d
+    up, down = n_ab == 0, n_cd == 0  # pitch = +π/2, −π/2 exactly
+    # double where: no NaN from atan2(0, 0) or sqrt'(0) at the lock
+    n_ab = jnp.where(up, 0.0, jnp.sqrt(jnp.where(up, 1.0, n_ab)))
+    n_cd = jnp.where(down, 0.0, jnp.sqrt(jnp.where(down, 1.0, n_cd)))
+    half_sum = jnp.arctan2(b, jnp.where(up, 1.0, a))
+    half_diff = jnp.arctan2(d, jnp.where(down, 1.0, c))
+    half_sum = jnp.where(up, -half_diff, half_sum)
+    half_diff = jnp.where(down, -half_sum, half_diff)
+    pitch = 2.0 * jnp.arctan2(n_cd, n_ab) - 0.5 * jnp.pi
+    return jnp.stack([_wrap(half_sum - half_diff), pitch, _wrap(half_sum + half_diff)], -1)
+
+
+def _wrap(t: Array) -> Array:
+    """An angle in [−2π, 2π] → [−π, π]."""
+    return jnp.where(t > jnp.pi, t - 2 * jnp.pi, jnp.where(t < -jnp.pi, t + 2 * jnp.pi, t))
 
 
 def wxyz_to_xyzw(q: Array) -> Array:

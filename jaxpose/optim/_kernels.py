@@ -16,18 +16,40 @@ mode (double-``where`` for square roots and piecewise branches).
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 Array = jax.Array
 
 
-def _check_positive(name: str, **values: float) -> None:
-    for key, val in values.items():
-        if isinstance(val, (int, float)) and not val > 0:
-            raise ValueError(f"{name}({key}={val!r}): {key} has to be positive")
+def _is_traced(val: Any) -> bool:
+    return isinstance(val, jax.core.Tracer)
+
+
+def _check_param(name: str, key: str, val: Any, ok: Callable[[Any], Any], what: str) -> None:
+    """ValueError unless ``ok(val)`` holds everywhere, for a value known at construction
+    (Python or NumPy numbers, NumPy and concrete JAX arrays); traced values are checked at
+    run time by ``Kernel._checked``."""
+    if _is_traced(val):
+        return
+    try:
+        arr = np.asarray(val)
+        good = bool(np.all(ok(arr)))
+    except TypeError as err:
+        raise TypeError(f"{name}({key}={val!r}): expected a number") from err
+    if not good:
+        shown = val if isinstance(val, (int, float)) else arr
+        raise ValueError(f"{name}({key}={shown!r}): {key} has to be {what}")
+
+
+# a parameter name -> (the condition on its value, what is expected)
+Constraints = dict[str, tuple[Callable[[Any], Any], str]]
+_POSITIVE_DELTA: Constraints = {"delta": (lambda v: v > 0, "positive")}
 
 
 def _safe_sqrt(s: Array) -> Array:
@@ -37,7 +59,30 @@ def _safe_sqrt(s: Array) -> Array:
 
 
 class Kernel(eqx.Module):
-    """Base class: ρ(s) with analytic first and second derivatives."""
+    """Base class: ρ(s) with analytic first and second derivatives.
+
+    Parameters with a domain (``delta > 0``; Tolerant's ``a ≥ 0``, ``b ≠ 0``) are checked
+    on construction when their value is known (Python or NumPy numbers, NumPy and concrete
+    JAX arrays: ValueError naming the parameter); traced ones (``Huber(d)`` inside
+    ``jit``/``grad``/``vmap``) by :func:`~jaxpose.optim.least_squares` at run time."""
+
+    _constraints: ClassVar[Constraints] = {}
+
+    def __check_init__(self) -> None:
+        for key, (ok, what) in self._constraints.items():
+            _check_param(type(self).__name__, key, getattr(self, key), ok, what)
+
+    def _checked(self) -> Kernel:
+        """This kernel with its traced parameters checked at run time (``eqx.error_if``,
+        also under ``jit``/``vmap``); known values were checked on construction."""
+        out = self
+        for key, (ok, what) in self._constraints.items():
+            val = getattr(self, key)
+            if _is_traced(val):
+                val = eqx.error_if(val, ~jnp.all(ok(val)),
+                                   f"{type(self).__name__}({key}): {key} has to be {what}")
+                out = eqx.tree_at(lambda k, key=key: getattr(k, key), out, val)
+        return out
 
     @abc.abstractmethod
     def __call__(self, s: Array) -> Array:
@@ -70,8 +115,7 @@ class Huber(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("Huber", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         d = self.delta
@@ -95,8 +139,7 @@ class PseudoHuber(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("PseudoHuber", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         d2 = self.delta**2
@@ -115,8 +158,7 @@ class Cauchy(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("Cauchy", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         d2 = self.delta**2
@@ -137,8 +179,7 @@ class SoftLOne(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("SoftLOne", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         return 2.0 * (jnp.sqrt(1.0 + self.delta**2 * s) - 1.0)
@@ -157,8 +198,7 @@ class Arctan(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("Arctan", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         d2 = self.delta**2
@@ -184,11 +224,7 @@ class Tolerant(Kernel):
     a: float = 1.0
     b: float = -1.0
 
-    def __check_init__(self) -> None:
-        if isinstance(self.a, (int, float)) and self.a < 0:
-            raise ValueError(f"Tolerant(a={self.a!r}): a has to be non-negative")
-        if isinstance(self.b, (int, float)) and self.b == 0:
-            raise ValueError("Tolerant(b=0): b has to be non-zero")
+    _constraints = {"a": (lambda v: v >= 0, "non-negative"), "b": (lambda v: v != 0, "non-zero")}
 
     def __call__(self, s: Array) -> Array:
         a, b = self.a, self.b
@@ -208,8 +244,7 @@ class Scale(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("Scale", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         return self.delta * s
@@ -228,8 +263,7 @@ class Tukey(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("Tukey", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         d2 = self.delta**2
@@ -251,8 +285,7 @@ class GemanMcClure(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("GemanMcClure", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         d2 = self.delta**2
@@ -272,8 +305,7 @@ class Welsch(Kernel):
 
     delta: float = 1.0
 
-    def __check_init__(self) -> None:
-        _check_positive("Welsch", delta=self.delta)
+    _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
         d2 = self.delta**2

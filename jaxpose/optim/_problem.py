@@ -146,6 +146,15 @@ class Problem(eqx.Module):
         for leaf in leaves:
             if not jnp.issubdtype(leaf.dtype, jnp.floating):
                 raise TypeError(f"residual_fn: returned a {leaf.dtype} array; expected floats")
+        sizes = [int(np.prod(leaf.shape)) for leaf in leaves]
+        if sum(sizes) == 0:
+            raise ValueError("residual_fn: returned 0 residuals; expected at least one")
+        if 0 in sizes:
+            i = sizes.index(0)
+            raise ValueError(
+                f"residual_fn: residual leaf {i} has shape {tuple(leaves[i].shape)} (0 "
+                f"residuals); expected at least one in every leaf (leave out empty leaves)"
+            )
         self._weight_leaves(leaves, treedef)
         self._kernel_leaves(leaves, treedef)
         if callable(self.jacobian):
@@ -158,6 +167,16 @@ class Problem(eqx.Module):
                     f"jacobian(params, args): expected a dense tangent-space Jacobian of shape "
                     f"({m}, {n}) (residual size, tangent size), got {got}"
                 )
+
+    def _with_checked_kernels(self) -> Problem:
+        """This problem with its kernels' traced parameters (``Huber(d)`` with ``d`` traced)
+        checked at run time (``eqx.error_if``, once per solve); known values were checked
+        when the kernels were made."""
+        if self.kernel is None:
+            return self
+        kernel = jax.tree.map(lambda k: None if k is None else k._checked(), self.kernel,
+                              is_leaf=_is_kernel_leaf)
+        return dataclasses.replace(self, kernel=kernel)
 
     def _weight_leaves(self, leaves: list[Any], treedef: Any) -> list[Any]:
         if self.weights is None:

@@ -139,13 +139,15 @@ def least_squares(
         :class:`Solution` with the best ``params``, ``status``, ``num_steps``, costs.
 
     Raises:
-        ValueError: at trace time for malformed weights, kernels or options (shapes).
+        ValueError: at trace time for malformed weights, kernels or options (shapes), or
+            a ``residual_fn`` returning no residuals.
         TypeError: at trace time for arguments of the wrong type (solver, adjoint, ...).
         RuntimeError: (``eqx.EquinoxRuntimeError``, from ``eqx.error_if``) if
             ``residual_fn`` is NaN/Inf at the initial ``params``. A Jacobian that is not
             finite there (e.g. ``sqrt(x)`` at 0) does not raise: solvers report a status,
             so the solve ends at once with ``NON_FINITE`` and the initial ``params``
-            (as :func:`jaxpose.graph.solve` does).
+            (as :func:`jaxpose.graph.solve` does). Also if a traced kernel parameter
+            is outside its domain (e.g. ``Huber(d)`` with ``d ≤ 0``).
     """
     params = _inexact(params)
     solver = LevenbergMarquardt() if solver is None else solver
@@ -175,7 +177,7 @@ def least_squares(
             f"{type(adjoint).__name__}"
         )
     problem.check(params, args)
-    problem = problem.resolve(params, args)
+    problem = problem._with_checked_kernels().resolve(params, args)
     unrolled = isinstance(adjoint, UnrolledAdjoint)
     run = _runner(solver, stopping, verbose=verbose, history=history, unrolled=unrolled)
     if unrolled:

@@ -228,3 +228,63 @@ def test_non_finite_noise_and_bias_raise():
         jax.block_until_ready(preintegrate(G, A, DT, gyro_noise=np.nan, acc_noise=1e-2))
     with pytest.raises(Exception, match=r"preintegrate\(acc_bias\): contains NaN or inf"):
         jax.block_until_ready(preintegrate(G, A, DT, acc_bias=[0.0, np.inf, 0.0]))
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        ("zero_dt", r"preintegrate\(dt\): every time step must be positive and finite"),
+        ("negative_dt", r"preintegrate\(dt\): every time step must be positive"),
+        ("nan_dt", r"preintegrate\(dt\): every time step must be positive"),
+        ("nan_gyro", r"preintegrate\(gyro\): samples contain NaN or inf"),
+        ("inf_acc", r"preintegrate\(acc\): samples contain NaN or inf"),
+        ("nan_bias", r"preintegrate\(gyro_bias\): contains NaN or inf"),
+        ("overflow", r"preintegrate: the result overflows"),
+    ],
+)
+def test_eager_value_errors_are_one_line_invalid_value_errors(bad, match):
+    """Eagerly these surfaced as ``JaxRuntimeError: INTERNAL: CpuCallback error ...`` (the
+    internal function is a jax.jit): now the class the lie groups' eager checks raise."""
+    from jaxpose.lie import InvalidValueError
+
+    g, a, d, kw = G.copy(), A.copy(), DT.copy(), {}
+    if bad == "zero_dt":
+        d = 0.0
+    elif bad == "negative_dt":
+        d[2] = -0.01
+    elif bad == "nan_dt":
+        d = float("nan")
+    elif bad == "nan_gyro":
+        g[3, 1] = np.nan
+    elif bad == "inf_acc":
+        a[2, 0] = np.inf
+    elif bad == "nan_bias":
+        kw = {"gyro_bias": [0.0, np.nan, 0.0]}
+    else:
+        a = a * 1e300
+    with pytest.raises(InvalidValueError, match=match) as info:
+        preintegrate(g, a, d, gyro_noise=1e-3, acc_noise=1e-2, **kw)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, RuntimeError)
+    assert "\n" not in str(info.value) and "Callback" not in str(info.value)
+    assert str(info.value).startswith("preintegrate")
+    if bad != "overflow":  # (dead_reckon has no covariance to overflow)
+        with pytest.raises(InvalidValueError, match=match):  # through dead_reckon too
+            dead_reckon(g, a, d, [0.0, 0.0, -9.81], **kw)
+    # under the user's jax.jit the message still appears in the exception text
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(_jit_pos(g, a, d, kw.get("gyro_bias")))
+
+
+_jit_pos = jax.jit(lambda g, a, d, bg: preintegrate(g, a, d, gyro_bias=bg, gyro_noise=1e-3,
+                                                    acc_noise=1e-2).pos)
+
+
+def test_eager_valid_call_unchanged():
+    """The eager path (flags returned, checked after the call) gives the jitted values."""
+    rng = np.random.default_rng(0)
+    g, a, d = rng.normal(size=(N, 3)), rng.normal(size=(N, 3)), np.full(N, 0.01)
+    eager = preintegrate(g, a, d, gyro_noise=1e-3, acc_noise=1e-2)
+    jitted = jax.jit(lambda g, a, d: preintegrate(g, a, d, gyro_noise=1e-3, acc_noise=1e-2))(
+        g, a, d)
+    for x, y in zip(jax.tree.leaves(eager), jax.tree.leaves(jitted)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-14, atol=1e-15)

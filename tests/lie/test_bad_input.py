@@ -679,3 +679,30 @@ def test_from_matrix_of_extreme_scales(cls):
         np.testing.assert_allclose(
             np.asarray(y.rotation().matrix()), np.asarray(x.rotation().matrix()), atol=1e-14
         )
+
+
+@pytest.mark.parametrize("kind", [SO3, se3], ids=lambda c: c.__name__)
+def test_out_of_range_concrete_jax_array_indices_raise(kind):
+    """Concrete (non-traced) JAX integer indices were not bounds-checked: X[jnp.array(5)]
+    silently returned X[2] (JAX's gather clamps). They are checked like NumPy indices; a
+    traced index (under jit) has no known value and keeps JAX's documented clamping."""
+    dim = kind.storage_dim if issubclass(kind, jp.LieGroup) else kind.tangent_dim
+    data = np.arange(3 * 4 * dim, dtype=np.float64).reshape(3, 4, dim)
+    x = kind(data)
+    for idx, bad in ((jnp.array(5), 5), (jnp.array(-4), -4), (jnp.array([0, 7]), 7),
+                     ((0, jnp.array([1, 4])), 4), ((..., jnp.array(-5)), -5),
+                     ((jnp.array(1), jnp.array(4)), 4)):
+        with pytest.raises(IndexError, match=rf"index {bad} is out of range for batch axis"):
+            x[idx]
+    # in range: the same values as NumPy indexing of the data
+    for idx, expected in ((jnp.array(2), data[2]), (jnp.array(-3), data[0]),
+                          (jnp.array([2, 0]), data[[2, 0]]),
+                          ((jnp.array(1), jnp.array(-1)), data[1, 3]),
+                          ((..., jnp.array([3, 0])), data[:, [3, 0]])):
+        np.testing.assert_array_equal(np.asarray(x[idx].data), expected)
+    # a boolean mask is no integer index
+    np.testing.assert_array_equal(np.asarray(x[jnp.array([True, False, True])].data),
+                                  data[[0, 2]])
+    # traced: no value to check, JAX clamps (documented)
+    clamped = jax.jit(lambda y, i: y[i])(x, jnp.array(5))
+    np.testing.assert_array_equal(np.asarray(clamped.data), data[2])

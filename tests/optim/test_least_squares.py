@@ -223,6 +223,27 @@ def test_stopping_rules():
     assert np.all(h[:k - 1] - h[1:k] > 0.5 * h[:k - 1])
 
 
+def test_rejected_trial_that_leaves_the_cost_unchanged_is_convergence():
+    from jaxpose.optim._stopping import Trial, check
+
+    def status(trial_cost, rejects):
+        f64 = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+        trial = Trial(step=jnp.int32(30), last=f64(1e-28), cost=f64(1e-28),
+                      accepted=jnp.bool_(False), finite=jnp.bool_(True), step_norm=f64(1e-16),
+                      predicted=f64(1e-28), initial=f64(1e-27), grad_inf=f64(1e-14),
+                      rejects=jnp.int32(rejects), plateau_count=jnp.int32(0),
+                      trial_cost=f64(trial_cost))
+        return int(check(jo.Stopping(gtol=0.0, xtol=0.0), trial)[1])
+
+    # at a zero-residual optimum trials change the cost by rounding noise only: a trial
+    # that leaves it unchanged to the last bit ends the solve as converged ...
+    assert status(1e-28, 1) == jp.Results.CONVERGED
+    # ... one that changes it (here: up) is an ordinary rejection, and enough of them in
+    # a row are divergence
+    assert status(1.5e-28, 1) == jp.Results.RUNNING
+    assert status(1.5e-28, 64) == jp.Results.DIVERGED
+
+
 def test_stop_on_plateau_semantics():
     solver = jo.LM()
     # every iteration decreases by less than 1e9: stop after exactly `patience` iterations
@@ -355,3 +376,15 @@ def test_integer_parameters_and_python_number_args_are_promoted():
     np.testing.assert_allclose(sol.params, [0.5, 0.5, 1.5], atol=1e-12)
     sol = jo.least_squares(lambda p, a: p["x"] - a, {"x": 3}, 0.25)
     assert float(sol.params["x"]) == pytest.approx(0.25)
+
+
+def test_empty_residual_raises_naming_residual_fn():
+    """A residual of size 0 crashed with a bare ZeroDivisionError from a reshape."""
+    for out in (jnp.zeros((0,)), jnp.zeros((0, 3))):
+        with pytest.raises(ValueError, match=r"residual_fn: returned 0 residuals; expected "
+                                             r"at least one"):
+            jo.least_squares(lambda p, a, out=out: out + 0 * p[0], jnp.zeros(2), None)
+    # an empty leaf next to others is named too (shapes are static: also under jit)
+    res = lambda p, a: {"a": p - 1.0, "b": jnp.zeros((0, 3))}  # noqa: E731
+    with pytest.raises(ValueError, match=r"residual_fn: residual leaf 1 has shape \(0, 3\)"):
+        jax.jit(lambda p: jo.least_squares(res, p, None).params)(jnp.zeros(2))
