@@ -274,6 +274,16 @@ def default_stopping(max_steps: int = 100, dtype: Any = None) -> Stopping:
     return Stopping(max_steps=max_steps, cost_rtol=default_rtol(dtype), gtol=0.0, xtol=0.0)
 
 
+def with_checked_kernels(graph: FactorGraph) -> FactorGraph:
+    """``graph`` with its kernels' traced parameters (a learned ``Huber(δ)``) checked at
+    run time (``eqx.error_if``: δ ≤ 0 would give a negative cost silently); known values
+    were checked when the kernels were made, and add nothing here."""
+    factors = tuple(f if f.kernel is None else eqx.tree_at(lambda f: f.kernel, f,
+                                                            f.kernel._checked())
+                    for f in graph.factors)
+    return eqx.tree_at(lambda g: g.factors, graph, factors)
+
+
 def _option(value: Any, cls: type, name: str) -> Any:
     if isinstance(value, str):
         return cls(value)
@@ -340,6 +350,7 @@ def solve(
         )
     x0 = graph.variables if variables is None else variables
     check_variables(graph, x0, "solve(variables)")
+    graph = with_checked_kernels(graph)
     return solve_differentiable(
         _run, graph, x0, strategy=strategy, stopping=stopping, linear_solver=linear_solver,
         damping=damping, cg=cg, verbose=verbose,

@@ -219,3 +219,26 @@ def test_pose_graph_cost_and_rmse_refuse_what_they_cannot_evaluate():
                        bal.observations[:0])
     with pytest.raises(ValueError, match="no observations"):
         reprojection_rmse(empty)
+
+
+def test_traced_kernel_parameter_outside_its_domain_raises_in_solve():
+    # a learned Huber scale that became negative gave a negative cost silently
+    import jax
+
+    from jaxpose.optim import Huber
+
+    def solved_cost(delta):
+        f = Factor(between_residual, [("pose", np.array([0, 1])), ("pose", np.array([1, 2]))],
+                   data=SE3(jnp.asarray(random_poses(np.random.default_rng(1), "SE3", 2))),
+                   kernel=Huber(delta))
+        return solve(FactorGraph([f], {"pose": _poses(3)}, fixed={"pose": [0]})).cost
+
+    msg = r"Huber\(delta\): delta has to be positive"
+    with pytest.raises(Exception, match=msg):  # the user's jax.jit: in the runtime error
+        jax.block_until_ready(jax.jit(solved_cost)(jnp.asarray(-0.5)))
+    with pytest.raises(Exception, match=msg):  # eager grad: a traced δ inside solve
+        jax.grad(solved_cost)(jnp.asarray(-0.5))
+    with pytest.raises(ValueError, match=r"Huber\(delta=array\(-0.5\)\)"):  # concrete
+        solved_cost(jnp.asarray(-0.5))
+    assert float(jax.jit(solved_cost)(jnp.asarray(0.5))) >= 0.0
+    assert np.isfinite(float(jax.grad(solved_cost)(jnp.asarray(0.5))))
