@@ -43,7 +43,12 @@ from .._precision import full_precision
 from . import _linear as linear
 from . import _selinv as selinv
 from ._problem import FactorGraph, check_variables, csr_values, hessian_vector, linearize
-from ._solve import GraphLinearSolver, GraphSolution, damped_block_jacobi
+from ._solve import (
+    GraphLinearSolver,
+    GraphSolution,
+    damped_block_jacobi,
+    with_checked_kernels,
+)
 
 Array = jax.Array
 METHODS = ("auto", "dense", "sparse", "pcg", "schur")
@@ -218,6 +223,7 @@ def marginals(
             f"{type(solution).__name__}"
         )
     check_variables(graph, values, "marginals(solution)")
+    graph = with_checked_kernels(graph)
     st = graph.structure
     schur = st.schur
     kept_names = (st.names if schur is None

@@ -32,7 +32,7 @@ import numpy as np
 from .._precision import full_precision
 from ._marginals import _Plan, inverse_entries
 from ._problem import FactorGraph, check_variables, linearize
-from ._solve import GraphLinearSolver
+from ._solve import GraphLinearSolver, with_checked_kernels
 
 Array = jax.Array
 METHODS = ("auto", "dense", "sparse")
@@ -101,7 +101,7 @@ def deletion_statistics(graph: FactorGraph, values: Any = None, *,
             f"deletion_statistics(graph): expected a FactorGraph, got {type(graph).__name__}")
     values = graph.variables if values is None else values
     check_variables(graph, values, "deletion_statistics(values)")
-    return statistics(graph, values, plan(graph, method))
+    return statistics(with_checked_kernels(graph), values, plan(graph, method))
 
 
 @full_precision

@@ -242,3 +242,18 @@ def test_traced_kernel_parameter_outside_its_domain_raises_in_solve():
         solved_cost(jnp.asarray(-0.5))
     assert float(jax.jit(solved_cost)(jnp.asarray(0.5))) >= 0.0
     assert np.isfinite(float(jax.grad(solved_cost)(jnp.asarray(0.5))))
+    # marginals and deletion statistics linearise through the same kernels
+    from jaxpose.graph import deletion_statistics, marginals
+
+    def graph(delta):
+        f = Factor(between_residual, [("pose", np.array([0, 1, 0])),
+                                      ("pose", np.array([1, 2, 2]))],
+                   data=SE3(jnp.asarray(random_poses(np.random.default_rng(1), "SE3", 3))),
+                   kernel=Huber(delta))
+        return FactorGraph([f], {"pose": _poses(3)}, fixed={"pose": [0]})
+
+    for fn in (lambda d: marginals(graph(d)).covariances["pose"],
+               lambda d: deletion_statistics(graph(d), method="dense")[0]):
+        assert np.all(np.isfinite(np.asarray(jax.jit(fn)(jnp.asarray(0.5)))))
+        with pytest.raises(Exception, match=msg):
+            jax.block_until_ready(jax.jit(fn)(jnp.asarray(-0.5)))
