@@ -63,6 +63,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._precision import full_precision
+from ..lie._base import runtime_check
 from ..optim._solve import least_squares
 from ..results import Results
 from . import _snooping as snooping
@@ -228,13 +229,37 @@ def weighted_graph(graph: FactorGraph, weights: Any) -> FactorGraph:
                 f"weighted_graph(weights[{g}]): expected shape ({f.count},) for factor "
                 f"{f.name!r}, got {w.shape}"
             )
+        if not isinstance(w, jax.core.Tracer) and bool(jnp.any(w < 0)):
+            raise ValueError(f"weighted_graph(weights[{g}]): expected weights >= 0, got "
+                             f"{float(jnp.min(w))} (factor {int(jnp.argmin(w))})")
         dtype = jnp.result_type(w.dtype, float)
-        root = jnp.sqrt(jnp.maximum(w, 0.0)).astype(dtype)[:, None, None]
+        root = _sqrt_weight(w.astype(dtype))[:, None, None]
         base = jnp.eye(r, dtype=dtype) if f.sqrt_info is None else f.sqrt_info.astype(dtype)
         factors.append(
             eqx.tree_at(lambda x: x.sqrt_info, f, root * base, is_leaf=lambda x: x is None)
         )
     return eqx.tree_at(lambda x: x.factors, graph, tuple(factors))
+
+
+@jax.custom_jvp
+def _sqrt_weight(w: Array) -> Array:
+    """√w of factor weights w ≥ 0 (negative traced weights count as 0)."""
+    return jnp.sqrt(jnp.maximum(w, 0.0))
+
+
+@_sqrt_weight.defjvp
+def _sqrt_weight_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
+    """d√w = ẇ / (2√w) for w > 0. At w = 0 the solution's derivative with respect to w is
+    finite (the factor's cost is linear in w) but √w's is not, and the chain rule gives
+    NaN: differentiating there raises instead."""
+    (w,), (dw,) = primals, tangents
+    out = runtime_check(
+        _sqrt_weight(w), jnp.any(w <= 0),
+        "weighted_graph: a weight that is differentiated is 0 (or negative): it enters as "
+        "√w, whose derivative is infinite there, so the derivative would be NaN; keep "
+        "differentiated weights > 0 (e.g. a sigmoid in float64, or w + 1e-12)")
+    safe = jnp.where(w > 0, w, 1.0)
+    return out, jnp.where(w > 0, 0.5 * dw / jnp.sqrt(safe), 0.0)
 
 
 def _squared_norms(graph: FactorGraph, variables: Any) -> Array:

@@ -411,3 +411,31 @@ def test_cli_robust_gnc_rejects_the_outliers(tmp_path, capsys):
     _same_poses(read_g2o(out).poses, _scipy_inlier_solution(bad, keep), atol=1e-6)
     assert main(["pgo", str(src), "--robust", "gnc", "--kernel", "huber"]) != 0
     assert "drop --kernel" in capsys.readouterr().err
+
+
+def test_weighted_graph_derivatives_and_zero_weights():
+    from jaxpose.graph import solve
+    from jaxpose.optim import Stopping
+
+    g, _ = synthetic_pose_graph("SE2", n_poses=8, loop_closures=3, seed=1)
+    base = pgo.pose_graph_problem(g)
+    stop = Stopping(max_steps=400, cost_rtol=1e-15, gtol=0.0, xtol=0.0)
+    m = base.factors[0].count
+    pick = jnp.asarray(np.random.default_rng(0).normal(size=base.variables["pose"].data.shape))
+
+    def loss(w):
+        sol = solve(weighted_graph(base, [w]), stopping=stop, linear_solver="dense")
+        return jnp.sum(sol.variables["pose"].data * pick)
+
+    w = jnp.linspace(0.5, 1.5, m)
+    grad = np.asarray(jax.jit(jax.grad(loss))(w))
+    f, h = jax.jit(loss), 1e-4  # smaller steps meet the solve's convergence noise
+    fd = [(float(f(w.at[k].add(h))) - float(f(w.at[k].add(-h)))) / (2 * h) for k in (0, m - 1)]
+    np.testing.assert_allclose(grad[[0, m - 1]], fd, rtol=1e-6, atol=1e-9)
+    # a weight of exactly 0 enters as √0: its derivative would be NaN, so it raises ...
+    with pytest.raises(Exception, match="a weight that is differentiated is 0"):
+        jax.block_until_ready(jax.jit(jax.grad(loss))(w.at[m - 1].set(0.0)))
+    # ... while derivatives with respect to the rest of the graph stay available
+    assert np.isfinite(float(f(w.at[m - 1].set(0.0))))
+    with pytest.raises(ValueError, match=r"weights\[0\]\): expected weights >= 0"):
+        weighted_graph(base, [w.at[2].set(-0.1)])
