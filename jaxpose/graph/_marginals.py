@@ -395,7 +395,10 @@ def _pcg_entries(graph: FactorGraph, lin: Any, free: Array, i: np.ndarray, j: np
 
     def column(c: Array) -> Array:
         e = jnp.zeros((n,), add.dtype).at[c].set(1.0)
-        return inner(lambda v: hessian_vector(graph, lin, v) + add * v, e)
+        # custom_linear_solve: derivatives by the linear solve's own rule (the CG, whose
+        # preconditioner lineax cannot differentiate, is never differentiated itself)
+        return jax.lax.custom_linear_solve(
+            lambda v: hessian_vector(graph, lin, v) + add * v, e, inner, symmetric=True)
 
     solved = jax.lax.map(column, jnp.asarray(cols), batch_size=batch_size)  # (k, n)
     return eqx.error_if(

@@ -348,3 +348,29 @@ def test_position_ellipses_geometry():
     cov3[0, :3, :3] = np.diag([4.0, 1.0, 9.0])
     world3 = position_covariances("SE3", np.r_[0, 0, 0, q][None], cov3)
     np.testing.assert_allclose(world3[0], np.diag([1.0, 4.0, 9.0]), atol=1e-12)
+
+
+def test_pcg_marginals_differentiate_like_dense():
+    # CG inside custom_linear_solve: grad and jacfwd went through lineax's preconditioner
+    # options and crashed ("Unexpected tangent")
+    import equinox as eqx
+
+    from jaxpose import synthetic_pose_graph
+    from jaxpose.graph import _pgo as pgo
+    from jaxpose.graph import marginals, solve
+
+    base = pgo.pose_graph_problem(synthetic_pose_graph("SE2", n_poses=8, loop_closures=3,
+                                                       seed=1)[0])
+    sol = solve(base)
+
+    def total(scale, method):
+        f = eqx.tree_at(lambda f: f.sqrt_info, base.factors[0],
+                        base.factors[0].sqrt_info * scale)
+        graph = eqx.tree_at(lambda g: g.factors, base, (f,))
+        cov = marginals(graph, sol, method=method, variables="pose").covariances["pose"]
+        return jnp.sum(cov[3])
+
+    # Σ ∝ 1/scale²: d/dscale Σ = −2 Σ at scale 1
+    ref = -2.0 * float(total(1.0, "dense"))
+    for how in (jax.grad, jax.jacfwd):
+        np.testing.assert_allclose(float(how(total)(1.0, "pcg")), ref, rtol=1e-8)
