@@ -106,7 +106,7 @@ class Bicycle(ContinuousSystem):
 
     def observation(self, x: Array, u: Array, t: Any = 0) -> Array:
         _check_sizes(self, x, u, "px, py, ψ, v", "a, δ")
-        d = x[None, :2] - self.landmarks
+        d = x[None, :2] - jnp.asarray(self.landmarks).astype(jnp.result_type(x))  # x's dtype
         sq = jnp.sum(d * d, -1)
         pos = sq > 0  # double where: sqrt's derivative at 0 would be inf · 0 = NaN
         ranges = jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)

@@ -345,3 +345,16 @@ def test_integer_state_and_empty_sequence_errors():
     for flt in (EKF(sys, d["Q"], d["R"]), UKF(sys, d["Q"], d["R"]), _pf(sys, d)):
         with pytest.raises(ValueError, match="ys: expected at least one measurement"):
             _run_any(flt, d["x0"], d["P0"], d["ys"][:0], d["us"][:0])
+
+
+@pytest.mark.parametrize("Filter", [EKF, UKF])
+def test_bicycle_filters_stay_in_float32(Filter):
+    # the model's float64 default landmarks promoted a float32 state (x64 on): run() failed
+    # with a scan carry-dtype error and step() returned float64
+    f32 = jnp.float32
+    filt = Filter(Bicycle(dt=0.1), Q=jnp.eye(4, dtype=f32) * 1e-3, R=jnp.eye(5, dtype=f32) * 0.1)
+    x0, P0 = jnp.array([3.0, 4.0, 0.3, 1.0], f32), jnp.eye(4, dtype=f32) * 0.1
+    out = filt.run(x0, P0, jnp.ones((5, 5), f32), jnp.zeros((5, 2), f32))
+    assert out.x.dtype == f32 and bool(jnp.all(jnp.isfinite(out.x)))
+    x, P = filt.step(x0, P0, jnp.ones(5, f32), jnp.zeros(2, f32))
+    assert x.dtype == f32 and P.dtype == f32
