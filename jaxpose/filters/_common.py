@@ -13,6 +13,7 @@ from jax.scipy.linalg import cho_solve
 from ..dynamics._checks import as_array, check_psd
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_space
+from ..lie._base import runtime_check
 
 Array = jax.Array
 
@@ -103,8 +104,33 @@ def psd_cholesky(A: Array) -> Array:
     entries propagate (NaN in, NaN out). ``k`` columns unrolled (a ``fori_loop`` for large
     ``k``); every branch is NaN-free under differentiation (double ``where``).
     """
+    return _cholesky_columns(_differentiable_where_definite(symmetrize(A)))
+
+
+@jax.custom_jvp
+def _differentiable_where_definite(A: Array) -> Array:
+    """Identity on ``A`` that raises when differentiated where :func:`psd_cholesky` gives
+    a zero column: the factor's derivative there is not defined (the square root of a zero
+    pivot), and its zero columns would silently give derivatives of 0 in those directions
+    (a UKF differentiated at ``P = 0`` returned 0 where the true derivative is 1)."""
+    return A
+
+
+@_differentiable_where_definite.defjvp
+def _definite_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
+    (A,), (dA,) = primals, tangents
+    singular = jnp.any(jnp.diagonal(_cholesky_columns(A)) == 0)
+    A = runtime_check(A, singular, (
+        "psd_cholesky: differentiating through a covariance that is singular (a zero "
+        "variance direction, e.g. P = 0): the square-root factor has no derivative there "
+        "and the result would be silently wrong; differentiate at a positive-definite P "
+        "(add a small variance) or use the EKF"))
+    return A, dA
+
+
+def _cholesky_columns(A: Array) -> Array:
+    """:func:`psd_cholesky` of a symmetric ``A``."""
     k = A.shape[-1]
-    A = symmetrize(A)
     eps = jnp.finfo(A.dtype).eps
     tol = k * eps * jnp.maximum(jnp.max(jnp.diagonal(A)), 0.0)
     rows = jnp.arange(k)

@@ -103,13 +103,16 @@ def test_psd_cholesky_against_numpy():
     big = jnp.asarray(np.diag([1.0] * 20))  # the fori_loop path (k > 16)
     np.testing.assert_allclose(chol(big), np.eye(20), atol=0)
     assert np.isnan(np.asarray(psd_cholesky(jnp.full((2, 2), jnp.nan)))[np.tril_indices(2)]).all()
-    # derivatives stay finite at repeated eigenvalues and at a singular matrix
+    # derivatives stay finite at repeated eigenvalues; at a singular matrix √ of a zero
+    # pivot has none, and differentiating there raises (it returned 0: silently wrong)
     g = jax.jit(
         jax.grad(
             lambda s: jnp.sum(psd_cholesky(s * jnp.eye(3) + jnp.diag(jnp.array([0.0, 0.0, 1.0]))))
         )
     )
-    assert np.isfinite(g(1.0)) and np.isfinite(g(0.0))
+    assert np.isfinite(g(1.0))
+    with pytest.raises(Exception, match="covariance that is singular"):
+        jax.block_until_ready(g(0.0))
 
 
 @pytest.mark.parametrize("P0", ["zero", "rank1"])
@@ -358,3 +361,22 @@ def test_bicycle_filters_stay_in_float32(Filter):
     assert out.x.dtype == f32 and bool(jnp.all(jnp.isfinite(out.x)))
     x, P = filt.step(x0, P0, jnp.ones(5, f32), jnp.zeros(2, f32))
     assert x.dtype == f32 and P.dtype == f32
+
+
+def test_ukf_derivative_at_a_singular_covariance_raises():
+    # psd_cholesky's zero columns gave d/ds of the UKF at P = s·I, s = 0, as 0 where the
+    # true (one-sided) derivative is 1; at s > 0 it matches central differences
+    model = LTI(jnp.array([[1.0, 0.1], [0.0, 1.0]]), jnp.array([[0.0], [0.1]]),
+                jnp.eye(2), jnp.zeros((2, 1)))
+    ukf = UKF(model, Q=jnp.eye(2) * 1e-2, R=jnp.eye(2) * 1e-1)
+
+    def p00(s):
+        return ukf.predict(jnp.zeros(2), s * jnp.eye(2), jnp.zeros(1))[1][0, 0]
+
+    with pytest.raises(Exception, match="differentiating through a covariance that is "
+                                        "singular"):
+        jax.grad(p00)(0.0)
+    s, h = 0.3, 1e-6
+    np.testing.assert_allclose(float(jax.grad(p00)(s)),
+                               (float(p00(s + h)) - float(p00(s - h))) / (2 * h), rtol=1e-6)
+    assert np.isfinite(float(p00(0.0)))  # values at P = 0 stay available
