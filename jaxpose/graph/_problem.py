@@ -129,7 +129,7 @@ def _check_information(f: Factor, variables: Variables) -> None:
     (the whitening product would otherwise use only the first k components)."""
     if f.sqrt_info is None:
         return
-    dim, k = _residual_dim(f, variables), f.sqrt_info.shape[-1]
+    dim, k = residual_dim(f, variables), f.sqrt_info.shape[-1]
     if dim is not None and dim != k:
         raise ValueError(
             f"FactorGraph: factor {f.name!r} has {dim}-dimensional residuals but {k} × {k} "
@@ -140,7 +140,7 @@ def _check_information(f: Factor, variables: Variables) -> None:
 _RESIDUAL_DIMS: dict[Any, int | None] = {}
 
 
-def _residual_dim(f: Factor, variables: Variables) -> int | None:
+def residual_dim(f: Factor, variables: Variables) -> int | None:
     """Dimension of one residual of ``f`` (None unless it is 1-D), from its shapes alone
     (``jax.eval_shape`` of one factor), remembered per residual function and argument
     types and shapes (tracing it costs tens of milliseconds)."""

@@ -67,7 +67,7 @@ from ..lie._base import runtime_check
 from ..optim._solve import least_squares
 from ..results import Results
 from . import _snooping as snooping
-from ._problem import FactorGraph, check_variables, factor_residuals
+from ._problem import FactorGraph, check_variables, factor_residuals, residual_dim
 from ._solve import solve
 
 Array = jax.Array
@@ -205,9 +205,8 @@ class GNCSolution(eqx.Module):
 # Weighted graphs
 # ----------------------------------------------------------------------------------
 def _residual_dims(graph: FactorGraph) -> list[int]:
-    return [
-        int(jax.eval_shape(factor_residuals, f, graph.variables).shape[-1]) for f in graph.factors
-    ]
+    """Residual dimension of each factor group (remembered per residual function)."""
+    return [residual_dim(f, graph.variables) for f in graph.factors]
 
 
 def weighted_graph(graph: FactorGraph, weights: Any) -> FactorGraph:

@@ -107,6 +107,7 @@ class Trial(NamedTuple):
     step: Array  # iteration count after this trial (int32)
     last: Array  # cost before the trial
     cost: Array  # cost after the trial (== last if rejected)
+    trial_cost: Array  # the trial's own cost (accepted or not)
     accepted: Array  # bool
     finite: Array  # bool: trial step, residual and Jacobian all finite
     step_norm: Array  # ‖δ‖₂
@@ -117,7 +118,6 @@ class Trial(NamedTuple):
     plateau_count: Array  # consecutive non-decreasing iterations so far (int32)
     nonfinite_run: Array | bool = False  # bool: every trial since the last accepted one
     # (at least this one) was not finite
-    trial_cost: Array | None = None  # the trial's own cost (accepted or not)
 
 
 def nonfinite_run(previous: Array, accepted: Array, finite: Array) -> Array:
@@ -148,8 +148,8 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     eps = jnp.finfo(t.last.dtype).eps
     noise = (t.predicted <= 16 * eps * jnp.abs(t.last)) | (t.last <= eps * eps * t.initial)
     conv = conv | (t.finite & ~t.accepted & noise)
-    if t.trial_cost is not None:  # a step that changes the cost not even by its last bit
-        conv = conv | (t.finite & ~t.accepted & (t.trial_cost == t.last))
+    # a step that changes the cost not even by its last bit
+    conv = conv | (t.finite & ~t.accepted & (t.trial_cost == t.last))
     if stopping.plateau is not None:
         conv = conv | (t.plateau_count >= stopping.plateau.patience)
     stalled = t.rejects >= stopping.max_rejects
