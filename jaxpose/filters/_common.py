@@ -119,6 +119,9 @@ def _differentiable_where_definite(A: Array) -> Array:
 @_differentiable_where_definite.defjvp
 def _definite_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
     (A,), (dA,) = primals, tangents
+    # the check is on A (the point the factor's tangent is taken at), so it stays in a
+    # reverse-mode program; a check on a factor computed here with jax.jvp would not
+    # (nothing downstream uses that primal, and dead-code elimination drops it)
     singular = jnp.any(jnp.diagonal(_cholesky_columns(A)) == 0)
     A = runtime_check(A, singular, (
         "psd_cholesky: differentiating through a covariance that is singular (a zero "
