@@ -8,12 +8,12 @@ solution with respect to every array in the system (dynamics parameters), the co
 
 * ``gradient="implicit"`` (default): implicit function theorem at the fixed point. The
   KKT system of the trajectory optimisation is symmetric with the LQR structure, so the
-  backward pass is one extra LQR solve with the Lagrangian Hessian and the incoming
-  cotangents as the linear cost term (zero initial state; active control limits held
-  fixed), followed by one vector–Jacobian product of the KKT residual w.r.t. the
-  parameters (``custom_vjp``). First derivatives only: a second derivative through it
-  (``jax.hessian``, ``jacfwd(jacrev(...))``) raises ``NotImplementedError`` instead of
-  returning a value that misses the trajectory's dependence on the parameters.
+  tangent of the solution is one extra LQR solve with the Lagrangian Hessian (zero
+  initial state; active control limits held at their own tangents), a ``custom_jvp``
+  written with differentiable operations: reverse mode is its transpose and
+  differentiating it again gives exact derivatives of any order (``jax.hessian``,
+  ``jacfwd(jacrev(...))``). It holds at a converged solution only: differentiating a
+  solve that stopped otherwise (``status`` not converged) raises.
 * ``gradient="unroll"``: reverse mode through the solver iterations (``max_iter`` of
   them, in ``lax.scan``).
 
@@ -33,6 +33,7 @@ import numpy as np
 from .._precision import full_precision
 from ..dynamics._checks import as_array, check_horizon
 from ..dynamics._system import LTI, LTV, System
+from ..optim._implicit import at_stationary_point
 from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
 from ._cost import Cost, QuadraticCost
@@ -130,7 +131,11 @@ def _solve_implicit_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...], *, 
     params, u_init, bounds = primals
     t_params, _, t_bounds = tangents
     out = _solve_implicit(params, u_init, bounds, cfg=cfg)  # differentiable again
-    wx, wu = _trajectory_tangent(params, t_params, out[0], out[1], bounds, t_bounds)
+    xs, us = at_stationary_point(
+        out[:2], out[2], "MPC(gradient='implicit')",
+        "Give iLQR more iterations or looser tolerances, or differentiate the iterates with "
+        "gradient='unroll'.")
+    wx, wu = _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds)
     return out, (wx, wu, None, None)
 
 
@@ -358,7 +363,14 @@ def closed_loop(
     """Simulate ``plant`` for ``steps`` steps under receding-horizon ``mpc`` with warm
     starts (``lax.scan``). Returns ``xs`` (steps+1, n), ``us`` (steps, m) and the
     per-step solver ``status`` (steps,). Compiled with ``eqx.filter_jit`` (``steps``
-    static)."""
+    static). Each step solves ``mpc`` from its own step 0 (an LTV model or time-varying
+    cost is read at steps 0 … T−1 every time), while the plant advances at step t."""
+    if not isinstance(mpc, MPC):
+        raise TypeError(
+            f"closed_loop(mpc): expected a jaxpose.control.MPC, got {type(mpc).__name__}")
+    if not isinstance(plant, System):
+        raise TypeError(
+            f"closed_loop(plant): expected a jaxpose.dynamics.System, got {type(plant).__name__}")
     steps = check_horizon(steps, "steps")
     x0 = as_array(x0, "x0", 1)
     T, m = mpc.horizon, mpc._m(x0, u_init)

@@ -40,7 +40,7 @@ import numpy as np
 from .._precision import full_precision
 from ..lie import SE3, LieGroup
 from ..lie._base import skew, small_matmul
-from ..optim._implicit import checked, jvp_where
+from ..optim._implicit import at_stationary_point, checked, jvp_where
 from ._analysis import tangent_dim
 from ._factor import between_residual
 from ._linear import (
@@ -373,7 +373,9 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     t_graph, t_x0 = tangents
     _refuse_open_gauge(graph)
     sol = _differentiable(graph, x0, run=run, options=options)  # differentiable again
-    xs = sol.variables
+    xs = at_stationary_point(
+        sol.variables, sol.status, "graph.solve",
+        "Give it more steps (Stopping(max_steps=...)) or looser tolerances.")
     dtype = sol.cost.dtype
     zero = jnp.zeros((graph.structure.size,), dtype)
     free = free_flat(graph, dtype)

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 
 from .._precision import full_precision
 from ..lie import manifold
+from ..results import Results
 from ._colouring import compressed_hessian, normal_equations
 from ._linear import SVD, LinearSolver
 from ._problem import Problem
@@ -87,6 +88,20 @@ def first_order_only(x: PyTree, what: str) -> PyTree:
         )
 
     return ident(x)
+
+
+def at_stationary_point(x: PyTree, status: jax.Array, where: str, remedy: str) -> PyTree:
+    """``x`` (the solution a derivative rule works from), raising (``eqx.error_if``, also
+    under jit and vmap) unless ``status`` is CONVERGED: the implicit function theorem
+    holds at a stationary point only, and at an estimate a solver stopped at for another
+    reason (budget spent, stalled, non-finite) its derivative is neither the optimum's nor
+    that of the steps taken — a wrong number, never returned. ``remedy`` ends the message."""
+    return eqx.error_if(
+        x, status != Results.CONVERGED,
+        f"{where}: cannot differentiate the solution: the solver stopped without converging "
+        f"(status max_steps, diverged or non_finite: check the solution's status), so the "
+        f"estimate is not a stationary point and the implicit derivative would be wrong. "
+        f"{remedy}")
 
 
 def jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple[Any, Any]:
@@ -177,7 +192,10 @@ def _implicit_jvp(
     theta, params0 = primals
     t_theta, t_params0 = tangents
     sol = _implicit(theta, params0, run=run, adjoint=adjoint)  # differentiable again
-    x_star = sol.params
+    x_star = at_stationary_point(
+        sol.params, sol.status, "least_squares",
+        "Give it more steps (max_steps) or looser tolerances, or differentiate the steps "
+        "taken with adjoint='unrolled'.")
     flat0, unravel = manifold.flat_tangent(x_star)
 
     def lift(eps: jax.Array) -> PyTree:  # differentiated at most twice in eps, at 0
@@ -242,5 +260,5 @@ def implicit_solve(
     return _implicit((args, problem), params0, run=run, adjoint=adjoint)
 
 
-__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "checked", "first_order_only", "implicit_solve",
-           "jvp_where"]
+__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "at_stationary_point", "checked",
+           "first_order_only", "implicit_solve", "jvp_where"]

@@ -270,6 +270,24 @@ def test_second_derivative_through_unrolled_mpc_matches_finite_differences():
     assert d2 == pytest.approx(fd, rel=1e-3, abs=1e-6)
 
 
+def test_implicit_gradient_of_an_unconverged_solve_raises():
+    """Two iLQR iterations leave the pendulum's MPC short of its optimum (status
+    max_steps): the implicit function theorem does not hold there, so the implicit
+    gradient raises; the unrolled one (of the iterates taken) stays available."""
+    def effort(length, gradient):
+        mpc = MPC(Pendulum(dt=0.1, length=length), QuadraticCost.tracking(
+            jnp.eye(3), jnp.array([1.0, 0.0, 0.0])), 6, gradient=gradient, max_iter=2)
+        sol = mpc(jnp.array([0.2, -0.5]), jnp.zeros((6, 1)))
+        return jnp.sum(sol.u ** 2), sol.status
+
+    _, status = effort(1.0, "implicit")
+    assert int(status) == Results.MAX_STEPS
+    match = r"MPC\(gradient='implicit'\): cannot differentiate the solution: the solver stopped"
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(jax.grad(lambda a: effort(a, "implicit")[0])(1.0))
+    assert np.isfinite(float(jax.grad(lambda a: effort(a, "unroll")[0])(1.0)))
+
+
 def test_implicit_gradient_at_a_stationary_point_that_is_not_a_minimum_raises():
     """Stage cost ½x² + ½(u² − 1)² from u = 0, x0 = 0: the gradient is zero at once, so MPC
     stops there (status converged), at a maximum in u. The implicit derivative does not
@@ -301,3 +319,13 @@ def test_implicit_gradient_at_a_stationary_point_that_is_not_a_minimum_raises():
         jax.block_until_ready(jax.jvp(lambda x: total_u(a, x)[0], (x0,), (jnp.ones(1),))[1])
     g = jax.grad(lambda a, x: total_u(a, x, "unroll")[0], (0, 1))(a, x0)
     assert np.all(np.isfinite(np.concatenate([np.ravel(g[0]), np.ravel(g[1])])))
+
+
+def test_closed_loop_rejects_non_system_plant_and_non_mpc():
+    # a plant that is not a System was an AttributeError from inside the scan
+    A, B = np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]])
+    mpc = MPC(LTI(A, B), QuadraticCost(np.eye(3)), 3)
+    with pytest.raises(TypeError, match=r"closed_loop\(plant\): expected a .*System"):
+        closed_loop(mpc, "plant", np.ones(2), 3)
+    with pytest.raises(TypeError, match=r"closed_loop\(mpc\): expected a jaxpose\.control\.MPC"):
+        closed_loop(LTI(A, B), LTI(A, B), np.ones(2), 3)

@@ -297,3 +297,34 @@ def test_second_derivative_through_unrolled_adjoint_matches_finite_differences()
     hess = jax.jacfwd(jax.jacrev(loss))(y, "unrolled")
     gp, gm = jax.grad(loss)(y + e, "unrolled"), jax.grad(loss)(y - e, "unrolled")
     np.testing.assert_allclose(hess[3], (gp - gm) / 2e-5, rtol=1e-3, atol=1e-5)
+
+
+def test_derivative_of_an_unconverged_solution_raises():
+    """A solve stopped by its budget is not at a stationary point: the implicit derivative
+    there is neither the optimum's nor the steps' (on pose3example with Huber it was 100x
+    off), so forward and reverse mode raise, also for one unconverged problem of a vmapped
+    batch; with enough steps the same call differentiates."""
+    t, y = EXP_ARGS
+
+    def rate(y, steps):
+        return jo.least_squares(exp_residual, jnp.array([1.0, 0.5]), (t, y),
+                                max_steps=steps).params[1]
+
+    match = "least_squares: cannot differentiate the solution: the solver stopped without"
+    few = jax.jit(lambda y: rate(y, 2))
+    assert int(jo.least_squares(exp_residual, jnp.array([1.0, 0.5]), (t, y),
+                                max_steps=2).status) == 1  # max_steps
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(jax.grad(few)(y))
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(jax.jvp(few, (y,), (jnp.ones_like(y),))[1])
+    starts = jnp.array([[1.0, 0.5], [1.0, 20.0]])  # 6 and 24 steps to converge
+
+    def batched(y, steps):
+        return jax.vmap(lambda p0: jo.least_squares(exp_residual, p0, (t, y),
+                                                     max_steps=steps).params[1])(starts).sum()
+
+    with pytest.raises(Exception, match=match):  # problem 0 converges, problem 1 cannot
+        jax.block_until_ready(jax.grad(batched)(y, 8))
+    assert np.isfinite(float(jax.grad(batched)(y, 40).sum()))
+    assert np.isfinite(float(jax.grad(lambda y: rate(y, 40))(y).sum()))
