@@ -26,15 +26,18 @@ jit, vmap, grad), ``"schur"`` (graphs built with ``eliminate=``: the kept variab
 marginals are blocks of the inverse of the reduced matrix S = U − W V⁻¹ Wᵀ, factorised
 like ``"sparse"``), ``"auto"`` (``"schur"`` when the graph eliminates a type and only
 kept types are requested, else ``"dense"`` up to 600 tangent dimensions, else
-``"sparse"``).
+``"sparse"``). Differentiating ``"sparse"`` or ``"schur"`` (or ``"auto"`` when it picks
+them) raises; ``"dense"`` and ``"pcg"`` differentiate.
 """
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -132,11 +135,13 @@ def _pairs(graph: FactorGraph, pairs: Any, single: str | None):
         for k, p in enumerate(pairs):
             try:
                 (ta, ia), (tb, ib) = p
+                ia, ib = operator.index(ia), operator.index(ib)  # 1.7 is not an index
             except (TypeError, ValueError):
                 raise ValueError(
-                    f"marginals(pairs[{k}]): expected ((type_a, i), (type_b, j)), got {p!r}"
+                    f"marginals(pairs[{k}]): expected ((type_a, i), (type_b, j)) with integer "
+                    f"indices i, j, got {p!r}"
                 ) from None
-            out.append((ta, int(ia), tb, int(ib)))
+            out.append((ta, ia, tb, ib))
         stacked = False
     for k, (ta, ia, tb, ib) in enumerate(out):
         for t, i in ((ta, ia), (tb, ib)):
@@ -338,15 +343,19 @@ def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan) -> list[Array]:
         free_l = jnp.concatenate([jnp.repeat(st.free[type_of[n]], st.dims[type_of[n]])
                                   for n in plan.layout_names]).astype(dtype)
         pattern = st.schur.pattern
-        vals = _sparse_entries(data, pattern.indices, pattern.indptr, flat_i, flat_j)
+        vals = _sparse_entries(data, pattern.indices, pattern.indptr, flat_i, flat_j,
+                               plan.method)
     else:
         free_l = free
         if plan.method == "pcg":
             vals = _pcg_entries(graph, lin, free, flat_i, flat_j, *plan.cg)
         else:
             data = csr_values(graph, lin).at[st.diag_pos].add(1.0 - free)
-            entries = _sparse_entries if plan.method == "sparse" else _dense_entries
-            vals = entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j)
+            if plan.method == "sparse":
+                vals = _sparse_entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j,
+                                       plan.method)
+            else:
+                vals = _dense_entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j)
     vals = vals * free_l[flat_i] * free_l[flat_j]
     out, start = [], 0
     for shape in plan.shapes:
@@ -373,7 +382,14 @@ def _dense_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,
 
 
 def _sparse_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,
-                    j: np.ndarray) -> Array:
+                    j: np.ndarray, method: str) -> Array:
+    """Entries by selected inversion on the host (``method`` "sparse" or "schur"). The
+    callback has no derivative: differentiating raises, naming the methods that have one."""
+    data = eqxi.nondifferentiable(data, msg=(
+        f"marginals(method={method!r}) is not differentiable (the factorisation and "
+        "selected inversion run on the host); use method='dense' or method='pcg' to "
+        "differentiate marginal covariances"))
+
     def host(d: Any, ind: Any, ptr: Any) -> np.ndarray:
         return selinv.inverse_entries(np.asarray(d, np.float64), ind, ptr, i, j).astype(
             d.dtype)
