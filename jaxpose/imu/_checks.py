@@ -56,7 +56,7 @@ def check_samples(
     if d.ndim >= 1 and d.shape[-1] != n:
         raise ValueError(f"{fn}(dt): expected a scalar or {n} time steps (one per sample) "
                          f"in the last axis, got shape {tuple(d.shape)}")
-    dtype = jnp.result_type(g.dtype, a.dtype, d.dtype)
+    dtype = jnp.result_type(g, a, d)  # arrays: a Python-scalar dt is weakly typed
     try:
         batch = tuple(np.broadcast_shapes(g.shape[:-2], a.shape[:-2], d.shape[:-1]))
     except ValueError as err:

@@ -204,6 +204,10 @@ def _information(sigma: Any, information: Any, dim: int, fn: str) -> Any:
     if (sigma is None) == (information is None):
         raise ValueError(f"{fn}: give exactly one of sigma and information")
     if information is not None:
+        shape = np.shape(information)
+        if shape[-2:] != (dim, dim) or len(shape) not in (2, 3):
+            raise ValueError(f"{fn}(information): expected shape ({dim}, {dim}) or "
+                             f"(m, {dim}, {dim}), got {shape}")
         return information
     s = np.asarray(sigma, dtype=np.float64)
     if s.shape not in ((), (dim,)) or not np.all(s > 0):
@@ -286,7 +290,10 @@ def bias_walk_factor(
     """Random-walk factors between biases ``i`` and ``j`` (m,) separated by ``dt`` (m,)
     seconds: covariance ``diag(σ_bg²·1₃, σ_ba²·1₃)·dt`` with walk densities ``gyro_walk``
     [rad/s²/√Hz] and ``acc_walk`` [m/s³/√Hz] (scalars or (3,))."""
-    d = np.asarray(dt, dtype=np.float64).reshape(-1)
+    d = np.asarray(dt, dtype=np.float64)
+    if d.ndim > 1:
+        raise ValueError(f"bias_walk_factor(dt): expected shape (m,), got {d.shape}")
+    d = d.reshape(-1)
     m = d.shape[0]
     ii, jj = _indices(i, m, "bias_walk_factor(i)"), _indices(j, m, "bias_walk_factor(j)")
     if not np.all(d > 0):

@@ -21,10 +21,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import numpy_field
 from .._precision import full_precision
 from ..graph import Factor, FactorGraph, GraphSolution, solve
 from ..graph._factor import vector_prior_residual
 from ..lie import SE3
+from ._checks import check_samples
 from ._factors import bias_walk_factor, gps_factor, imu_factor, pose_prior_factor
 from ._preintegration import Preintegrated, dead_reckon, preintegrate
 from ._state import NavState
@@ -55,14 +57,18 @@ def preintegrate_windows(
     (gyro, acc (N, 3), dt scalar or (N,)); windows of equal length share one batched
     call. Returns a :class:`Preintegrated` of batch (len(bounds) − 1,); ``kwargs`` go to
     :func:`preintegrate`."""
-    b = np.asarray(bounds, dtype=np.int64)
-    g, a = jnp.asarray(gyro), jnp.asarray(acc)
+    fn = "preintegrate_windows"
+    g, a, d, batch, _ = check_samples(gyro, acc, dt, fn)
+    if batch or d.ndim > 1:
+        raise ValueError(f"{fn}(gyro, acc, dt): expected one stream, gyro and acc (N, 3) "
+                         f"and dt scalar or (N,), got shapes {tuple(g.shape)}, "
+                         f"{tuple(a.shape)} and {tuple(d.shape)}")
     n = g.shape[0]
-    if b.ndim != 1 or b.size < 2 or np.any(np.diff(b) <= 0) or b[0] < 0 or b[-1] > n:
-        raise ValueError(f"preintegrate_windows(bounds): expected increasing sample "
+    b = numpy_field(bounds, np.int64, (None,), f"{fn}(bounds)")
+    if b.size < 2 or np.any(np.diff(b) <= 0) or b[0] < 0 or b[-1] > n:
+        raise ValueError(f"{fn}(bounds): expected increasing sample "
                          f"indices in [0, {n}] (at least two), got {b.tolist()[:8]}...")
     lengths = np.diff(b)
-    d = jnp.asarray(dt, g.dtype)
     parts, order = [], []
     for length in np.unique(lengths):
         sel = np.flatnonzero(lengths == length)
@@ -124,19 +130,20 @@ def _gps_keyframes(
     K − 1 windows between keyframes preintegrated with the options' noise."""
     if not isinstance(init, NavState):
         raise TypeError(f"{fn}(init): expected NavState, got {type(init).__name__}")
-    g = jnp.asarray(gyro)
-    n = g.shape[0]
-    gi = np.asarray(gps_index, dtype=np.int64).reshape(-1)
+    n = jnp.shape(gyro)[0]
+    gi = numpy_field(np.atleast_1d(gps_index), np.int64, (None,), f"{fn}(gps_index)")
     z = np.asarray(gps_position, dtype=np.float64)
     if z.shape != (gi.size, 3):
         raise ValueError(f"{fn}: {gi.size} GPS indices but gps_position has shape {z.shape}")
+    if not np.all(np.isfinite(z)):
+        raise ValueError(f"{fn}(gps_position): contains NaN or inf")
     if gi.size == 0 or np.any(np.diff(gi) < 0) or gi[0] < 0 or gi[-1] > n:
         raise ValueError(f"{fn}(gps_index): expected non-decreasing sample counts in [0, {n}]")
     keyframes = np.unique(np.concatenate([[0], gi]))
     pre = preintegrate_windows(gyro, acc, dt, keyframes, gyro_noise=opts.gyro_noise,
                                acc_noise=opts.acc_noise,
                                integration_noise=opts.integration_noise)
-    return keyframes, gi, z, jnp.asarray(opts.gravity, g.dtype), pre
+    return keyframes, gi, z, jnp.asarray(opts.gravity, pre.vel.dtype), pre
 
 
 def fuse_imu_gps(

@@ -45,6 +45,7 @@ import jax.numpy as jnp
 from .._precision import full_precision
 from ..lie import SO3
 from ..lie import _quaternion as quat
+from ..lie._base import runtime_check
 from . import _core, _tangent
 from ._checks import (
     as_float,
@@ -154,7 +155,7 @@ class Preintegrated(eqx.Module):
             return self.rot, self.vel, self.pos
         dbg = _bias_delta(gyro_bias, self.gyro_bias, "corrected(gyro_bias)")
         dba = _bias_delta(acc_bias, self.acc_bias, "corrected(acc_bias)")
-        db = jnp.concatenate([dbg, dba], -1)
+        db = jnp.concatenate(jnp.broadcast_arrays(dbg, dba), -1)
         d = jnp.einsum("...ij,...j->...i", self._jac(), db)
         rot = SO3(quat.multiply(self.rot.data, quat.exp(d[..., 0:3])))
         return rot, self.vel + d[..., 3:6], self.pos + d[..., 6:9]
@@ -177,7 +178,12 @@ class Preintegrated(eqx.Module):
         ):
             raise ValueError("Preintegrated.compose(other): both windows need the same "
                              "outputs (covariance and bias Jacobians or neither)")
-        out = _core.compose(_to_delta(self), _to_delta(other))
+        differ = jnp.any(self.gyro_bias != other.gyro_bias) | jnp.any(
+            self.acc_bias != other.acc_bias)
+        out = runtime_check(
+            _core.compose(_to_delta(self), _to_delta(other)), differ,
+            "Preintegrated.compose(other): the windows were preintegrated at different "
+            "linearisation biases (gyro_bias, acc_bias); preintegrate both at the same ones")
         return _from_delta(out, self.gyro_bias, self.acc_bias)
 
     __matmul__ = compose
@@ -399,12 +405,14 @@ class ImuPreintegrator(eqx.Module):
     ):
         if scheme not in SCHEMES:
             raise ValueError(f"ImuPreintegrator(scheme={scheme!r}): expected one of {SCHEMES}")
-        self.gyro_noise = jnp.broadcast_to(as_float(gyro_noise, "ImuPreintegrator(gyro_noise)"),
-                                           (3,))
-        self.acc_noise = jnp.broadcast_to(as_float(acc_noise, "ImuPreintegrator(acc_noise)"),
-                                          (3,))
+        for name, x in (("gyro_noise", gyro_noise), ("acc_noise", acc_noise)):
+            arr = as_float(x, f"ImuPreintegrator({name})")
+            setattr(self, name, noise_sigma(arr, f"ImuPreintegrator({name})", arr.dtype))
         self.integration_noise = as_float(integration_noise,
                                            "ImuPreintegrator(integration_noise)")
+        if self.integration_noise.ndim != 0:
+            raise ValueError(f"ImuPreintegrator(integration_noise): expected a scalar σ, got "
+                             f"shape {tuple(self.integration_noise.shape)}")
         g = as_float(gravity, "ImuPreintegrator(gravity)")
         if g.shape != (3,):
             raise ValueError(f"ImuPreintegrator(gravity): expected a 3-vector, got shape "

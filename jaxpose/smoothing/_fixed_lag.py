@@ -78,7 +78,7 @@ from jax.flatten_util import ravel_pytree
 
 from .._precision import full_precision
 from ..lie import manifold
-from ..lie._base import small_matmul
+from ..lie._base import runtime_check, small_matmul
 
 Array = jax.Array
 PyTree = Any
@@ -111,6 +111,29 @@ def _where(c: Array, a: PyTree, b: PyTree) -> PyTree:
         return jnp.where(cc, u, v)
 
     return jax.tree.map(sel, a, b)
+
+
+def _check_shapes(new: PyTree, example: PyTree, name: str, what: str) -> None:
+    """Raise unless ``new`` has the structure and leaf shapes of ``example`` (``what``)."""
+    if jax.tree.structure(new) != jax.tree.structure(example):
+        raise TypeError(f"FixedLagSmoother.update({name}): expected the structure of the {what}")
+    for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(example), strict=True):
+        if jnp.shape(a) != jnp.shape(b):
+            raise ValueError(
+                f"FixedLagSmoother.update({name}): leaf of shape "
+                f"{jnp.shape(a)}, expected {jnp.shape(b)}"
+            )
+
+
+def _finite(x: PyTree, batch: int = 0) -> Array:
+    """Whether every leaf of ``x`` is finite, per index of its ``batch`` leading axes."""
+
+    def leaf(a: Array) -> Array:
+        a = jnp.asarray(a)
+        return jnp.all(jnp.isfinite(a).reshape(*a.shape[:batch], -1), axis=-1)
+
+    leaves = jax.tree.leaves(x)
+    return jnp.all(jnp.stack([leaf(a) for a in leaves]), axis=0) if leaves else jnp.asarray(True)
 
 
 class FixedLagSmoother(eqx.Module):
@@ -758,22 +781,8 @@ class FixedLagSmoother(eqx.Module):
                 older to the new one; loop_valid (M,) bool; loop_data (M, ...).
         """
         k, d = self.window, self.tangent_dim
-        if jax.tree.structure(guess) != jax.tree.structure(_take(self.states, 0)):
-            raise TypeError(
-                "FixedLagSmoother.update(guess): expected the structure of the example state"
-            )
-        if jax.tree.structure(data) != jax.tree.structure(_take(self.data, 0)):
-            raise TypeError(
-                "FixedLagSmoother.update(data): expected the structure of the example data"
-            )
-        for a, b in zip(
-            jax.tree.leaves(guess), jax.tree.leaves(_take(self.states, 0)), strict=True
-        ):
-            if jnp.shape(a) != jnp.shape(b):
-                raise ValueError(
-                    f"FixedLagSmoother.update(guess): leaf of shape "
-                    f"{jnp.shape(a)}, expected {jnp.shape(b)}"
-                )
+        _check_shapes(guess, _take(self.states, 0), "guess", "example state")
+        _check_shapes(data, _take(self.data, 0), "data", "example data")
         m = self.loop_lag.shape[1]
         if m:
             if loop_lag is None or loop_valid is None or loop_data is None:
@@ -781,17 +790,33 @@ class FixedLagSmoother(eqx.Module):
                     "FixedLagSmoother.update: this smoother has max_loops > 0; "
                     "pass loop_lag, loop_valid and loop_data"
                 )
-            lag = jnp.asarray(loop_lag, jnp.int32)
+            lag = jnp.asarray(loop_lag)
+            if not jnp.issubdtype(lag.dtype, jnp.integer):
+                raise TypeError(
+                    f"FixedLagSmoother.update(loop_lag): expected integers, got {lag.dtype}"
+                )
+            lag = lag.astype(jnp.int32)
             lv = jnp.asarray(loop_valid, bool)
             if lag.shape != (m,) or lv.shape != (m,):
                 raise ValueError(
                     f"FixedLagSmoother.update(loop_lag, loop_valid): expected "
                     f"shape ({m},), got {lag.shape} and {lv.shape}"
                 )
+            _check_shapes(loop_data, _take(self.loop_data, 0), "loop_data",
+                          "example loop data (M, ...)")
+            lag = runtime_check(
+                lag, jnp.any(lv & (lag < 1)),
+                "FixedLagSmoother.update(loop_lag): a valid loop factor needs lag >= 1",
+            )
+            loop_data = runtime_check(
+                loop_data, jnp.any(lv & ~_finite(loop_data, 1)),
+                "FixedLagSmoother.update(loop_data): non-finite values in a valid loop factor",
+            )
         guess = eqx.error_if(
-            guess,
-            ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(guess)])),
-            "FixedLagSmoother.update(guess): non-finite values",
+            guess, ~jnp.all(_finite(guess)), "FixedLagSmoother.update(guess): non-finite values"
+        )
+        data = runtime_check(
+            data, ~jnp.all(_finite(data)), "FixedLagSmoother.update(data): non-finite values"
         )
         full = self.valid[0]
         info_m, grad_m, coupled = self._marginalize_first()

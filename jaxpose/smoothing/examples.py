@@ -132,9 +132,14 @@ def imu_gps_steps(
     walk_sqrt[:, np.arange(6), np.arange(6)] = 1.0 / np.sqrt(var[None] * dts[:, None])
     gps = np.zeros((t, 3))
     gps_sqrt = np.zeros((t, 3, 3))
+    # fixes at one keyframe (equal gps_index) are one factor on their mean with the
+    # summed information: the same cost up to a constant as one factor each
     kf = np.searchsorted(keyframes, gi)
-    gps[kf] = z
-    gps_sqrt[kf] = np.eye(3) / opts.gps_sigma
+    count = np.bincount(kf, minlength=t)
+    np.add.at(gps, kf, z)
+    has = count > 0
+    gps[has] /= count[has, None]
+    gps_sqrt[has] = np.sqrt(count[has])[:, None, None] * np.eye(3) / opts.gps_sigma
     s_rot, s_pos, s_vel, s_bias = opts.prior_sigmas
     prior_sqrt = np.diag(
         1.0

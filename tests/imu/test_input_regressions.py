@@ -1,0 +1,122 @@
+"""Regressions: bad input to the IMU functions that used to be accepted and give a
+wrong number (truncated indices and time steps, silently mixed linearisation biases), or
+fail with messages that did not name the argument."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxpose.imu import (
+    ImuPreintegrator,
+    NavState,
+    bias_walk_factor,
+    fuse_imu_gps,
+    gps_factor,
+    predict,
+    preintegrate,
+    preintegrate_windows,
+)
+from jaxpose.lie import InvalidValueError
+
+N = 10
+RNG = np.random.default_rng(7)
+GYRO, ACC = RNG.normal(size=(N, 3)) * 0.3, RNG.normal(size=(N, 3))
+
+
+def test_preintegrate_windows_rejects_fractional_bounds():
+    # [0, 4.7, 10.2] was truncated to [0, 4, 10] without a word
+    with pytest.raises(ValueError, match=r"preintegrate_windows\(bounds\): expected integers"):
+        preintegrate_windows(GYRO, ACC, 0.01, [0, 4.7, 10.2])
+    with pytest.raises(ValueError, match=r"preintegrate_windows\(bounds\)"):
+        preintegrate_windows(GYRO, ACC, 0.01, [[0, 4], [4, 10]])
+
+
+def test_preintegrate_windows_integer_samples_keep_fractional_dt():
+    """Integer samples: dt = 1.5 was cast to the samples' integer dtype (1). At rest with a
+    constant specific force a: Δt = n·dt, Δv = a·Δt, Δp = ½·a·Δt² (closed form)."""
+    zero, acc = np.zeros((N, 3), np.int64), np.tile(np.array([1, -2, 3], np.int64), (N, 1))
+    pre = preintegrate_windows(zero, acc, 1.5, [0, 4, 10])
+    t = np.array([4 * 1.5, 6 * 1.5])
+    np.testing.assert_allclose(pre.dt, t, rtol=1e-15)
+    np.testing.assert_allclose(pre.vel, t[:, None] * [1, -2, 3], rtol=1e-14)
+    np.testing.assert_allclose(pre.pos, 0.5 * t[:, None] ** 2 * [1, -2, 3], rtol=1e-14)
+
+
+@pytest.mark.parametrize("gyro, dt", [
+    (GYRO, np.full(N - 1, 0.01)),  # one step short: an unnamed broadcasting error
+    (GYRO, np.full(1, 0.01)),  # one step for N samples: silently broadcast
+    (np.stack([GYRO, GYRO]), 0.01),  # two streams: windows cut along the wrong axis
+])
+def test_preintegrate_windows_checks_sample_shapes(gyro, dt):
+    with pytest.raises(ValueError, match=r"preintegrate_windows\((gyro|dt)"):
+        preintegrate_windows(gyro, np.broadcast_to(ACC, gyro.shape), dt, [0, 1, 2])
+
+
+@pytest.mark.parametrize("index, position, match", [
+    ([4.6, 9.2], np.zeros((2, 3)), r"fuse_imu_gps\(gps_index\): expected integers"),
+    ([[4, 9]], np.zeros((2, 3)), r"fuse_imu_gps\(gps_index\): expected shape"),
+    ([4, 9], [[0, 0, 0], [np.nan, 0, 0]], r"fuse_imu_gps\(gps_position\): contains NaN"),
+])
+def test_fuse_rejects_bad_fixes(index, position, match):
+    with pytest.raises(ValueError, match=match):
+        fuse_imu_gps(GYRO, ACC, 0.01, index, position, NavState.identity())
+
+
+def _windows(**kw):
+    kw = dict(gyro_noise=0.1, acc_noise=0.2, **kw)
+    return (preintegrate(GYRO[:5], ACC[:5], 0.01, **kw),
+            preintegrate(GYRO[5:], ACC[5:], 0.01, **kw))
+
+
+def test_compose_rejects_different_linearisation_biases():
+    """Composing windows preintegrated at different biases returned the first window's
+    biases with Jacobians taken at two different points."""
+    a, _ = _windows(gyro_bias=[0.1, 0.0, 0.0])
+    _, b = _windows(gyro_bias=[0.2, 0.0, 0.0])
+    with pytest.raises(InvalidValueError, match="different linearisation biases"):
+        a.compose(b)
+    with pytest.raises(Exception, match="different linearisation biases"):
+        jax.block_until_ready(jax.jit(lambda p, q: (p @ q).pos)(a, b))
+    a, b = _windows(acc_bias=[0.0, 0.1, 0.0])
+    whole = preintegrate(GYRO, ACC, 0.01, gyro_noise=0.1, acc_noise=0.2, acc_bias=[0, 0.1, 0])
+    np.testing.assert_allclose((a @ b).jac, whole.jac, atol=1e-15)
+
+
+def test_predict_broadcasts_a_batch_of_gyro_biases():
+    """A (2, 3) gyro bias with no accelerometer bias failed inside a concatenation."""
+    pre = preintegrate(GYRO, ACC, 0.01)
+    bg = np.array([[0.01, 0.0, 0.0], [0.0, -0.02, 0.01]])
+    out = predict(NavState.identity(), pre, [0, 0, -9.81], gyro_bias=bg)
+    for k in range(2):
+        one = predict(NavState.identity(), pre, [0, 0, -9.81], gyro_bias=bg[k], acc_bias=[0, 0, 0])
+        np.testing.assert_allclose(out.pos[k], one.pos, atol=1e-15)
+        np.testing.assert_allclose(out.rot.data[k], one.rot.data, atol=1e-15)
+
+
+def test_module_and_factor_argument_shapes():
+    with pytest.raises(ValueError, match=r"ImuPreintegrator\(gyro_noise\)"):
+        ImuPreintegrator(gyro_noise=[1e-3, 2e-3])
+    with pytest.raises(ValueError, match=r"ImuPreintegrator\(integration_noise\)"):
+        ImuPreintegrator(integration_noise=[1e-3, 2e-3])
+    m = ImuPreintegrator(gyro_noise=jnp.float32(1e-3))
+    assert m.gyro_noise.shape == (3,) and m.gyro_noise.dtype == jnp.float32
+    # a (2, 2) information for a 3-vector residual was accepted
+    with pytest.raises(ValueError, match=r"gps_factor\(information\): expected shape \(3, 3\)"):
+        gps_factor(np.zeros((2, 3)), [0, 1], information=np.eye(2))
+    # a (2, 2) dt was flattened into 4 intervals
+    with pytest.raises(ValueError, match=r"bias_walk_factor\(dt\): expected shape \(m,\)"):
+        bias_walk_factor([0, 1, 2, 3], [1, 2, 3, 4], np.ones((2, 2)), 1e-3, 1e-3)
+
+
+def test_float32_samples_with_a_python_scalar_dt_stay_float32():
+    """The common call ``preintegrate(gyro32, acc32, 0.005)`` returned float64: the
+    scalar's dtype was promoted as a strong float64."""
+    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    lo = preintegrate(f32(GYRO), f32(ACC), 0.01, gyro_noise=0.1, acc_noise=0.2)
+    hi = preintegrate(GYRO, ACC, 0.01, gyro_noise=0.1, acc_noise=0.2)
+    for name in ("vel", "pos", "dt", "cov", "jac"):
+        assert getattr(lo, name).dtype == jnp.float32, name
+        np.testing.assert_allclose(getattr(lo, name), getattr(hi, name), rtol=1e-4,
+                                   atol=1e-6, err_msg=name)
+    assert lo.rot.data.dtype == jnp.float32
