@@ -9,7 +9,7 @@ Conventions (PyPose's):
 * Points (..., N, 3), pixels (..., N, 2); leading batch axes broadcast between points,
   pixels, intrinsics and extrinsics.
 * Radial distortion acts on normalised coordinates x = (X/Z, Y/Z):
-  ``x_d = x · (1 + k1 r² + k2 r⁴ + …)`` with r² = |x|², then ``[u, v] = K [x_d, 1]``.
+  ``x_d = x · (1 + k1 r² + k2 r⁴ + …)`` with r² = |x|², then ``[u, v, 1]ᵀ ∝ K [x_d, 1]``.
 
 Everything is pure and smooth away from Z = 0, so it jits, vmaps and differentiates;
 norms use the safe form (zero derivative at zero error, not NaN).
@@ -114,17 +114,17 @@ def _project(p: Array, k: Array, ext: Array | None, dist: Array | None) -> Array
         p = SE3(ext[..., None, :]).act(p)
     if dist is None:
         return homo2cart(jnp.einsum("...ij,...nj->...ni", k, p))
-    xn = homo2cart(p)
-    xd = radial_distort(xn, dist)
-    return jnp.einsum("...ij,...nj->...ni", k[..., :2, :], cart2homo(xd))
+    xd = radial_distort(homo2cart(p), dist)
+    return homo2cart(jnp.einsum("...ij,...nj->...ni", k, cart2homo(xd)))
 
 
 def pixel2point(
     pixels: Any, depth: Any, intrinsics: Any, extrinsics: SE3 | None = None
 ) -> Array:
     """Back-project pixels (..., N, 2) at ``depth`` (..., N) (the camera-frame Z) to
-    points (..., N, 3): ``depth · K⁻¹ [u, v, 1]`` in the camera frame, or in the world
-    frame when ``extrinsics`` (SE3 world→camera) is given. No distortion model."""
+    points (..., N, 3): the point of Z = ``depth`` on the ray ``K⁻¹ [u, v, 1]`` in the
+    camera frame, or in the world frame when ``extrinsics`` (SE3 world→camera) is given.
+    No distortion model."""
     fn = "pixel2point"
     px = points_array(pixels, f"{fn}(pixels)", 2, min_points=0)
     z = as_float_array(depth, f"{fn}(depth)")
@@ -146,8 +146,8 @@ def pixel2point(
 @full_precision
 def _backproject(px: Array, z: Array, k: Array, ext: Array | None) -> Array:
     rays = jnp.einsum("...ij,...nj->...ni", jnp.linalg.inv(k), cart2homo(px))
-    # K's last row is [0, 0, 1], so rays[..., 2] == 1 and depth is the Z coordinate
-    pc = rays * z[..., None]
+    # K is defined up to scale: normalise the rays to Z = 1 so depth is the Z coordinate
+    pc = rays / rays[..., 2:] * z[..., None]
     if ext is None:
         return pc
     return SE3(ext[..., None, :]).inv().act(pc)

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lie._base import as_float_array
+from ..lie._base import as_float_array, runtime_check
 from ._knn import knn
 from ._util import Array, points_array
 
@@ -41,7 +41,10 @@ class Downsampled(NamedTuple):
 def _voxel_ids(p: Array, size: Array) -> tuple[Array, Array, Array]:
     """Segment id per point (sorted voxel order), the sort order and the voxel count."""
     vdim = size.shape[0]
-    cells = jnp.floor((p[:, :vdim] - jnp.min(p[:, :vdim], 0)) / size).astype(jnp.int32)
+    cells = jnp.floor((p[:, :vdim] - jnp.min(p[:, :vdim], 0)) / size)
+    cells = runtime_check(cells, jnp.any(cells >= np.iinfo(np.int32).max),
+                          "voxel_filter(voxel): sizes too small for the extent of the points "
+                          "(more than 2³¹ − 1 voxels along an axis)").astype(jnp.int32)
     order = jnp.lexsort(tuple(cells[:, i] for i in range(vdim - 1, -1, -1)))
     sc = cells[order]
     new = jnp.concatenate([jnp.ones((1,), bool), jnp.any(sc[1:] != sc[:-1], -1)])
@@ -70,8 +73,7 @@ def voxel_filter(
     if size.ndim != 1 or not 1 <= size.shape[0] <= p.shape[1]:
         raise ValueError(f"{fn}(voxel): expected sizes of shape (v,) with 1 ≤ v ≤ D = "
                          f"{p.shape[1]}, got shape {tuple(size.shape)}")
-    if not isinstance(size, jax.core.Tracer) and not bool(jnp.all(size > 0)):
-        raise ValueError(f"{fn}(voxel): sizes must be positive, got {np.asarray(size)}")
+    size = runtime_check(size, ~jnp.all(size > 0), f"{fn}(voxel): sizes must be positive")
     n = p.shape[0]
     seg, order, count = _voxel_ids(p, size)
     if max_voxels is None:

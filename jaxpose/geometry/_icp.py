@@ -39,10 +39,11 @@ import numpy as np
 
 from .._precision import full_precision
 from ..lie import SE3
+from ..lie._base import as_float_array, check_last_dim
 from ..results import Results
 from ._kdtree import build_kdtree, query_kdtree
 from ._knn import DEFAULT_BUDGET, _select, knn, resolve_method, tile_size
-from ._registration import svdtf
+from ._registration import _kabsch  # weights are 0/1 here: no run-time check
 from ._util import (
     Array,
     batch_shape,
@@ -174,7 +175,7 @@ def _icp_single(
         w = (d2 <= gate).astype(dtype)
         if plane:
             return _plane_step(t, src_c, tgt_c[idx], nrm_c[idx], w), w, d2
-        return svdtf(src_c, tgt_c[idx], w).data, w, d2
+        return _kabsch(src_c, tgt_c[idx], w), w, d2
 
     class State(NamedTuple):
         t: Array  # last accepted estimate
@@ -228,7 +229,7 @@ def _icp_single(
         t_fin = _plane_implicit(jax.lax.stop_gradient(s.t), src, tgt[idx], nrm[idx], w)
         rmse = _plane_rmse(s.t, src_c, tgt_c[idx], nrm_c[idx], w)
     else:
-        t_fin = svdtf(src, tgt[idx], w).data
+        t_fin = _kabsch(src, tgt[idx], w)
         diff = SE3(jax.lax.stop_gradient(s.t)).act(src_c) - tgt_c[idx]
         rmse = _weighted_rms(diff, w)
     t_out = jnp.where(accepted, t_fin, s.t)
@@ -336,7 +337,8 @@ def estimate_normals(
     _, vecs = jnp.linalg.eigh(cov)
     nrm = vecs[..., :, 0]
     if viewpoint is not None:
-        v = jnp.asarray(viewpoint, p.dtype)
+        v = as_float_array(viewpoint, "estimate_normals(viewpoint)").astype(p.dtype)
+        check_last_dim(v, 3, "estimate_normals(viewpoint)", "[x, y, z]")
         sign = jnp.sign(jnp.sum(nrm * (v[..., None, :] - p), -1, keepdims=True))
         nrm = nrm * jnp.where(sign == 0, 1.0, sign)
     return nrm

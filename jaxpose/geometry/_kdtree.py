@@ -22,6 +22,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._util import Array, points_array
 
@@ -183,6 +184,9 @@ def query_kdtree(tree: KDTree, query: Any, k: int = 1, chunk: int = 1024,
     t = jax.lax.stop_gradient(tree)
     if hint is not None and k != 1:
         raise ValueError("query_kdtree(hint): hints are supported for k = 1 only")
+    if hint is not None and np.shape(hint) != (n,):
+        raise ValueError(f"query_kdtree(hint): expected shape ({n},) (one index per query), "
+                         f"got {np.shape(hint)}")
     c = max(1, min(chunk, n))
     n_chunks = math.ceil(n / c)
     pad = n_chunks * c - n

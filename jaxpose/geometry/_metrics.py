@@ -34,13 +34,12 @@ from __future__ import annotations
 import functools
 from typing import Any, NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..lie import SE3, Sim3
-from ..lie._base import as_float_array
+from ..lie._base import as_float_array, runtime_check
 from ._registration import umeyama
 from ._util import Array, check_group, safe_norm
 
@@ -73,12 +72,22 @@ class TrajectoryError(NamedTuple):
     pairs: Array
 
 
+def _broadcasts_to(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
+    try:
+        return np.broadcast_shapes(shape, target) == target
+    except ValueError:
+        return False
+
+
 def error_stats(errors: Any, valid: Any = None) -> ErrorStats:
     """Max, min, mean, median, RMSE, SSE and population std over the last axis of
     ``errors`` (..., K) where ``valid`` (..., K) (default all)."""
     e = as_float_array(errors, "error_stats(errors)")
     if e.ndim < 1:
         raise ValueError("error_stats(errors): expected shape (..., K), got a scalar")
+    if valid is not None and not _broadcasts_to(np.shape(valid), e.shape):
+        raise ValueError(f"error_stats(valid): expected a shape that broadcasts to errors' "
+                         f"{tuple(e.shape)}, got {np.shape(valid)}")
     v = jnp.ones(e.shape, bool) if valid is None else jnp.broadcast_to(
         jnp.asarray(valid, bool), e.shape)
     n = jnp.sum(v, -1)
@@ -113,8 +122,8 @@ def _stamps(x: Any, n: int, argname: str, dtype: Any) -> Array:
     if s.shape != (n,):
         raise ValueError(f"{argname}: expected shape ({n},) (one stamp per pose), got "
                          f"{tuple(s.shape)}")
-    return eqx.error_if(s, jnp.any(s[1:] < s[:-1]) if n > 1 else jnp.asarray(False),
-                        f"{argname}: timestamps must be ascending")
+    return runtime_check(s, jnp.any(s[1:] < s[:-1]) if n > 1 else jnp.asarray(False),
+                         f"{argname}: timestamps must be ascending")
 
 
 def associate(

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 
 from .._precision import full_precision
 from ..lie import SE3, SO3, Sim3
-from ..lie._base import as_float_array, skew, vee
+from ..lie._base import as_float_array, runtime_check, skew, vee
 from ._util import Array, batch_shape, points_array, safe_div, same_count
 
 
@@ -62,11 +62,12 @@ def _optimal_rotation_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tupl
     a = tr * eye - s  # positive semi-definite at the maximiser
     b = vee(rt @ dh - jnp.swapaxes(dh, -1, -2) @ r)
     # Tikhonov: (a² + μ² I)⁻¹ a b = a⁻¹ b up to (μ/λ)² when a is regular; → 0 along null
-    # directions of a (where the rotation is not unique) instead of Inf.
-    scale = jnp.abs(tr[..., 0, 0]) + jnp.finfo(h.dtype).tiny
-    mu2 = (jnp.sqrt(jnp.finfo(h.dtype).eps) * scale) ** 2
-    lhs = a @ a + mu2[..., None, None] * eye
-    omega = jnp.linalg.solve(lhs, (a @ b[..., None]))[..., 0]
+    # directions of a (where the rotation is not unique) instead of Inf. Solved with a
+    # scaled to unit trace (μ² = eps), so a = 0 (coincident points) gives 0, not 0/0.
+    scale = (jnp.abs(tr[..., 0, 0]) + jnp.finfo(h.dtype).tiny)[..., None, None]
+    a = a / scale
+    lhs = a @ a + jnp.finfo(h.dtype).eps * eye
+    omega = jnp.linalg.solve(lhs, (a @ b[..., None]) / scale)[..., 0]
     return r, r @ skew(omega)
 
 
@@ -78,7 +79,7 @@ def _weights(weights: Any, n: int, batch: tuple[int, ...], fn: str, dtype: Any) 
         raise ValueError(f"{fn}(weights): expected shape (..., N) with N = {n}, got shape "
                          f"{tuple(w.shape)}")
     batch_shape(batch, w.shape[:-1], names=("points", "weights"))
-    return w
+    return runtime_check(w, jnp.any(w < 0), f"{fn}(weights): expected non-negative weights")
 
 
 def _moments(

@@ -30,7 +30,7 @@ import numpy as np
 
 from .._precision import full_precision
 from ..lie import SE3
-from ..lie._base import as_float_array
+from ..lie._base import as_float_array, runtime_check
 from ._util import Array, batch_shape, check_group, points_array
 
 _CUMULATIVE = np.array([[6, 0, 0, 0], [5, 3, -3, 1], [1, 3, 3, -2], [0, 0, 0, 1]],
@@ -158,6 +158,9 @@ def hermite(points: Any, t: Any, times: Any = None, tangents: Any = None) -> Arr
     if tk.ndim < 1 or tk.shape[-1] != n:
         raise ValueError(f"{fn}(times): expected shape (..., N) with N = {n}, got shape "
                          f"{tuple(tk.shape)}")
+    if times is not None:
+        tk = runtime_check(tk, jnp.any(~(tk[..., 1:] > tk[..., :-1])),
+                           f"{fn}(times): expected strictly increasing knot times")
     tt = _times(t, fn, dtype)
     shapes, names = [p.shape[:-2], tk.shape[:-1], tt.shape[:-1]], ["points", "times", "t"]
     if tangents is not None:
