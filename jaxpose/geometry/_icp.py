@@ -22,7 +22,8 @@ is recomputed after the loop from its converged correspondences (which are piece
 constant): one more Kabsch solve (point-to-point), or the loop's T carrying a custom JVP
 dT = Exp(δ̇)·T, δ̇ = −H⁻¹ġ (point-to-plane, exact Hessian H of the cost). Its value is the
 loop's; its derivative with respect to ``source``, ``target`` (and ``target_normals``) is
-the implicit-function derivative of the fixed point (exact once converged), and both rules
+the implicit-function derivative of the fixed point (exact once converged; point-to-plane
+raises when differentiated at a status other than CONVERGED), and both rules
 are differentiable functions of the optimum, so second derivatives (``jax.hessian``,
 ``jacfwd(jacrev)``, ``grad(grad)``) are exact as well. The derivative with respect to
 ``init`` is zero.
@@ -40,6 +41,7 @@ import numpy as np
 from .._precision import full_precision
 from ..lie import SE3
 from ..lie._base import as_float_array, check_last_dim
+from ..optim._implicit import at_stationary_point
 from ..results import Results
 from ._kdtree import build_kdtree, query_kdtree
 from ._knn import DEFAULT_BUDGET, _select, knn, resolve_method, tile_size
@@ -89,22 +91,26 @@ def _plane_step(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
 
 
 @jax.custom_jvp
-def _plane_implicit(t: Array, src: Array, q: Array, nrm: Array, w: Array) -> Array:
+def _plane_implicit(t: Array, src: Array, q: Array, nrm: Array, w: Array,
+                    status: Array) -> Array:
     """``t`` itself (SE3 data); its derivative w.r.t. (src, q, nrm) is the implicit-function
     one of the point-to-plane optimum: dT = Exp(δ̇)·T with δ̇ = −H⁻¹ġ, g the gradient of
     the cost in the left chart δ ↦ Exp(δ)·T and H its exact Hessian at δ = 0. No derivative
-    flows to ``t`` or ``w`` (piecewise-constant inlier mask)."""
+    flows to ``t`` or ``w`` (piecewise-constant inlier mask). Differentiating where the
+    loop's ``status`` is not CONVERGED (``t`` is then not the optimum) raises."""
     return t
 
 
 @_plane_implicit.defjvp
 def _plane_implicit_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
                         ) -> tuple[Array, Array]:
-    t, src, q, nrm, w = primals
-    _, dsrc, dq, dnrm, _ = tangents
+    t, src, q, nrm, w, status = primals
+    _, dsrc, dq, dnrm, _, _ = tangents
     # the optimum itself, carrying this rule when the rule is differentiated again: the
     # tangent is then a differentiable function of (T*(θ), θ), so higher orders are exact
-    ts = _plane_implicit(t, src, q, nrm, w)
+    ts = at_stationary_point(
+        _plane_implicit(t, src, q, nrm, w, status), status, "icp(method='point_to_plane')",
+        "Give it more iterations (max_iterations) or a looser tolerance.")
 
     def cost(delta: Array) -> Array:  # Exp(δ)·T·p to second order (exact Hessian at 0)
         moved = exp_act2(delta, SE3(ts).act(src))
@@ -226,7 +232,8 @@ def _icp_single(
     moved = SE3(jax.lax.stop_gradient(s.t_prev)).act(src_c)
     w = (jnp.sum(jnp.square(moved - tgt_c[idx]), -1) <= gate).astype(dtype)
     if plane:
-        t_fin = _plane_implicit(jax.lax.stop_gradient(s.t), src, tgt[idx], nrm[idx], w)
+        t_fin = _plane_implicit(jax.lax.stop_gradient(s.t), src, tgt[idx], nrm[idx], w,
+                                status)
         rmse = _plane_rmse(s.t, src_c, tgt_c[idx], nrm_c[idx], w)
     else:
         t_fin = _kabsch(src, tgt[idx], w)

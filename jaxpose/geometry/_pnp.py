@@ -25,15 +25,19 @@ Algorithm (per problem, vmapped over the batch):
 Status (:class:`~jaxpose.Results`): CONVERGED; DEGENERATE when the world points are
 (numerically) collinear — the pose is then not determined (rotation about the line is
 free) and the returned estimate is only one of many; NON_FINITE when the inputs or the
-estimate contain NaN/Inf. Fewer than 4 points raises a ValueError (a shape known at trace time).
+estimate contain NaN/Inf; with ``refine=True``, the refinement's own status (MAX_STEPS,
+DIVERGED) when it stops short of the optimum (the refined estimate is still returned).
+Fewer than 4 points raises a ValueError (a shape known at trace time).
 
 Derivatives. EPnP's algebra is not differentiated (eigenvector derivatives are undefined
 for repeated eigenvalues, which planar targets always produce). Instead the returned pose
 carries the implicit-function derivative of the reprojection least-squares optimum at
 that pose (a custom JVP: dT = T·Exp(δ̇), δ̇ = −H⁻¹ġ with the exact Hessian H), so the value
 is unchanged and d pose / d(points, pixels, intrinsics) is exact at a refined (optimal)
-pose and a first-order approximation for an unrefined one. The rule is written as a
-differentiable function of the optimum (which carries the same rule), so second
+pose and a first-order approximation for an unrefined one. Differentiating a result whose
+status is not CONVERGED (a refinement out of steps, a degenerate configuration) raises.
+The rule is written as a differentiable function of the optimum (which carries the same
+rule), so second
 derivatives (``jax.hessian``, ``jacfwd(jacrev)``, ``grad(grad)``) are exact as well.
 """
 
@@ -48,6 +52,7 @@ import jax.numpy as jnp
 from .._precision import full_precision
 from ..lie import SE3
 from ..lie._base import skew
+from ..optim._implicit import at_stationary_point
 from ..results import Results
 from ._camera import point2pixel
 from ._registration import svdtf
@@ -279,35 +284,40 @@ def _jacobian(t: SE3, args: tuple[Array, Array, Array]) -> Array:
     return jnp.einsum("nij,jk,nkl->nil", dproj, k, dpc).reshape(-1, 6)
 
 
-def _refine(t: Array, pw: Array, uv: Array, k: Array, steps: int) -> Array:
-    """Levenberg–Marquardt on the pixel reprojection error (jaxpose.optim)."""
+def _refine(t: Array, pw: Array, uv: Array, k: Array, steps: int) -> tuple[Array, Array]:
+    """Levenberg–Marquardt on the pixel reprojection error (jaxpose.optim): the pose and
+    the solve's status."""
     from ..optim import LevenbergMarquardt, least_squares
 
     sol = least_squares(_residual, SE3(t), (pw, uv, k), solver=LevenbergMarquardt(),
                         max_steps=steps, jacobian=_jacobian)
-    return sol.params.data
+    return sol.params.data, sol.status
 
 
 @jax.custom_jvp
-def _implicit_tangent(t: Array, pw: Array, uv: Array, k: Array) -> Array:
+def _implicit_tangent(t: Array, pw: Array, uv: Array, k: Array, status: Array) -> Array:
     """``t`` itself; its derivative w.r.t. the data (pw, uv, k) is the implicit-function
     one of the reprojection least-squares optimum: dT = T·Exp(δ̇) with δ̇ = −H⁻¹ ġ, where
     g = Jᵀr is the gradient of the cost in the chart δ ↦ T·Exp(δ) and H its exact Hessian
     at δ = 0 (exact when T is an optimum). No derivative flows to ``t`` (an EPnP/LM
     estimate); the forward pass costs nothing. The rule is itself differentiable in
-    (T*, θ), so derivatives of any order are exact at an optimum."""
+    (T*, θ), so derivatives of any order are exact at an optimum; differentiating where
+    ``status`` is not CONVERGED (a refinement that ran out of steps, a degenerate
+    configuration) raises."""
     return t
 
 
 @_implicit_tangent.defjvp
 def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
                           ) -> tuple[Array, Array]:
-    t, pw, uv, k = primals
-    _, dpw, duv, dk = tangents
+    t, pw, uv, k, status = primals
+    _, dpw, duv, dk, _ = tangents
     # the optimum itself, carrying this rule's derivative when the rule is differentiated
     # again: the tangent below is then a differentiable function of (T*(θ), θ), so second
     # and higher derivatives are exact too
-    ts = SE3(_implicit_tangent(t, pw, uv, k))
+    ts = SE3(at_stationary_point(
+        _implicit_tangent(t, pw, uv, k, status), status, "epnp",
+        "Refine to convergence (a larger refine_steps) and check the result's status."))
 
     def cost(delta: Array) -> Array:  # T·Exp(δ)·p to second order (exact Hessian at 0)
         h = ts.act(exp_act2(delta, pw)) @ k.T
@@ -343,13 +353,15 @@ def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps:
                     & (status == Results.CONVERGED))
             ident = jnp.zeros(7, t.dtype).at[6].set(1.0)
             on_axis = jnp.zeros_like(pws).at[:, 2].set(1.0)
-            t_ref = _refine(jnp.where(good, t, ident), jnp.where(good, pws, on_axis),
-                            jnp.where(good, uvs, 0.0),
-                            jnp.where(good, ks, jnp.eye(3, dtype=ks.dtype)), refine_steps)
+            t_ref, lm = _refine(jnp.where(good, t, ident), jnp.where(good, pws, on_axis),
+                                jnp.where(good, uvs, 0.0),
+                                jnp.where(good, ks, jnp.eye(3, dtype=ks.dtype)), refine_steps)
             ok = good & jnp.all(jnp.isfinite(t_ref))
             t = jnp.where(ok, t_ref, t)
+            # a refinement that stopped short of the optimum is the routine's status
+            status = jnp.where(good & (lm != Results.CONVERGED), lm, status).astype(jnp.int32)
         ok = status != Results.NON_FINITE
-        t = jnp.where(ok, _implicit_tangent(t, pw, uv, k), t)
+        t = jnp.where(ok, _implicit_tangent(t, pw, uv, k, status), t)
         err = jnp.mean(safe_norm(_residual(SE3(t), (pw, uv, k))), -1)
         return t, status, err
 

@@ -99,9 +99,8 @@ def at_stationary_point(x: PyTree, status: jax.Array, where: str, remedy: str) -
     return eqx.error_if(
         x, status != Results.CONVERGED,
         f"{where}: cannot differentiate the solution: the solver stopped without converging "
-        f"(status max_steps, diverged or non_finite: check the solution's status), so the "
-        f"estimate is not a stationary point and the implicit derivative would be wrong. "
-        f"{remedy}")
+        f"(its status is not 'converged': check it), so the estimate is not a stationary "
+        f"point and the implicit derivative would be wrong. {remedy}")
 
 
 def jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple[Any, Any]:

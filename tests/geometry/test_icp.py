@@ -205,3 +205,22 @@ def test_huge_coordinates_give_finite_rmse_or_non_finite_status(rng):
     for pts in (line, np.ones((40, 3))):
         res = icp(pts, pts + np.array([0.1, 0.0, 0.0]), max_iterations=3)
         assert int(res.status) == Results.DEGENERATE
+
+
+def test_point_to_plane_derivative_of_an_unconverged_loop_raises(rng):
+    """Two iterations leave point-to-plane ICP short of its fixed point (status
+    max_steps): its implicit derivative there would be wrong, so differentiating raises;
+    with enough iterations it differentiates."""
+    src = _cloud(rng, 200)
+    tgt = np.asarray(_small_motion(rng, 0.1, 0.05).act(src))
+    nrm = np.asarray(estimate_normals(tgt, k=8))
+
+    def shift(s, iterations):
+        res = icp(s, tgt, method="point_to_plane", target_normals=nrm,
+                  max_iterations=iterations, tolerance=1e-12)
+        return res.transform.data[0], res.status
+
+    assert int(shift(src, 2)[1]) == Results.MAX_STEPS
+    with pytest.raises(Exception, match=r"icp\(method='point_to_plane'\): cannot differentiate"):
+        jax.block_until_ready(jax.grad(lambda s: shift(s, 2)[0])(jnp.asarray(src)))
+    assert np.all(np.isfinite(jax.grad(lambda s: shift(s, 40)[0])(jnp.asarray(src))))

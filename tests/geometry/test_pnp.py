@@ -209,3 +209,20 @@ def test_non_finite_data_with_refinement_reports_status(rng):
         np.testing.assert_allclose(res.transform.data[0], pose.data[0], atol=1e-8)
     eager = epnp(pw_bad[1], uv[1], K)  # eager call, default refinement
     assert int(eager.status) == Results.NON_FINITE
+
+
+def test_refinement_out_of_steps_is_the_status_and_is_not_differentiated(rng):
+    """One LM step does not reach the reprojection optimum of noisy data: the status says
+    so (it said converged) and the implicit derivative, exact at the optimum only, raises;
+    20 steps converge (test_jit_vmap_grad_implicit_derivative differentiates there)."""
+    pw, _, uv = _scene(rng, 1)
+    noisy = uv[0] + rng.normal(size=uv[0].shape) * 2.0
+
+    def pose(u, steps):
+        res = epnp(pw[0], u, K, refine_steps=steps)
+        return res.transform.data[0], res.status
+
+    assert int(pose(noisy, 1)[1]) == Results.MAX_STEPS
+    assert int(epnp_refined(pw, noisy[None], K).status[0]) == Results.CONVERGED
+    with pytest.raises(Exception, match=r"epnp: cannot differentiate the solution"):
+        jax.block_until_ready(jax.grad(lambda u: pose(u, 1)[0])(jnp.asarray(noisy)))
