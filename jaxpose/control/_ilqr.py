@@ -8,9 +8,10 @@ predicted one). Box control limits are honoured exactly: the backward pass solve
 step's control-limited QP by projected Newton (control-limited DDP, as in Amos et al.
 2018's differentiable MPC) and the forward pass clips to the box.
 
-The loop is a ``lax.while_loop`` (stops at convergence); ``unroll=True`` runs exactly
-``max_iter`` iterations in ``lax.scan`` so reverse-mode gradients flow through the
-solver. Results carry a :class:`~jaxpose.Results` status.
+The loop is a ``lax.while_loop`` (stops at convergence): forward-mode derivatives (``jvp``,
+``jacfwd``) of the iterates pass through it, reverse mode raises naming the alternatives;
+``unroll=True`` runs exactly ``max_iter`` iterations in ``lax.scan`` so reverse-mode
+gradients flow through the solver. Results carry a :class:`~jaxpose.Results` status.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._forward_only import forward_mode_only
 from .._precision import full_precision
 from ..dynamics._checks import as_array, is_concrete
 from ..dynamics._system import LTI, LTV, System
@@ -34,6 +36,11 @@ Array = jax.Array
 
 DEFAULT_ALPHAS = tuple(float(0.5**i) for i in range(10))
 _ARMIJO = 1e-4
+_REVERSE_MODE = (
+    "ilqr(unroll=False): reverse-mode derivatives (grad, jacrev, vjp) cannot pass through "
+    "its lax.while_loop. Use unroll=True (reverse mode through max_iter iterations), "
+    "MPC(..., gradient='implicit') (the derivative of the optimum), or forward mode "
+    "(jax.jvp, jax.jacfwd).")
 
 
 class ILQRSolution(eqx.Module):
@@ -347,6 +354,7 @@ def _ilqr(
         final, _ = jax.lax.scan(scan_body, init, None, length=max_iter)
     else:
         final = jax.lax.while_loop(lambda s: ~s["done"] & (s["it"] < max_iter), iteration, init)
+        final = forward_mode_only(final, _REVERSE_MODE)
     finite = jnp.isfinite(final["J"]) & jnp.all(jnp.isfinite(final["xs"]))
     status = jnp.where(finite, final["status"], Results.NON_FINITE).astype(jnp.int32)
     return ILQRSolution(

@@ -76,12 +76,17 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jax.flatten_util import ravel_pytree
 
+from .._forward_only import forward_mode_only
 from .._precision import full_precision
 from ..lie import manifold
 from ..lie._base import runtime_check, small_matmul
 
 Array = jax.Array
 PyTree = Any
+_REVERSE_MODE = (
+    "FixedLagSmoother.update: reverse-mode derivatives (grad, jacrev, vjp) cannot pass "
+    "through its Gauss-Newton lax.while_loop; use forward mode (jax.jvp, jax.jacfwd), which "
+    "differentiates the iterates.")
 
 
 # jitted: used eagerly (construction, accessors such as ``newest``), op by op they
@@ -871,8 +876,8 @@ class FixedLagSmoother(eqx.Module):
                                               for v in self._linearization())),
                 (_shift_in(self.lin, guess), (self.phase + 1) % self.relinearize_skip),
             )
-            return new._incremental()
-        return new._optimize()
+            return forward_mode_only(new._incremental(), _REVERSE_MODE)
+        return forward_mode_only(new._optimize(), _REVERSE_MODE)
 
     def information(self) -> Array:
         """(n, n) Gauss–Newton information of the window at the linearisation point

@@ -329,3 +329,23 @@ def test_closed_loop_rejects_non_system_plant_and_non_mpc():
         closed_loop(mpc, "plant", np.ones(2), 3)
     with pytest.raises(TypeError, match=r"closed_loop\(mpc\): expected a jaxpose\.control\.MPC"):
         closed_loop(LTI(A, B), LTI(A, B), np.ones(2), 3)
+
+
+def test_ilqr_while_loop_differentiates_forward_and_names_reverse_alternatives():
+    """ilqr(unroll=False) stops at convergence in a while_loop: jacfwd of its iterates
+    equals reverse mode through the unrolled iterations (the same 20-iteration solve), and
+    reverse mode raises naming unroll=True, implicit MPC and forward mode (it was JAX's
+    while_loop error)."""
+    from jaxpose.control import ilqr
+
+    cost = QuadraticCost.tracking(jnp.eye(3), jnp.array([1.0, 0.0, 0.0]))
+
+    def total_u(length, unroll=False):
+        return jnp.sum(ilqr(Pendulum(dt=0.1, length=length), cost, jnp.array([0.2, -0.5]),
+                            jnp.zeros((6, 1)), max_iter=20, unroll=unroll).u)
+
+    fwd = jax.jacfwd(total_u)(1.0)
+    np.testing.assert_allclose(fwd, jax.grad(lambda a: total_u(a, True))(1.0), rtol=1e-9)
+    with pytest.raises(NotImplementedError, match=r"ilqr\(unroll=False\): reverse-mode.*"
+                                                  r"unroll=True.*gradient='implicit'"):
+        jax.grad(total_u)(1.0)

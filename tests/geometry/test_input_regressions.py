@@ -1,4 +1,4 @@
-"""Audit regressions for jaxpose.geometry: each test pins a defect that once gave a
+"""Regressions for jaxpose.geometry: each test pins a defect that once gave a
 silently wrong number (or NaN), against closed forms, finite differences or identities."""
 
 from __future__ import annotations
