@@ -58,6 +58,7 @@ from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -680,7 +681,8 @@ def gnc(
         :class:`GNCSolution` (estimate, per-factor weights, status).
 
     The outer loop is a ``lax.while_loop`` around the inner solve, compiled once; it
-    vmaps with ``inner="dense"``. Gradients: differentiate a fixed-weight re-solve
+    vmaps with ``inner="dense"``. Gradients: differentiating ``gnc`` itself raises;
+    differentiate a fixed-weight re-solve
     (``solve(weighted_graph(graph, sol.weights), sol.variables)``) instead.
     """
     if not isinstance(graph, FactorGraph):
@@ -731,4 +733,8 @@ def gnc(
         snooping=(snooping.plan(graph, "dense" if inner == "dense" else "auto", "gnc")
                   if surrogate == "tls" and max_deletions > 0 else None),
     )
+    graph, x0 = eqxi.nondifferentiable((graph, x0), msg=(
+        "gnc is not differentiable (its outer loop switches factors between inlier and "
+        "outlier); differentiate a fixed-weight re-solve instead: "
+        "solve(weighted_graph(graph, sol.weights), sol.variables)"))
     return _run(graph, x0, barc, known_in, known_out, free, config, dict(solver_options))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -391,6 +392,16 @@ def test_bad_input_is_named():
         pgo.optimize_pose_graph(bad, robust="ransac")
     with pytest.raises(ValueError, match="weights"):
         weighted_graph(problem, [np.ones(2)])
+    # derivatives through the outer loop: an error naming the fixed-weight re-solve (it was
+    # JAX's while_loop error in reverse mode)
+    def first_pose(info_scale):
+        scaled = eqx.tree_at(lambda g: g.factors[0].sqrt_info, problem,
+                             problem.factors[0].sqrt_info * info_scale)
+        return gnc(scaled).variables["pose"].data[1, 0]
+
+    for derivative in (jax.grad, jax.jacfwd):
+        with pytest.raises(Exception, match=r"gnc is not differentiable.*weighted_graph"):
+            derivative(first_pose)(1.0)
 
 
 @pytest.mark.slow
