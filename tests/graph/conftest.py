@@ -295,3 +295,15 @@ def numpy_pose_graph_cost(graph: Any, poses: np.ndarray | None = None) -> float:
         r = _log_matrix(graph.kind, np.linalg.inv(zm) @ np.linalg.inv(xi) @ xj)
         total += 0.5 * r @ om @ r
     return float(total)
+
+
+def dense_covariance(graph: FactorGraph, info: list[Any]) -> np.ndarray:
+    """(H_ff)⁻¹ scattered into the full layout (zero rows/columns for fixed variables)."""
+    jac = np.asarray(jax.jit(jax.jacfwd(dense_residual_fn(graph, graph.variables, info)))(
+        jnp.zeros(graph.size)))
+    st = graph.structure
+    free = np.concatenate([np.repeat(np.asarray(f), d) for f, d in zip(st.free, st.dims)]) > 0
+    h = jac.T @ jac
+    cov = np.zeros_like(h)
+    cov[np.ix_(free, free)] = np.linalg.inv(h[np.ix_(free, free)])
+    return cov
