@@ -95,12 +95,23 @@ def at_stationary_point(x: PyTree, status: jax.Array, where: str, remedy: str) -
     under jit and vmap) unless ``status`` is CONVERGED: the implicit function theorem
     holds at a stationary point only, and at an estimate a solver stopped at for another
     reason (budget spent, stalled, non-finite) its derivative is neither the optimum's nor
-    that of the steps taken — a wrong number, never returned. ``remedy`` ends the message."""
-    return eqx.error_if(
-        x, status != Results.CONVERGED,
+    that of the steps taken — a wrong number, never returned. ``remedy`` ends the message.
+    The check is a zero added to ``x``'s floating-point leaves under ``stop_gradient``,
+    so a rule differentiated again does not differentiate it."""
+    zero = eqx.error_if(
+        jnp.zeros(jnp.shape(status)), status != Results.CONVERGED,
         f"{where}: cannot differentiate the solution: the solver stopped without converging "
         f"(its status is not 'converged': check it), so the estimate is not a stationary "
         f"point and the implicit derivative would be wrong. {remedy}")
+    zero = jax.lax.stop_gradient(zero)
+
+    def leaf(a: Any) -> Any:
+        if not (hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.inexact)):
+            return a
+        z = zero.reshape(zero.shape + (1,) * (jnp.ndim(a) - zero.ndim)).astype(a.dtype)
+        return a + z
+
+    return jax.tree.map(leaf, x)
 
 
 def jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple[Any, Any]:
