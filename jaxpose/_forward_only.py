@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import equinox as eqx
 import jax
-import jax.numpy as jnp
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
@@ -44,12 +44,8 @@ ad.primitive_transposes[_identity] = _transpose
 def forward_mode_only(tree: Any, message: str) -> Any:
     """``tree`` unchanged; reverse-mode differentiation through its floating-point leaves
     raises ``NotImplementedError(message)`` (forward mode, ``jit`` and ``vmap`` work)."""
-    def leaf(x: Any) -> Any:
-        if isinstance(x, jax.Array | jax.core.Tracer) and jnp.issubdtype(x.dtype, jnp.inexact):
-            return _identity.bind(x, message=message)
-        return x
-
-    return jax.tree.map(leaf, tree)
+    return jax.tree.map(
+        lambda x: _identity.bind(x, message=message) if eqx.is_inexact_array(x) else x, tree)
 
 
 __all__ = ["forward_mode_only"]

@@ -106,7 +106,7 @@ def at_stationary_point(x: PyTree, status: jax.Array, where: str, remedy: str) -
     zero = jax.lax.stop_gradient(zero)
 
     def leaf(a: Any) -> Any:
-        if not (hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.inexact)):
+        if not eqx.is_inexact_array(a):
             return a
         z = zero.reshape(zero.shape + (1,) * (jnp.ndim(a) - zero.ndim)).astype(a.dtype)
         return a + z
