@@ -21,10 +21,15 @@ Entries (issue 16's budget on an idle 2-core CPU in brackets):
   solve alone;
 * ``graph_grad``: ``grad`` w.r.t. the 6275 measurement perturbations [≤ 10 s].
 
-optimistix is not a peer here: its ``least_squares`` has no Lie-group parameters, so no
-comparable problem exists. Usage::
+optimistix's ``least_squares`` has no Lie-group parameters, so it cannot solve these. It is
+the peer on a Euclidean problem both solve with the same method (Levenberg–Marquardt, a
+dense Jacobian, implicit derivatives), a second table: ``curve_grad`` / ``curve_hessian``,
+``grad`` and ``hessian`` of a fit of ``a·exp(−b·t) + c`` to 100 observations w.r.t. the
+observations (a perturbation of them), each library in its own cold process, with the
+largest relative difference of the two libraries' derivatives. Skipped, and said so,
+where optimistix is not installed (``pip install optimistix``). Usage::
 
-    python bench/compile.py [--quick] [--only ls_grad,graph_grad] [--out F.md]
+    python bench/compile.py [--quick] [--only ls_grad,graph_grad,curve_grad] [--out F.md]
 """
 
 from __future__ import annotations
@@ -100,10 +105,45 @@ def _garage() -> tuple[Callable[..., Any], Any]:
     return solve, jnp.zeros((e.shape[0], 6))
 
 
-def _entry(name: str, quick: bool) -> tuple[Callable[..., Any], tuple[Any, ...]]:
+def _curve(impl: str) -> tuple[Callable[..., Any], Any, Any]:
+    """(loss(obs), obs, a direction in obs): a weighted sum of the parameters of the
+    least-squares fit of a·exp(−b·t) + c to ``obs`` (100 samples), by ``impl``."""
+    import jax.numpy as jnp
+
+    t = jnp.linspace(0.0, 4.0, 100)
+    obs = 2.0 * jnp.exp(-1.3 * t) + 0.5 + 0.01 * jnp.sin(7.0 * t)
+    y0, w = jnp.array([1.0, 1.0, 0.0]), jnp.array([1.0, 2.0, 3.0])
+
+    def residual(y: Any, o: Any) -> Any:
+        return y[0] * jnp.exp(-y[1] * t) + y[2] - o
+
+    if impl == "optimistix":
+        import optimistix as optx
+
+        solver = optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12)
+
+        def loss(o: Any) -> Any:
+            sol = optx.least_squares(residual, solver, y0, args=o, max_steps=256)
+            return jnp.sum(w * sol.value)
+    else:
+        import jaxpose.optim as jo
+
+        def loss(o: Any) -> Any:
+            return jnp.sum(w * jo.least_squares(residual, y0, o).params)
+
+    return loss, obs, jnp.cos(t)
+
+
+def _entry(name: str, quick: bool, impl: str = "jaxpose"
+           ) -> tuple[Callable[..., Any], tuple[Any, ...]]:
     import jax
     import jax.numpy as jnp
 
+    if name in PEER_ENTRIES:
+        loss, obs, direction = _curve(impl)
+        if name == "curve_grad":
+            return jax.grad(loss), (obs,)
+        return jax.hessian(lambda d: loss(obs + d * direction)), (jnp.zeros(()),)
     batch = 10 if quick else 100
     if name == "ls_solve":
         f, args, _ = _invnet(batch)
@@ -125,19 +165,58 @@ def _entry(name: str, quick: bool) -> tuple[Callable[..., Any], tuple[Any, ...]]
 
 
 ENTRIES = ("ls_solve", "ls_grad", "ls_hessian", "graph_solve", "graph_grad")
+PEER_ENTRIES = ("curve_grad", "curve_hessian")
+PEERS = ("jaxpose", "optimistix")
 
 
-def worker(name: str, quick: bool, options: bool) -> None:
+def worker(name: str, quick: bool, options: bool, impl: str = "jaxpose") -> None:
     import jax
+    import numpy as np
 
     import jaxpose
 
     jax.config.update("jax_enable_x64", True)
-    f, args = _entry(name, quick)
+    f, args = _entry(name, quick, impl)
     opts = jaxpose.compile_options() if options else None
-    timing, _ = time_jax(f, *args, repeats=3, compiler_options=opts, hlo_lines=not options)
+    timing, out = time_jax(f, *args, repeats=3, compiler_options=opts,
+                           hlo_lines=not options)
     worker_result({"compile_s": timing.compile_s, "run_s": timing.median,
-                   "hlo_lines": timing.hlo_lines})
+                   "hlo_lines": timing.hlo_lines,
+                   "value": np.asarray(out, np.float64).ravel().tolist()})
+
+
+def _peer_rows(only: Sequence[str], timeout: float) -> list[list[str]]:
+    """The side-by-side table's rows: each entry of ``only`` in :data:`PEER_ENTRIES`, by
+    jaxpose and optimistix, each in a cold process with XLA's defaults."""
+    import importlib.util
+
+    import numpy as np
+
+    rows = []
+    for name in (n for n in only if n in PEER_ENTRIES):
+        if importlib.util.find_spec("optimistix") is None:
+            rows.append([name, *["—"] * 7, "skipped: optimistix not installed"])
+            continue
+        outs = [spawn_worker([str(Path(__file__)), "--worker", name, "--impl", impl],
+                             timeout=timeout, env={**os.environ, "XLA_FLAGS": ""})
+                for impl in PEERS]
+        failed = [f"{impl}: {o['failed']}" for impl, o in zip(PEERS, outs, strict=True)
+                  if "failed" in o]
+        if failed:
+            rows.append([name, *["—"] * 7, "; ".join(failed)])
+            continue
+        ours, peer = outs
+        a, b = np.asarray(ours["value"]), np.asarray(peer["value"])
+        rel = float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
+        rows.append([name, fmt_seconds(ours["compile_s"]), fmt_seconds(peer["compile_s"]),
+                     f"{ours['compile_s'] / peer['compile_s']:.2f}",
+                     fmt_seconds(ours["run_s"]), fmt_seconds(peer["run_s"]),
+                     f"{ours['run_s'] / peer['run_s']:.2f}",
+                     f"{ours['hlo_lines']} / {peer['hlo_lines']}", f"{rel:.1e}"])
+        print(f"{name}: jaxpose {ours['compile_s']:.2f} s, optimistix "
+              f"{peer['compile_s']:.2f} s to compile; derivatives differ by {rel:.1e}",
+              file=sys.stderr, flush=True)
+    return rows
 
 
 # ----------------------------------------------------------------------------------
@@ -146,15 +225,21 @@ def worker(name: str, quick: bool, options: bool) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     ap = parser(__doc__, quick="batch 10 for the least-squares entries", threads=False,
                 workers=True)
-    ap.add_argument("--only", default=",".join(ENTRIES), help="comma-separated entries")
+    ap.add_argument("--only", default=",".join(ENTRIES + PEER_ENTRIES),
+                    help="comma-separated entries")
     ap.add_argument("--worker", default=None, help=argparse_hidden())
     ap.add_argument("--options", action="store_true", help=argparse_hidden())
+    ap.add_argument("--impl", default="jaxpose", choices=PEERS, help=argparse_hidden())
     args = ap.parse_args(argv)
     if args.worker:
-        worker(args.worker, args.quick, args.options)
+        worker(args.worker, args.quick, args.options, args.impl)
         return 0
+    only = args.only.split(",")
+    unknown = [n for n in only if n not in ENTRIES + PEER_ENTRIES]
+    if unknown:
+        ap.error(f"--only: unknown entries {unknown}; choose from {ENTRIES + PEER_ENTRIES}")
     rows = []
-    for name in args.only.split(","):
+    for name in (n for n in only if n in ENTRIES):
         if name.startswith("graph") and not Path(GARAGE).exists():
             rows.append([name, "—", "—", "—", "—", "—", "—", f"skipped: {GARAGE} missing"])
             continue
@@ -183,9 +268,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         markdown_table(["entry", "cold compile", "steady run", "optimised HLO lines",
                         "cold compile, jaxpose.compile_options()", "steady run, same",
-                        "budget (XLA defaults)", "verdict"], rows),
+                        "budget (XLA defaults)", "verdict"], rows) if rows else "",
         "",
     ])
+    peer_rows = _peer_rows(only, args.timeout)
+    if peer_rows:
+        text += "\n".join([
+            "",
+            "## Side by side with optimistix: a Euclidean fit (XLA defaults, cold process each)",
+            "",
+            markdown_table(["entry", "jaxpose compile", "optimistix compile", "ratio",
+                            "jaxpose run", "optimistix run", "ratio",
+                            "HLO lines jaxpose / optimistix",
+                            "derivatives: max relative difference"], peer_rows),
+            "",
+        ])
     emit_report(text, args.out)
     return 0
 

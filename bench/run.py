@@ -88,7 +88,7 @@ WORKLOADS: dict[str, Spec] = {
     "marginals": Spec("Marginal covariances: jaxpose vs GTSAM"),
     "pgo_outliers": Spec("Pose graphs with outliers (GNC): jaxpose vs GTSAM"),
     "ekf_convention": Spec("EKF linearisation point: jaxpose vs PyPose"),
-    "compile": Spec("Compile time of differentiated solves (cold)",
+    "compile": Spec("Compile time of differentiated solves (cold); jaxpose vs optimistix",
                     quick=("--quick", "--only", "ls_solve,ls_grad")),
     "backward": Spec("Backward pass through graph.solve vs one forward LM iteration",
                      quick=("--quick",)),

@@ -289,3 +289,30 @@ def test_outlier_bench_counts_draws_and_objectives():
     assert "| g | 50% | 0.5 / 1 (lower) | 1 / 1 (tie) | 1.5 / 1 (higher; GTSAM objective " \
            "lower) |" in text
     assert sum(line.startswith("Result:") for line in text.splitlines()) == 1
+
+
+def test_compile_bench_peer_problem_derivatives_match_finite_differences():
+    # bench/compile.py's side-by-side entries: jaxpose's implicit derivatives of the curve
+    # fit against central differences of the converged fit (and optimistix's, if installed)
+    import importlib.util
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from bench import compile as bench_compile
+
+    jax.config.update("jax_enable_x64", True)
+    loss, obs, direction = bench_compile._curve("jaxpose")
+    along = jax.jit(lambda d: loss(obs + d * direction))
+    h1, h2 = 1e-4, 3e-4  # O(h²) truncation ~1e-7 and ~1e-6 here (its third derivative is large)
+    fd1 = (along(h1) - along(-h1)) / (2 * h1)
+    fd2 = (along(h2) - 2 * along(0.0) + along(-h2)) / h2**2
+    grad = jax.jit(jax.grad(loss))(obs)
+    hess = jax.jit(jax.hessian(along))(jnp.zeros(()))
+    assert float(jnp.dot(grad, direction)) == pytest.approx(float(fd1), rel=1e-6)
+    assert float(hess) == pytest.approx(float(fd2), rel=1e-6)
+    if importlib.util.find_spec("optimistix") is not None:
+        peer_loss, _, _ = bench_compile._curve("optimistix")
+        np.testing.assert_allclose(jax.jit(jax.grad(peer_loss))(obs), grad, rtol=1e-8,
+                                   atol=1e-10)
