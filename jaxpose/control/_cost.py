@@ -16,7 +16,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..dynamics._checks import as_array, check_psd, step_index
+from ..dynamics._checks import as_array, check_psd, start_step, step_index, step_window
 
 Array = jax.Array
 
@@ -169,15 +169,18 @@ class QuadraticCost(Cost):
             g = g + self.pT
         return QT, g
 
-    def stacked(self, horizon: int, n: int) -> tuple[Array, Array, Array, Array]:
-        """``(C (T, k, k), c (T, k), CT (n, n), cT (n,))`` for the LQR recursion."""
-        tv = self.time_varying
-        if tv is not None and tv < horizon:
-            raise ValueError(f"horizon: {horizon} exceeds the cost's {tv} time steps (Q, p)")
+    def stacked(self, horizon: int, n: int, t0: Any = 0
+                ) -> tuple[Array, Array, Array, Array]:
+        """``(C (T, k, k), c (T, k), CT (n, n), cT (n,))`` for the LQR recursion over the
+        steps ``t0`` … ``t0 + T − 1`` (``t0`` may be traced; steps outside a time-varying
+        cost's raise, never clamp)."""
+        t0 = start_step(t0)
         k = self.size
         Qs = _sym(self.Q)
-        C = Qs[:horizon] if Qs.ndim == 3 else jnp.broadcast_to(Qs, (horizon, k, k))
-        c = self.p[:horizon] if self.p.ndim == 2 else jnp.broadcast_to(self.p, (horizon, k))
+        C = (step_window(Qs, t0, horizon, "cost's") if Qs.ndim == 3
+             else jnp.broadcast_to(Qs, (horizon, k, k)))
+        c = (step_window(self.p, t0, horizon, "cost's") if self.p.ndim == 2
+             else jnp.broadcast_to(self.p, (horizon, k)))
         dt = self.Q.dtype
         CT = jnp.zeros((n, n), dt) if self.QT is None else _sym(self.QT)
         cT = jnp.zeros((n,), dt) if self.pT is None else self.pT

@@ -25,7 +25,7 @@ import numpy as np
 
 from .._forward_only import forward_mode_only
 from .._precision import full_precision
-from ..dynamics._checks import as_array, is_concrete
+from ..dynamics._checks import as_array, is_concrete, start_step
 from ..dynamics._system import LTI, LTV, System
 from ..lie._base import runtime_check
 from ..results import Results
@@ -111,17 +111,23 @@ def _bounds(lower: Any, upper: Any, T: int, m: int, dtype: Any) -> tuple[Array, 
     return lo, hi
 
 
-def _check_t0(system: System, cost: Cost, T: int, t0: Any) -> Array:
-    """``t0`` as an array; with a time-varying cost or LTV system of k ≥ T steps, raises
-    (eagerly, or ``eqx.error_if`` under ``jit``) unless 0 ≤ t0 ≤ k − T: JAX indexing
-    would silently clamp or wrap. (k < T raises in :func:`_ilqr` naming the horizon.)"""
-    t0 = jnp.asarray(t0)
+def _time_steps(system: System, cost: Cost) -> list[tuple[int, str]]:
+    """``(k, whose)`` for each time-varying part: a time-varying quadratic cost's and an
+    LTV system's numbers of time steps."""
     steps = []
     if isinstance(cost, QuadraticCost) and cost.time_varying is not None:
         steps.append((cost.time_varying, "cost's"))
     if isinstance(system, LTV):
         steps.append((system.horizon, "LTV system's"))
-    for k, what in steps:
+    return steps
+
+
+def _check_t0(system: System, cost: Cost, T: int, t0: Any) -> Array:
+    """``t0`` as an array; with a time-varying cost or LTV system of k ≥ T steps, raises
+    (eagerly, or ``eqx.error_if`` under ``jit``) unless 0 ≤ t0 ≤ k − T: JAX indexing
+    would silently clamp or wrap. (k < T raises in :func:`_ilqr` naming the horizon.)"""
+    t0 = jnp.asarray(start_step(t0), jnp.int32)
+    for k, what in _time_steps(system, cost):
         if k >= T:
             t0 = runtime_check(
                 t0, jnp.any((t0 < 0) | (t0 + T > k)),

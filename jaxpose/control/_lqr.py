@@ -233,9 +233,11 @@ def _check_lqr_shapes(F: Array, f: Array, C: Array, c: Array, x0: Array) -> None
 
 
 def lq_problem(
-    system: System, cost: QuadraticCost, horizon: int
+    system: System, cost: QuadraticCost, horizon: int, t0: Any = 0
 ) -> tuple[Array, Array, Array, Array, Array, Array]:
-    """``(F, f, C, c, C_T, c_T)`` for a linear system and quadratic cost."""
+    """``(F, f, C, c, C_T, c_T)`` for a linear system and quadratic cost over the steps
+    ``t0`` … ``t0 + horizon − 1`` (an LTV system's or time-varying cost's steps there;
+    ``t0`` may be traced)."""
     horizon = check_horizon(horizon)
     if not isinstance(system, (LTI, LTV)):
         raise TypeError(
@@ -248,13 +250,14 @@ def lq_problem(
             f"ilqr / MPC for general costs"
         )
     n, m = system.state_dim, system.input_dim
-    C, c, CT, cT = check_quadratic_cost(cost, n, m, horizon, f"A is {n}×{n}, B is {n}×{m}")
-    F, f = system.matrices(horizon)
+    C, c, CT, cT = check_quadratic_cost(cost, n, m, horizon, f"A is {n}×{n}, B is {n}×{m}",
+                                        t0)
+    F, f = system.matrices(horizon, t0)
     return F, f, C, c, CT, cT
 
 
 def check_quadratic_cost(
-    cost: QuadraticCost, n: int, m: int, horizon: int, sizes: str
+    cost: QuadraticCost, n: int, m: int, horizon: int, sizes: str, t0: Any = 0
 ) -> tuple[Array, Array, Array, Array]:
     """:meth:`QuadraticCost.stacked` after checking its size ``n + m`` (``sizes`` says
     where n and m come from): raises naming ``Q``, ``QT``, ``pT`` or ``horizon``."""
@@ -262,7 +265,7 @@ def check_quadratic_cost(
         raise ValueError(
             f"Q: expected size n + m = {n} + {m} = {n + m} ({sizes}), got {cost.size}"
         )
-    return cost.stacked(horizon, n)
+    return cost.stacked(horizon, n, t0)
 
 
 @eqx.filter_jit

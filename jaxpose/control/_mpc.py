@@ -37,7 +37,7 @@ from ..optim._implicit import at_stationary_point
 from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
 from ._cost import Cost, QuadraticCost
-from ._ilqr import ILQRSolution, _bounds, _dynamics_jacobians, ilqr
+from ._ilqr import ILQRSolution, _bounds, _check_t0, _dynamics_jacobians, _time_steps, ilqr
 from ._lqr import (
     lq_problem,
     policy_rollout,
@@ -88,11 +88,12 @@ def _use_lqr(system: System, cost: Cost, bounds: Any, solver: str) -> bool:
 
 
 def _solve(
-    system: System, cost: Cost, x0: Array, u_init: Array, bounds: Any, cfg: _Config
+    system: System, cost: Cost, x0: Array, u_init: Array, bounds: Any, t0: Array,
+    cfg: _Config
 ) -> tuple[Array, Array, Array, Array]:
-    """Forward solve for one element: ``(x, u, status, iterations)``."""
+    """Forward solve for one element from step ``t0``: ``(x, u, status, iterations)``."""
     if _use_lqr(system, cost, bounds, cfg.solver):
-        F, f, C, c, CT, cT = lq_problem(system, cost, cfg.horizon)
+        F, f, C, c, CT, cT = lq_problem(system, cost, cfg.horizon, t0)
         K, k, _, _, ok, _ = riccati(F, f, C, c, CT, cT)
         xs, us = policy_rollout(F, f, K, k, x0)
         finite = ok & jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(us))
@@ -110,6 +111,7 @@ def _solve(
         tol=cfg.tol,
         unroll=cfg.unroll,
         box_iters=cfg.box_iters,
+        t0=t0,
     )
     return s.x, s.u, s.status, s.iterations
 
@@ -119,23 +121,24 @@ def _solve(
 # ----------------------------------------------------------------------------------
 @eqx.filter_custom_jvp
 def _solve_implicit(
-    params: tuple[System, Cost, Array], u_init: Array, bounds: Any, *, cfg: _Config
+    params: tuple[System, Cost, Array], u_init: Array, bounds: Any, t0: Array, *,
+    cfg: _Config
 ) -> tuple[Array, Array, Array, Array]:
     system, cost, x0 = params
-    return _solve(system, cost, x0, u_init, bounds, cfg)
+    return _solve(system, cost, x0, u_init, bounds, t0, cfg)
 
 
 @_solve_implicit.def_jvp
 @full_precision  # traced when differentiated, outside the entry point
 def _solve_implicit_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...], *, cfg: _Config):
-    params, u_init, bounds = primals
-    t_params, _, t_bounds = tangents
-    out = _solve_implicit(params, u_init, bounds, cfg=cfg)  # differentiable again
+    params, u_init, bounds, t0 = primals
+    t_params, _, t_bounds, _ = tangents
+    out = _solve_implicit(params, u_init, bounds, t0, cfg=cfg)  # differentiable again
     xs, us = at_stationary_point(
         out[:2], out[2], "MPC(gradient='implicit')",
         "Give iLQR more iterations or looser tolerances, or differentiate the iterates with "
         "gradient='unroll'.")
-    wx, wu = _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds)
+    wx, wu = _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds, t0)
     return out, (wx, wu, None, None)
 
 
@@ -156,10 +159,12 @@ def _trajectory_tangent(
     us: Array,
     bounds: Any,
     t_bounds: Any,
+    t0: Array,
 ) -> tuple[Array, Array]:
     """Tangent ``(ẋ (T+1, n), u̇ (T, m))`` of a locally optimal trajectory ``(xs, us)``
-    along the parameter tangent ``t_params`` (and ``t_bounds``, moving the active
-    limits), by the implicit function theorem on the KKT conditions. The tangent system is
+    over the steps ``t0`` … ``t0 + T − 1`` along the parameter tangent ``t_params`` (and
+    ``t_bounds``, moving the active limits), by the implicit function theorem on the KKT
+    conditions. The tangent system is
     itself an LQR problem: min ½ wᵀ H w + ċᵀ w s.t. w_{t+1} = F_t w_t + ḟ_t, w_0 = ẋ0,
     with H the Lagrangian Hessian, F the dynamics Jacobians, ċ = ∂_θ∇_τL·θ̇ and
     ḟ = ∂_θ f·θ̇ (active control limits held at their own tangents). Linear in the
@@ -168,7 +173,7 @@ def _trajectory_tangent(
     system, cost, x0 = params
     T, m = us.shape
     n = xs.shape[-1]
-    ts = jnp.arange(T)
+    ts = t0 + jnp.arange(T)
     F = _dynamics_jacobians(system, xs[:-1], us, ts)
     # Costates: λ_T = ∇ℓ_T, λ_t = ∇_x ℓ_t + A_tᵀ λ_{t+1}.
     H, g = jax.vmap(cost.quadratize)(xs[:-1], us, ts)
@@ -236,8 +241,10 @@ class MPC(eqx.Module):
     """Model-predictive controller over ``horizon`` steps.
 
     ``MPC(system, cost, horizon, u_lower=None, u_upper=None, max_iter=50, tol=None,
-    gradient="implicit", solver="auto")``; ``mpc(x0, u_init=None) → MPCSolution``.
-    ``x0`` (n,) or batched (..., n) (vmapped; ``u_init`` (T, m) or (..., T, m)).
+    gradient="implicit", solver="auto")``; ``mpc(x0, u_init=None, t0=0) → MPCSolution``.
+    ``x0`` (n,) or batched (..., n) (vmapped; ``u_init`` (T, m) or (..., T, m)); ``t0``
+    the time step of ``x0``: the problem covers steps ``t0 … t0 + T − 1`` of an LTV
+    system, a time-varying cost or a ``System`` whose dynamics read ``t``.
     Control limits (m,) or (T, m) are enforced exactly (never ignored). Differentiable
     w.r.t. the arrays of ``system``, ``cost`` and ``x0`` (see the module docstring)."""
 
@@ -283,11 +290,15 @@ class MPC(eqx.Module):
                 return int(jnp.shape(b)[-1])
         raise ValueError("u_init: needed to know the input size m for this system/cost")
 
-    def __call__(self, x0: Any, u_init: Any = None) -> MPCSolution:
-        """Solve the horizon-``T`` problem from ``x0`` (n,) or a batch (…, n) (vmapped).
+    def __call__(self, x0: Any, u_init: Any = None, t0: Any = 0) -> MPCSolution:
+        """Solve the horizon-``T`` problem from ``x0`` (n,) or a batch (…, n) (vmapped) at
+        time step ``t0`` (an int ≥ 0, or an integer scalar array; traced under ``jit``, so
+        a new start does not recompile).
 
         ``u_init`` (T, m) or (…, T, m) warm-starts the controls (zeros by default). Returns an
-        :class:`MPCSolution` whose ``u[0]`` is the control to apply.
+        :class:`MPCSolution` whose ``u[0]`` is the control to apply. Steps ``t0 … t0 + T − 1``
+        outside an LTV system's or a time-varying cost's steps raise (``ValueError``, or
+        ``eqx.error_if`` for a traced ``t0``).
 
         Checks run eagerly here; the solve is compiled with ``eqx.filter_jit`` (new arrays
         of the same shapes, in ``x0``, ``u_init`` or the module, reuse the program).
@@ -312,38 +323,44 @@ class MPC(eqx.Module):
                 f"{tuple(u_init.shape)}"
             )
         bounds = _bounds(self.u_lower, self.u_upper, T, m, x0.dtype)
+        t0 = _check_t0(self.system, self.cost, T, t0)
         cfg = _Config(
             T, self.solver, self.max_iter, self.tol, self.gradient == "unroll", self.box_iters
         )
-        return _mpc_solve(self, x0, u_init, bounds, cfg)
+        return _mpc_solve(self, x0, u_init, bounds, t0, cfg)
 
-    def _solve_one(self, x0: Array, u_init: Array, bounds: Any, cfg: _Config) -> MPCSolution:
+    def _solve_one(self, x0: Array, u_init: Array, bounds: Any, t0: Array,
+                   cfg: _Config) -> MPCSolution:
         if self.gradient == "implicit":
             xs, us, status, it = _solve_implicit(
-                (self.system, self.cost, x0), u_init, bounds, cfg=cfg
+                (self.system, self.cost, x0), u_init, bounds, t0, cfg=cfg
             )
         else:
-            xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, cfg)
-        cost = self.cost.total(xs, us)
+            xs, us, status, it = _solve(self.system, self.cost, x0, u_init, bounds, t0, cfg)
+        cost = self.cost.total(xs, us, t0)
         ok = jnp.isfinite(cost) | (status != Results.CONVERGED)
         status = jnp.where(ok, status, Results.NON_FINITE)
         return MPCSolution(xs, us, cost, status.astype(jnp.int32), it)
 
-    def control(self, x: Any, u_init: Any = None) -> tuple[Array, Array, MPCSolution]:
-        """Receding-horizon step: ``(u_0, warm start for the next step, solution)``; the
-        warm start is the solution's controls shifted by one (last one repeated)."""
-        sol = self(x, u_init)
+    def control(self, x: Any, u_init: Any = None, t0: Any = 0
+                ) -> tuple[Array, Array, MPCSolution]:
+        """Receding-horizon step at time step ``t0``: ``(u_0, warm start for the next
+        step, solution)``; the warm start is the solution's controls shifted by one (last
+        one repeated)."""
+        sol = self(x, u_init, t0)
         warm = jnp.concatenate([sol.u[..., 1:, :], sol.u[..., -1:, :]], -2)
         return sol.u[..., 0, :], warm, sol
 
 
 @eqx.filter_jit
 @full_precision
-def _mpc_solve(mpc: MPC, x0: Array, u_init: Array, bounds: Any, cfg: _Config) -> MPCSolution:
-    """The compiled part of :meth:`MPC.__call__` (arguments already checked)."""
+def _mpc_solve(mpc: MPC, x0: Array, u_init: Array, bounds: Any, t0: Array,
+               cfg: _Config) -> MPCSolution:
+    """The compiled part of :meth:`MPC.__call__` (arguments already checked; ``t0`` an
+    int32 scalar array, traced)."""
     n, (T, m) = x0.shape[-1], u_init.shape[-2:]
     batch = np.broadcast_shapes(x0.shape[:-1], u_init.shape[:-2])
-    one = lambda x, u: mpc._solve_one(x, u, bounds, cfg)  # noqa: E731
+    one = lambda x, u: mpc._solve_one(x, u, bounds, t0, cfg)  # noqa: E731
     if not batch:
         return one(x0, u_init)
     xb = jnp.broadcast_to(x0, (*batch, n)).reshape(-1, n)
@@ -363,8 +380,9 @@ def closed_loop(
     """Simulate ``plant`` for ``steps`` steps under receding-horizon ``mpc`` with warm
     starts (``lax.scan``). Returns ``xs`` (steps+1, n), ``us`` (steps, m) and the
     per-step solver ``status`` (steps,). Compiled with ``eqx.filter_jit`` (``steps``
-    static). Each step solves ``mpc`` from its own step 0 (an LTV model or time-varying
-    cost is read at steps 0 … T−1 every time), while the plant advances at step t."""
+    static). At step t, ``mpc`` solves over steps t … t + T − 1 (``MPC.__call__``'s
+    ``t0``) and the plant advances at step t: an LTV model or time-varying cost of k
+    steps needs k ≥ steps − 1 + T (else a ``ValueError`` naming ``steps``)."""
     if not isinstance(mpc, MPC):
         raise TypeError(
             f"closed_loop(mpc): expected a jaxpose.control.MPC, got {type(mpc).__name__}")
@@ -374,11 +392,17 @@ def closed_loop(
     steps = check_horizon(steps, "steps")
     x0 = as_array(x0, "x0", 1)
     T, m = mpc.horizon, mpc._m(x0, u_init)
+    for k, what in _time_steps(mpc.system, mpc.cost):
+        if steps - 1 + T > k:
+            raise ValueError(
+                f"steps: expected at most {k - T + 1} (the last step's horizon, steps "
+                f"steps − 1 … steps + {T - 2}, must lie within the MPC's {what} {k} time "
+                f"steps), got {steps}")
     u_init = jnp.zeros((T, m), x0.dtype) if u_init is None else as_array(u_init, "u_init", 2)
 
     def step(carry: tuple[Array, Array], t: Array):
         x, warm = carry
-        u0, warm, sol = mpc.control(x, warm)
+        u0, warm, sol = mpc.control(x, warm, t)
         x_next = plant.state_transition(x, u0, t)
         return (x_next, warm), (x_next, u0, sol.status)
 

@@ -101,6 +101,45 @@ def check_finite(x: Array, name: str) -> None:
         raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
 
 
+def start_step(t0: Any, name: str = "t0") -> Any:
+    """A start step: a Python int stays one (static, the common t0 = 0 slices as before);
+    anything else becomes an int32 scalar array (traced under ``jit``: a new start does
+    not recompile). Refuses non-integer and negative values (eagerly: a concrete 1.7
+    would otherwise truncate to 1) and shapes other than a scalar."""
+    if isinstance(t0, (int, np.integer)) and not isinstance(t0, bool):
+        if t0 < 0:
+            raise ValueError(f"{name}: expected a time step >= 0, got {int(t0)}")
+        return int(t0)
+    arr = jnp.asarray(t0)
+    if arr.ndim != 0:
+        raise ValueError(f"{name}: expected a scalar time step, got shape {tuple(arr.shape)}")
+    if not jnp.issubdtype(arr.dtype, jnp.integer):
+        if not jnp.issubdtype(arr.dtype, jnp.floating) or not is_concrete(arr) or (
+                float(arr) != round(float(arr))):
+            raise ValueError(f"{name}: expected an integer time step, got {t0!r}")
+    return step_index(arr, name)
+
+
+def step_window(arr: Array, t0: Any, length: int, what: str) -> Array:
+    """``arr[t0 : t0 + length]`` along axis 0 for a start step ``t0`` (:func:`start_step`,
+    possibly traced). Raises unless ``length`` ≤ len(arr) and 0 ≤ t0 ≤ len(arr) − length
+    (eagerly, or by ``eqx.error_if`` under ``jit``): ``lax.dynamic_slice`` would silently
+    clamp the start. ``what`` names the stack in the message ("LTV system's")."""
+    k = arr.shape[0]
+    if length > k:
+        raise ValueError(f"horizon: {length} exceeds the {what} {k} time steps")
+    if isinstance(t0, int):
+        if t0 + length > k:
+            raise ValueError(f"t0: expected 0 ≤ t0 ≤ {k - length} (steps t0 … t0 + "
+                             f"{length - 1} must lie within the {what} {k} time steps), "
+                             f"got {t0}")
+        return arr[t0:t0 + length]
+    t0 = runtime_check(t0, t0 + length > k, (
+        f"t0: expected 0 ≤ t0 ≤ {k - length} (steps t0 … t0 + {length - 1} must lie "
+        f"within the {what} {k} time steps)"))
+    return jax.lax.dynamic_slice_in_dim(arr, t0, length)
+
+
 def step_index(t: Any, name: str = "t") -> Array:
     """``t`` as an int32 index into a stack of per-step arrays. A negative step raises
     (eagerly, or by ``eqx.error_if`` under ``jit``) instead of wrapping around to the

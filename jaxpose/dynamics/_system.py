@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import as_array, check_last, step_index
+from ._checks import as_array, check_last, start_step, step_index, step_window
 
 Array = jax.Array
 
@@ -200,8 +200,10 @@ class LTI(_Linear):
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], jnp.shape(t))
         return LinearizedSystem(*(jnp.broadcast_to(a, (*batch, *a.shape)) for a in self._at(t)))
 
-    def matrices(self, horizon: int) -> tuple[Array, Array]:
-        """``(F, f)`` stacked over the horizon: F (T, n, n+m) = [A B], f (T, n) = c1."""
+    def matrices(self, horizon: int, t0: Any = 0) -> tuple[Array, Array]:
+        """``(F, f)`` stacked over the horizon: F (T, n, n+m) = [A B], f (T, n) = c1
+        (the same at every step ``t0`` … ``t0 + T − 1``)."""
+        start_step(t0)
         F = jnp.concatenate([self.A, self.B], -1)
         return (
             jnp.broadcast_to(F, (horizon, *F.shape)),
@@ -241,14 +243,13 @@ class LTV(_Linear):
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], t.shape)
         return LinearizedSystem(*self._at(jnp.broadcast_to(t, batch)))
 
-    def matrices(self, horizon: int) -> tuple[Array, Array]:
-        """``(F, f)`` for the first ``horizon`` steps: F (T, n, n+m), f (T, n)."""
-        if horizon > self.horizon:
-            raise ValueError(
-                f"horizon: {horizon} exceeds the LTV system's {self.horizon} time steps"
-            )
+    def matrices(self, horizon: int, t0: Any = 0) -> tuple[Array, Array]:
+        """``(F, f)`` for the ``horizon`` steps ``t0`` … ``t0 + T − 1``: F (T, n, n+m),
+        f (T, n). ``t0`` may be traced; steps outside the system's raise (never clamp)."""
+        t0 = start_step(t0)
         F = jnp.concatenate([self.A, self.B], -1)
-        return F[:horizon], self.c1[:horizon]
+        return (step_window(F, t0, horizon, "LTV system's"),
+                step_window(self.c1, t0, horizon, "LTV system's"))
 
 
 def _check_ab(A: Array, B: Array, an: str, bn: str) -> tuple[int, int]:

@@ -317,8 +317,8 @@ def test_ilqr_time_varying_cost_or_ltv_shorter_than_horizon_raises():
     with pytest.raises(ValueError, match="horizon: 6 exceeds the LTV system's 3 time steps"):
         MPC(ltv, fcost, T)
     q4 = QuadraticCost(np.tile(np.eye(3), (4, 1, 1)))
-    for t0 in (2, -1):
-        with pytest.raises(ValueError, match="t0: expected 0 ≤ t0 ≤ 1"):
+    for t0, message in ((2, "t0: expected 0 ≤ t0 ≤ 1"), (-1, "t0: expected a time step >= 0")):
+        with pytest.raises(ValueError, match=message):
             ilqr(LTI(A2, B2), q4, X2, np.zeros((3, 1)), t0=t0)
     with pytest.raises(RuntimeError, match="t0: expected 0 ≤ t0 ≤ 1"):
         jax.jit(lambda t0: ilqr(LTI(A2, B2), q4, X2, np.zeros((3, 1)), t0=t0).u)(2)
