@@ -141,11 +141,15 @@ def step_window(arr: Array, t0: Any, length: int, what: str) -> Array:
 
 
 def step_index(t: Any, name: str = "t") -> Array:
-    """``t`` as an int32 index into a stack of per-step arrays. A negative step raises
-    (eagerly, or by ``eqx.error_if`` under ``jit``) instead of wrapping around to the
-    last steps as JAX indexing would."""
-    t = jnp.asarray(t, jnp.int32)
+    """``t`` as an int32 index into a stack of per-step arrays. A negative or fractional
+    step raises (eagerly, or by ``eqx.error_if`` under ``jit``) instead of wrapping around
+    to the last steps, or being truncated, as JAX indexing would."""
+    t = jnp.asarray(t)
+    bad = t < 0
+    if not jnp.issubdtype(t.dtype, jnp.integer):
+        bad = bad | (t != jnp.round(t))
     return runtime_check(
-        t, jnp.any(t < 0), f"{name}: expected a time step index >= 0 (a negative step "
-        f"would wrap around to the last steps)"
+        t.astype(jnp.int32), jnp.any(bad), f"{name}: expected a time step index >= 0, an "
+        f"integer (a negative step would wrap around to the last steps, a fraction be "
+        f"truncated)"
     )

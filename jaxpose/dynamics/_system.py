@@ -239,7 +239,7 @@ class LTV(_Linear):
         return self.A[t], self.B[t], self.C[t], self.D[t], self.c1[t], self.c2[t]
 
     def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:
-        x, u, t = jnp.asarray(x), jnp.asarray(u), jnp.asarray(t, jnp.int32)
+        x, u, t = jnp.asarray(x), jnp.asarray(u), jnp.asarray(t)
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], t.shape)
         return LinearizedSystem(*self._at(jnp.broadcast_to(t, batch)))
 

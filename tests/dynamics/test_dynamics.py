@@ -106,6 +106,23 @@ def test_ltv_negative_step_raises_instead_of_wrapping():
     np.testing.assert_allclose(step(1), A[1] @ x + B[1] @ u, rtol=1e-13)
 
 
+def test_ltv_fractional_step_raises_instead_of_truncating():
+    """t = 1.7 silently used step 1 (an int32 cast); integral floats still index."""
+    T, n, m = 3, 2, 1
+    A = np.eye(n) + 0.1 * RNG.normal(size=(T, n, n))
+    B = RNG.normal(size=(T, n, m))
+    sys = LTV(A, B)
+    x, u = RNG.normal(size=n), RNG.normal(size=m)
+    with pytest.raises(ValueError, match="t: expected a time step index >= 0, an integer"):
+        sys.state_transition(x, u, 1.7)
+    with pytest.raises(ValueError, match="t: expected a time step index >= 0, an integer"):
+        sys.linearize(np.zeros((2, n)), np.zeros(m), t=np.array([1.0, 1.5]))
+    step = jax.jit(lambda t: sys.state_transition(x, u, t))
+    with pytest.raises(RuntimeError, match="t: expected a time step index >= 0, an integer"):
+        step(1.5)
+    np.testing.assert_allclose(step(2.0), A[2] @ x + B[2] @ u, rtol=1e-13)
+
+
 def test_benchmark_models_check_state_and_input_sizes():
     """Extra input components were silently ignored (u[1] of the 1-input pendulum) and a
     scalar u gave an IndexError; sizes are shapes, so the check also runs under jit."""
