@@ -72,8 +72,8 @@ class QuadraticCost(Cost):
 
     ``Q`` (k, k) or time-varying (T, k, k), ``p`` (k,) or (T, k) with ``k = n + m``;
     ``QT`` (n, n) and ``pT`` (n,) optional (zero). A time-varying cost at step ``t``
-    uses ``Q[t]``/``p[t]`` (a negative ``t`` raises; solvers raise when the horizon
-    needs more steps than it has). Only the symmetric parts of ``Q`` and
+    uses ``Q[t]``/``p[t]`` (a ``t`` outside 0 … T − 1 or fractional raises; solvers raise
+    when the horizon needs more steps than it has). Only the symmetric parts of ``Q`` and
     ``QT`` matter (the quadratic forms are symmetrised); they must be positive
     semi-definite: concrete values are checked here (ValueError naming the
     argument); traced values are not, and a solve on an indefinite problem reports a
@@ -138,7 +138,8 @@ class QuadraticCost(Cost):
         return None
 
     def _at(self, t: Any) -> tuple[Array, Array]:
-        t = step_index(t) if self.time_varying is not None else t
+        tv = self.time_varying
+        t = step_index(t, steps=tv, whose="cost's") if tv is not None else t
         Q = self.Q[t] if self.Q.ndim == 3 else self.Q
         p = self.p[t] if self.p.ndim == 2 else self.p
         return _sym(Q), p

@@ -140,16 +140,22 @@ def step_window(arr: Array, t0: Any, length: int, what: str) -> Array:
     return jax.lax.dynamic_slice_in_dim(arr, t0, length)
 
 
-def step_index(t: Any, name: str = "t") -> Array:
-    """``t`` as an int32 index into a stack of per-step arrays. A negative or fractional
-    step raises (eagerly, or by ``eqx.error_if`` under ``jit``) instead of wrapping around
-    to the last steps, or being truncated, as JAX indexing would."""
+def step_index(t: Any, name: str = "t", steps: int | None = None, whose: str = "") -> Array:
+    """``t`` as an int32 index into a stack of ``steps`` per-step arrays (``whose``: the
+    stack's owner for the message, "LTV system's"). A negative, fractional or (given
+    ``steps``) too large step raises (eagerly, or by ``eqx.error_if`` under ``jit``)
+    instead of wrapping around to the last steps, being truncated or clamping to the
+    last step, as JAX indexing would."""
     t = jnp.asarray(t)
     bad = t < 0
     if not jnp.issubdtype(t.dtype, jnp.integer):
         bad = bad | (t != jnp.round(t))
+    bound = ""
+    if steps is not None:
+        bad = bad | (t >= steps)
+        bound = f" and < {steps} (the {whose} {steps} time steps)"
     return runtime_check(
-        t.astype(jnp.int32), jnp.any(bad), f"{name}: expected a time step index >= 0, an "
-        f"integer (a negative step would wrap around to the last steps, a fraction be "
-        f"truncated)"
+        t.astype(jnp.int32), jnp.any(bad), f"{name}: expected a time step index >= 0"
+        f"{bound}, an integer (a negative step would wrap around to the last steps, a "
+        f"fraction be truncated, a step past the last clamp to it)"
     )

@@ -214,8 +214,9 @@ class LTI(_Linear):
 class LTV(_Linear):
     """Linear time-varying system: the matrices of :class:`LTI` with a leading time axis
     ``T``: ``A`` (T, n, n), ``B`` (T, n, m), ``C`` (T, p, n), ``D`` (T, p, m), ``c1``
-    (T, n), ``c2`` (T, p). ``t`` selects the step: a ``t`` past the last step clamps to
-    it; a negative ``t`` raises (``ValueError``, or ``eqx.error_if`` under ``jit``)."""
+    (T, n), ``c2`` (T, p). ``t`` selects the step, an integer in 0 … T − 1: any other
+    ``t`` raises (``ValueError``, or ``eqx.error_if`` under ``jit``) instead of wrapping,
+    truncating or clamping to the last step."""
 
     def __init__(
         self, A: Any, B: Any, C: Any = None, D: Any = None, c1: Any = None, c2: Any = None
@@ -235,7 +236,7 @@ class LTV(_Linear):
         return self.A.shape[0]
 
     def _at(self, t: Any) -> tuple[Array, ...]:
-        t = step_index(t)
+        t = step_index(t, steps=self.horizon, whose="LTV system's")
         return self.A[t], self.B[t], self.C[t], self.D[t], self.c1[t], self.c2[t]
 
     def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:

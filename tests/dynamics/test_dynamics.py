@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxpose.control import QuadraticCost
 from jaxpose.dynamics import (
     LTI,
     LTV,
@@ -106,21 +107,28 @@ def test_ltv_negative_step_raises_instead_of_wrapping():
     np.testing.assert_allclose(step(1), A[1] @ x + B[1] @ u, rtol=1e-13)
 
 
-def test_ltv_fractional_step_raises_instead_of_truncating():
-    """t = 1.7 silently used step 1 (an int32 cast); integral floats still index."""
+def test_ltv_fractional_or_late_step_raises_instead_of_truncating_or_clamping():
+    """t = 1.7 silently used step 1 (an int32 cast) and t = T the last step (JAX clamps
+    gathers); integral floats still index."""
     T, n, m = 3, 2, 1
     A = np.eye(n) + 0.1 * RNG.normal(size=(T, n, n))
     B = RNG.normal(size=(T, n, m))
     sys = LTV(A, B)
     x, u = RNG.normal(size=n), RNG.normal(size=m)
-    with pytest.raises(ValueError, match="t: expected a time step index >= 0, an integer"):
-        sys.state_transition(x, u, 1.7)
-    with pytest.raises(ValueError, match="t: expected a time step index >= 0, an integer"):
+    message = r"t: expected a time step index >= 0 and < 3 \(the LTV system's 3 time steps\)"
+    for t in (1.7, 3, 10):
+        with pytest.raises(ValueError, match=message):
+            sys.state_transition(x, u, t)
+    with pytest.raises(ValueError, match=message):
         sys.linearize(np.zeros((2, n)), np.zeros(m), t=np.array([1.0, 1.5]))
     step = jax.jit(lambda t: sys.state_transition(x, u, t))
-    with pytest.raises(RuntimeError, match="t: expected a time step index >= 0, an integer"):
-        step(1.5)
+    for t in (1.5, 3):
+        with pytest.raises(RuntimeError, match=message):
+            step(t)
     np.testing.assert_allclose(step(2.0), A[2] @ x + B[2] @ u, rtol=1e-13)
+    cost = QuadraticCost(np.stack([np.eye(n + m)] * T))
+    with pytest.raises(ValueError, match=r"t: expected .* and < 3 \(the cost's 3 time steps\)"):
+        cost.stage(x, u, T)
 
 
 def test_benchmark_models_check_state_and_input_sizes():
