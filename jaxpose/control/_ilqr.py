@@ -25,12 +25,11 @@ import numpy as np
 
 from .._forward_only import forward_mode_only
 from .._precision import full_precision
-from ..dynamics._checks import as_array, is_concrete, start_step
+from ..dynamics._checks import as_array, is_concrete
 from ..dynamics._system import LTI, LTV, System
-from ..lie._base import runtime_check
 from ..results import Results
 from ._cost import Cost, QuadraticCost
-from ._lqr import backward_step, check_quadratic_cost
+from ._lqr import backward_step, check_quadratic_cost, check_start_step
 
 Array = jax.Array
 
@@ -111,32 +110,6 @@ def _bounds(lower: Any, upper: Any, T: int, m: int, dtype: Any) -> tuple[Array, 
     return lo, hi
 
 
-def _time_steps(system: System, cost: Cost) -> list[tuple[int, str]]:
-    """``(k, whose)`` for each time-varying part: a time-varying quadratic cost's and an
-    LTV system's numbers of time steps."""
-    steps = []
-    if isinstance(cost, QuadraticCost) and cost.time_varying is not None:
-        steps.append((cost.time_varying, "cost's"))
-    if isinstance(system, LTV):
-        steps.append((system.horizon, "LTV system's"))
-    return steps
-
-
-def _check_t0(system: System, cost: Cost, T: int, t0: Any) -> Array:
-    """``t0`` as an array; with a time-varying cost or LTV system of k ≥ T steps, raises
-    (eagerly, or ``eqx.error_if`` under ``jit``) unless 0 ≤ t0 ≤ k − T: JAX indexing
-    would silently clamp or wrap. (k < T raises in :func:`_ilqr` naming the horizon.)"""
-    t0 = jnp.asarray(start_step(t0), jnp.int32)
-    for k, what in _time_steps(system, cost):
-        if k >= T:
-            t0 = runtime_check(
-                t0, jnp.any((t0 < 0) | (t0 + T > k)),
-                f"t0: expected 0 ≤ t0 ≤ {k - T} (steps t0 … t0 + {T - 1} of the horizon "
-                f"{T} = u_init.shape[0] must lie within the {what} {k} time steps)",
-            )
-    return t0
-
-
 def ilqr(
     system: System,
     cost: Cost,
@@ -184,7 +157,7 @@ def ilqr(
     x0, u_init = x0.astype(dtype), u_init.astype(dtype)
     tol = _default_tol(dtype) if tol is None else float(tol)
     box = _bounds(u_lower, u_upper, T, m, dtype)
-    t0 = _check_t0(system, cost, T, t0)
+    t0 = check_start_step(system, cost, T, t0)
     # t0 traced (a new start time must not recompile); the options static or traced as given
     return _ilqr(system, cost, x0, u_init, box, max_iter, tol, reg_init, reg_min, reg_max,
                  reg_factor, alphas, box_iters, unroll, t0)

@@ -23,11 +23,12 @@ import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
 from .._precision import full_precision
-from ..dynamics._checks import as_array, check_horizon
+from ..dynamics._checks import as_array, check_horizon, start_step
 from ..dynamics._system import LTI, LTV, System
+from ..lie._base import runtime_check
 from ..results import Results
 from ._boxqp import box_qp, free_block
-from ._cost import QuadraticCost
+from ._cost import Cost, QuadraticCost
 
 Array = jax.Array
 
@@ -268,16 +269,51 @@ def check_quadratic_cost(
     return cost.stacked(horizon, n, t0)
 
 
-@eqx.filter_jit
-@full_precision
-def lqr(system: System, cost: QuadraticCost, x0: Any, horizon: int) -> LQRSolution:
+def time_varying_steps(system: System, cost: Cost) -> list[tuple[int, str]]:
+    """``(k, whose)`` for each time-varying part: a time-varying quadratic cost's and an
+    LTV system's numbers of time steps."""
+    steps = []
+    if isinstance(cost, QuadraticCost) and cost.time_varying is not None:
+        steps.append((cost.time_varying, "cost's"))
+    if isinstance(system, LTV):
+        steps.append((system.horizon, "LTV system's"))
+    return steps
+
+
+def check_start_step(system: System, cost: Cost, T: int, t0: Any) -> Array:
+    """``t0`` as an array; with a time-varying cost or LTV system of k ≥ T steps, raises
+    (eagerly, or ``eqx.error_if`` under ``jit``) unless 0 ≤ t0 ≤ k − T: JAX indexing
+    would silently clamp or wrap. (k < T raises in :func:`_ilqr` naming the horizon.)"""
+    t0 = jnp.asarray(start_step(t0), jnp.int32)
+    for k, what in time_varying_steps(system, cost):
+        if k >= T:
+            t0 = runtime_check(
+                t0, jnp.any((t0 < 0) | (t0 + T > k)),
+                f"t0: expected 0 ≤ t0 ≤ {k - T} (steps t0 … t0 + {T - 1} of the horizon "
+                f"{T} = u_init.shape[0] must lie within the {what} {k} time steps)",
+            )
+    return t0
+
+
+def lqr(system: System, cost: QuadraticCost, x0: Any, horizon: int, t0: Any = 0
+        ) -> LQRSolution:
     """LQR for an :class:`LTI`/:class:`LTV` system and a :class:`QuadraticCost` over
-    ``horizon`` steps. ``x0`` (n,) or batched (..., n) (vmapped; the Riccati recursion
-    is computed once for the whole batch).
+    ``horizon`` steps from step ``t0`` (the steps ``t0 … t0 + horizon − 1`` of an LTV
+    system or time-varying cost; outside theirs raises). ``x0`` (n,) or batched (..., n)
+    (vmapped; the Riccati recursion is computed once for the whole batch).
 
     Compiled with ``eqx.filter_jit``: ``horizon`` (a Python int) is static, the arrays of
-    ``system``, ``cost`` and ``x0`` are traced; checks run at trace time."""
-    F, f, C, c, CT, cT = lq_problem(system, cost, horizon)
+    ``system``, ``cost`` and ``x0`` and the step ``t0`` are traced; shape checks run at
+    trace time, ``t0``'s range eagerly (``eqx.error_if`` when it is traced)."""
+    check_horizon(horizon)
+    return _lqr(system, cost, x0, horizon, check_start_step(system, cost, horizon, t0))
+
+
+@eqx.filter_jit
+@full_precision
+def _lqr(system: System, cost: QuadraticCost, x0: Any, horizon: int, t0: Array
+         ) -> LQRSolution:
+    F, f, C, c, CT, cT = lq_problem(system, cost, horizon, t0)
     x0 = as_array(x0, "x0")
     n = F.shape[1]
     if x0.ndim == 0 or x0.shape[-1] != n:
@@ -305,8 +341,10 @@ class LQR(eqx.Module):
         lq_problem(system, cost, horizon)  # validates
         self.system, self.cost, self.horizon = system, cost, check_horizon(horizon)
 
-    def __call__(self, x0: Any, u_lower: Any = None, u_upper: Any = None) -> LQRSolution:
-        """Solve the LQ problem from ``x0`` (n,) or a batch (…, n) (alias of :func:`lqr`).
+    def __call__(self, x0: Any, u_lower: Any = None, u_upper: Any = None, t0: Any = 0
+                 ) -> LQRSolution:
+        """Solve the LQ problem from ``x0`` (n,) or a batch (…, n) at step ``t0`` (alias of
+        :func:`lqr`).
 
         LQR has no control limits: passing ``u_lower``/``u_upper`` raises ``ValueError``.
         """
@@ -315,4 +353,4 @@ class LQR(eqx.Module):
                 "u_lower/u_upper: LQR has no control limits; use MPC or ilqr, "
                 "which enforce them by projected Newton"
             )
-        return lqr(self.system, self.cost, x0, self.horizon)
+        return lqr(self.system, self.cost, x0, self.horizon, t0)

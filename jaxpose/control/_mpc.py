@@ -37,11 +37,13 @@ from ..optim._implicit import at_stationary_point
 from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
 from ._cost import Cost, QuadraticCost
-from ._ilqr import ILQRSolution, _bounds, _check_t0, _dynamics_jacobians, _time_steps, ilqr
+from ._ilqr import ILQRSolution, _bounds, _dynamics_jacobians, ilqr
 from ._lqr import (
+    check_start_step,
     lq_problem,
     policy_rollout,
     riccati,
+    time_varying_steps,
 )
 
 Array = jax.Array
@@ -323,7 +325,7 @@ class MPC(eqx.Module):
                 f"{tuple(u_init.shape)}"
             )
         bounds = _bounds(self.u_lower, self.u_upper, T, m, x0.dtype)
-        t0 = _check_t0(self.system, self.cost, T, t0)
+        t0 = check_start_step(self.system, self.cost, T, t0)
         cfg = _Config(
             T, self.solver, self.max_iter, self.tol, self.gradient == "unroll", self.box_iters
         )
@@ -392,7 +394,7 @@ def closed_loop(
     steps = check_horizon(steps, "steps")
     x0 = as_array(x0, "x0", 1)
     T, m = mpc.horizon, mpc._m(x0, u_init)
-    for k, what in _time_steps(mpc.system, mpc.cost):
+    for k, what in time_varying_steps(mpc.system, mpc.cost):
         if steps - 1 + T > k:
             raise ValueError(
                 f"steps: expected at most {k - T + 1} (the last step's horizon, steps "

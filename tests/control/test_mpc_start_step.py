@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from jaxpose import Results
-from jaxpose.control import MPC, FunctionCost, QuadraticCost, closed_loop
+from jaxpose.control import LQR, MPC, FunctionCost, QuadraticCost, closed_loop, lqr
 from jaxpose.dynamics import LTV
 
 jax.config.update("jax_enable_x64", True)
@@ -50,6 +50,19 @@ def test_mpc_at_t0_solves_the_steps_t0_on(limits, t0):
     np.testing.assert_allclose(got.cost, ref.cost, rtol=1e-12)
     if 0 < t0:  # the steps matter: solving from step 0 is another problem
         assert np.max(np.abs(_mpc(A, B, Q, p, **kw)(x0).u - ref.u)) > 1e-3
+
+
+def test_lqr_at_t0_solves_the_steps_t0_on():
+    A, B, Q, p = _problem()
+    cost = lambda q, pp: QuadraticCost(q, pp, QT=5.0 * np.eye(N))  # noqa: E731
+    x0, cut = np.array([[1.0, -0.5], [0.2, 0.3]]), slice(3, 3 + T)
+    ref = lqr(LTV(A[cut], B[cut]), cost(Q[cut], p[cut]), x0, T)
+    for got in (lqr(LTV(A, B), cost(Q, p), x0, T, t0=3),
+                LQR(LTV(A, B), cost(Q, p), T)(x0, t0=jnp.int32(3))):
+        np.testing.assert_allclose(got.u, ref.u, atol=1e-12)
+        np.testing.assert_allclose(got.x, ref.x, atol=1e-12)
+    with pytest.raises(ValueError, match=rf"t0: expected 0 ≤ t0 ≤ {K - T}"):
+        lqr(LTV(A, B), cost(Q, p), x0, T, t0=K - T + 1)
 
 
 def test_traced_t0_matches_and_does_not_recompile():
