@@ -48,16 +48,12 @@ ALWAYS_DEFAULT = (
     "tests/test_architecture.py::",
     "tests/filters/test_bad_input.py::",
     "tests/geometry/test_input_regressions.py::",
-    "tests/geometry/test_kdtree_checks.py::",
-    "tests/graph/test_deletion_errors.py::",
     "tests/graph/test_marginals_methods.py::",
     "tests/imu/test_bad_input.py::",
-    "tests/imu/test_imu_value_checks.py::",
     "tests/imu/test_input_regressions.py::",
     "tests/io/test_io_bad_input.py::",
     "tests/optim/test_bad_input.py::",
     "tests/smoothing/test_input_regressions.py::",
-    "tests/smoothing/test_smoother_checks.py::",
 )
 HEADER = (
     "# Tests deselected from the default run (marked slow by tests/conftest.py): the default\n"
