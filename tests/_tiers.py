@@ -48,6 +48,7 @@ ALWAYS_DEFAULT = (
     "tests/test_architecture.py::",
     "tests/filters/test_bad_input.py::",
     "tests/geometry/test_input_regressions.py::",
+    "tests/geometry/test_kdtree_checks.py::",
     "tests/graph/test_marginals_methods.py::",
     "tests/imu/test_bad_input.py::",
     "tests/imu/test_input_regressions.py::",

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..lie._base import runtime_check
 from ._util import Array, points_array
 
 
@@ -164,7 +165,8 @@ def _search_chunk(tree: KDTree, q: Array, k: int, hint: Array | None = None
 
 def query_kdtree(tree: KDTree, query: Any, k: int = 1, chunk: int = 1024,
                  hint: Any = None) -> tuple[Array, Array]:
-    """The ``k`` nearest tree points of every query (N, D).
+    """The ``k`` nearest tree points of every query (N, D) (finite: a NaN or inf query
+    raises, eagerly or by ``eqx.error_if`` under ``jit``).
 
     ``hint`` (N,) int: original indices of points believed to be near each query (e.g.
     the previous ICP correspondences; k = 1 only). They only tighten the initial bound, so
@@ -181,6 +183,10 @@ def query_kdtree(tree: KDTree, query: Any, k: int = 1, chunk: int = 1024,
     if n == 0:
         return jnp.zeros((0, k), q.dtype), jnp.zeros((0, k), jnp.int32)
     q = jax.lax.stop_gradient(q.astype(tree.points.dtype))
+    # a NaN query compares false with every bound: distance inf, an arbitrary index
+    q = runtime_check(q, ~jnp.all(jnp.isfinite(q)),
+                      "query_kdtree(query): contains NaN or inf (a non-finite query has no "
+                      "nearest point; drop or fix those rows first)")
     t = jax.lax.stop_gradient(tree)
     if hint is not None and k != 1:
         raise ValueError("query_kdtree(hint): hints are supported for k = 1 only")
