@@ -18,19 +18,28 @@ from ..lie import InvalidValueError
 Array = jax.Array
 
 
+def _non_negative(arr: Array, name: str) -> None:
+    """Refuse a concrete negative σ (squared, it would silently act as |σ|); a traced σ
+    is not checked."""
+    if not isinstance(arr, jax.core.Tracer) and bool(jnp.any(arr < 0)):
+        raise ValueError(f"{name}: expected σ ≥ 0 (a standard deviation), got {np.asarray(arr)}")
+
+
 def scalar_var(x: Any, name: str, dtype: Any) -> Array:
-    """A scalar σ → σ²."""
+    """A scalar σ ≥ 0 → σ²."""
     arr = as_float(x, name).astype(dtype)
     if arr.ndim != 0:
         raise ValueError(f"{name}: expected a scalar σ, got shape {tuple(arr.shape)}")
+    _non_negative(arr, name)
     return arr * arr
 
 
 def noise_sigma(x: Any, name: str, dtype: Any) -> Array:
-    """σ (scalar or (3,)) → (3,)."""
+    """σ ≥ 0 (scalar or (3,)) → (3,)."""
     arr = as_float(x, name).astype(dtype)
     if arr.shape not in ((), (3,)):
         raise ValueError(f"{name}: expected a scalar σ or shape (3,), got {tuple(arr.shape)}")
+    _non_negative(arr, name)
     return jnp.broadcast_to(arr, (3,))
 
 

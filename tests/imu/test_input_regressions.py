@@ -120,3 +120,20 @@ def test_float32_samples_with_a_python_scalar_dt_stay_float32():
         np.testing.assert_allclose(getattr(lo, name), getattr(hi, name), rtol=1e-4,
                                    atol=1e-6, err_msg=name)
     assert lo.rot.data.dtype == jnp.float32
+
+
+@pytest.mark.parametrize("kw", [{"gyro_noise": -0.01}, {"acc_noise": [0.1, -0.1, 0.1]},
+                                {"integration_noise": -1e-3}])
+def test_negative_noise_sigma_raises_instead_of_acting_as_its_magnitude(kw):
+    # σ is squared: a sign slip (−0.01) silently gave the covariance of +0.01
+    from jaxpose.imu import ImuPreintegrator, preintegrate
+
+    g, a = np.zeros((4, 3)), np.tile([0.0, 0.0, 9.81], (4, 1))
+    name = next(iter(kw))
+    with pytest.raises(ValueError, match=rf"preintegrate\({name}\): expected σ ≥ 0"):
+        preintegrate(g, a, 0.01, **kw)
+    if name != "integration_noise":
+        with pytest.raises(ValueError, match=rf"ImuPreintegrator\({name}\): expected σ ≥ 0"):
+            ImuPreintegrator(**kw)
+    ok = {"gyro_noise": 0.01, "acc_noise": 0.1, **{k: np.abs(v) for k, v in kw.items()}}
+    assert np.isfinite(np.asarray(preintegrate(g, a, 0.01, **ok).cov)).all()
