@@ -330,8 +330,10 @@ def _entries(graph: FactorGraph, values: Any, plan: _Plan) -> list[Array]:
     return inverse_entries(graph, linearize(graph, values), plan)
 
 
-def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan) -> list[Array]:
-    """:func:`_entries` at a linearisation ``lin`` of ``graph`` (traceable)."""
+def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan,
+                    caller: str = "marginals") -> list[Array]:
+    """:func:`_entries` at a linearisation ``lin`` of ``graph`` (traceable); ``caller``
+    names the public function in the error of a host method differentiated."""
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
     flat_i, flat_j = plan.flat_i, plan.flat_j
@@ -344,7 +346,7 @@ def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan) -> list[Array]:
                                   for n in plan.layout_names]).astype(dtype)
         pattern = st.schur.pattern
         vals = _sparse_entries(data, pattern.indices, pattern.indptr, flat_i, flat_j,
-                               plan.method)
+                               plan.method, caller)
     else:
         free_l = free
         if plan.method == "pcg":
@@ -353,7 +355,7 @@ def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan) -> list[Array]:
             data = csr_values(graph, lin).at[st.diag_pos].add(1.0 - free)
             if plan.method == "sparse":
                 vals = _sparse_entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j,
-                                       plan.method)
+                                       plan.method, caller)
             else:
                 vals = _dense_entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j)
     vals = vals * free_l[flat_i] * free_l[flat_j]
@@ -382,13 +384,15 @@ def _dense_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,
 
 
 def _sparse_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,
-                    j: np.ndarray, method: str) -> Array:
+                    j: np.ndarray, method: str, caller: str) -> Array:
     """Entries by selected inversion on the host (``method`` "sparse" or "schur"). The
-    callback has no derivative: differentiating raises, naming the methods that have one."""
+    callback has no derivative: differentiating raises, naming ``caller`` and its methods
+    that have one."""
+    other = ("method='dense' or method='pcg' to differentiate marginal covariances"
+             if caller == "marginals" else "method='dense' to differentiate")
     data = eqxi.nondifferentiable(data, msg=(
-        f"marginals(method={method!r}) is not differentiable (the factorisation and "
-        "selected inversion run on the host); use method='dense' or method='pcg' to "
-        "differentiate marginal covariances"))
+        f"{caller}(method={method!r}) is not differentiable (the factorisation and "
+        f"selected inversion run on the host); use {other}"))
 
     def host(d: Any, ind: Any, ptr: Any) -> np.ndarray:
         return selinv.inverse_entries(np.asarray(d, np.float64), ind, ptr, i, j).astype(

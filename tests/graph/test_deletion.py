@@ -261,3 +261,21 @@ def test_manhattan_outlier_that_bends_the_estimate_is_removed():
     assert int(runs[10][1].deletions) == 1
     assert ape_aligned("SE2", clean, runs[0][0]) > 10.0
     assert ape_aligned("SE2", clean, runs[10][0]) < 2.2
+
+
+def test_differentiating_the_sparse_method_names_deletion_statistics():
+    # the error named marginals(method='sparse'), a function the user did not call
+    jax.config.update("jax_enable_x64", True)
+    problem = pgo.pose_graph_problem(synthetic_pose_graph("SE2", n_poses=6, seed=0)[0])
+    poses = problem.variables["pose"]
+
+    def total(delta, method):
+        moved = {"pose": poses.retract(delta)}
+        return sum(jnp.sum(t) for t in deletion_statistics(problem, moved, method=method))
+
+    zero = jnp.zeros((poses.data.shape[0], 3))
+    for how in (jax.grad, jax.jacfwd):
+        with pytest.raises(Exception, match=r"deletion_statistics\(method='sparse'\) is "
+                                            r"not differentiable.*use method='dense'"):
+            how(total)(zero, "sparse")
+    assert np.isfinite(np.asarray(jax.grad(total)(zero, "dense"))).all()
