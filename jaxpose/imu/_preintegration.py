@@ -349,7 +349,9 @@ def predict(
     rot = SO3(quat.multiply(q, drot.data))
     vel = state.vel + g * t + quat.rotate(q, dv)
     pos = state.pos + state.vel * t + 0.5 * g * t * t + quat.rotate(q, dp)
-    return NavState(rot, vel, pos)
+    batch = jnp.broadcast_shapes(rot.shape, vel.shape[:-1], pos.shape[:-1])  # e.g. a batch
+    return NavState(SO3(jnp.broadcast_to(rot.data, (*batch, 4))),  # of gravities alone
+                    jnp.broadcast_to(vel, (*batch, 3)), jnp.broadcast_to(pos, (*batch, 3)))
 
 
 @full_precision

@@ -16,7 +16,7 @@ Array = jax.Array
 
 class NavState(eqx.Module):
     """``rot``: body-to-navigation rotation R (*b); ``vel``, ``pos``: velocity and
-    position of the body in the navigation frame (*b, 3)."""
+    position of the body in the navigation frame (*b, 3), the same batch shape *b."""
 
     rot: SO3
     vel: Array
@@ -30,6 +30,9 @@ class NavState(eqx.Module):
             if arr.ndim == 0 or arr.shape[-1] != 3:
                 raise ValueError(f"NavState({name}): expected shape (..., 3), got "
                                  f"{tuple(arr.shape)}")
+            if arr.shape[:-1] != rot.shape:  # a broadcast part breaks indexing and pose()
+                raise ValueError(f"NavState({name}): expected batch shape {rot.shape} (rot's), "
+                                 f"got {tuple(arr.shape)}; broadcast it first")
         self.rot, self.vel, self.pos = rot, v, p
 
     @classmethod

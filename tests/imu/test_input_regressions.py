@@ -137,3 +137,19 @@ def test_negative_noise_sigma_raises_instead_of_acting_as_its_magnitude(kw):
             ImuPreintegrator(**kw)
     ok = {"gyro_noise": 0.01, "acc_noise": 0.1, **{k: np.abs(v) for k, v in kw.items()}}
     assert np.isfinite(np.asarray(preintegrate(g, a, 0.01, **ok).cov)).all()
+
+
+def test_navstate_parts_must_share_the_batch_shape():
+    # a broadcast velocity was accepted; state[0] then indexed its components and
+    # pose() failed inside a concatenate
+    from jaxpose.imu import NavState
+    from jaxpose.lie import SO3
+
+    rot = SO3.identity((4,))
+    with pytest.raises(ValueError, match=r"NavState\(vel\): expected batch shape \(4,\)"):
+        NavState(rot, np.zeros(3), np.zeros((4, 3)))
+    with pytest.raises(ValueError, match=r"NavState\(pos\): expected batch shape \(4,\)"):
+        NavState(rot, np.zeros((4, 3)), np.zeros((2, 4, 3)))
+    state = NavState(rot, np.zeros((4, 3)), np.ones((4, 3)))
+    assert state[1].shape == () and state.pose().data.shape == (4, 7)
+    assert jax.vmap(lambda s: s.pos.sum())(state).shape == (4,)
