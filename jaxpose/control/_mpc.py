@@ -397,9 +397,9 @@ def closed_loop(
     for k, what in time_varying_steps(mpc.system, mpc.cost):
         if steps - 1 + T > k:
             raise ValueError(
-                f"steps: expected at most {k - T + 1} (the last step's horizon, steps "
-                f"steps − 1 … steps + {T - 2}, must lie within the MPC's {what} {k} time "
-                f"steps), got {steps}")
+                f"steps: expected at most {k - T + 1}, got {steps}: the MPC solve at the "
+                f"last step covers steps {steps - 1} … {steps + T - 2}, past the MPC's "
+                f"{what} {k} time steps")
     u_init = jnp.zeros((T, m), x0.dtype) if u_init is None else as_array(u_init, "u_init", 2)
 
     def step(carry: tuple[Array, Array], t: Array):
