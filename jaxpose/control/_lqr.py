@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
 from .._precision import full_precision
-from ..dynamics._checks import as_array, check_horizon, start_step
+from ..dynamics._checks import as_array, check_horizon, start_step, window_message
 from ..dynamics._system import LTI, LTV, System
 from ..lie._base import runtime_check
 from ..results import Results
@@ -287,11 +287,8 @@ def check_start_step(system: System, cost: Cost, T: int, t0: Any) -> Array:
     t0 = jnp.asarray(start_step(t0), jnp.int32)
     for k, what in time_varying_steps(system, cost):
         if k >= T:
-            t0 = runtime_check(
-                t0, jnp.any((t0 < 0) | (t0 + T > k)),
-                f"t0: expected 0 ≤ t0 ≤ {k - T} (steps t0 … t0 + {T - 1} of the horizon "
-                f"{T} = u_init.shape[0] must lie within the {what} {k} time steps)",
-            )
+            t0 = runtime_check(t0, jnp.any((t0 < 0) | (t0 + T > k)),
+                               window_message(k, T, what))
     return t0
 
 

@@ -120,6 +120,13 @@ def start_step(t0: Any, name: str = "t0") -> Any:
     return step_index(arr, name)
 
 
+def window_message(steps: int, length: int, whose: str) -> str:
+    """The error of a start step whose window of ``length`` steps leaves ``whose``
+    ``steps`` time steps ("LTV system's")."""
+    return (f"t0: expected 0 ≤ t0 ≤ {steps - length} (steps t0 … t0 + {length - 1} must "
+            f"lie within the {whose} {steps} time steps)")
+
+
 def step_window(arr: Array, t0: Any, length: int, what: str) -> Array:
     """``arr[t0 : t0 + length]`` along axis 0 for a start step ``t0`` (:func:`start_step`,
     possibly traced). Raises unless ``length`` ≤ len(arr) and 0 ≤ t0 ≤ len(arr) − length
@@ -130,13 +137,9 @@ def step_window(arr: Array, t0: Any, length: int, what: str) -> Array:
         raise ValueError(f"horizon: {length} exceeds the {what} {k} time steps")
     if isinstance(t0, int):
         if t0 + length > k:
-            raise ValueError(f"t0: expected 0 ≤ t0 ≤ {k - length} (steps t0 … t0 + "
-                             f"{length - 1} must lie within the {what} {k} time steps), "
-                             f"got {t0}")
+            raise ValueError(f"{window_message(k, length, what)}, got {t0}")
         return arr[t0:t0 + length]
-    t0 = runtime_check(t0, t0 + length > k, (
-        f"t0: expected 0 ≤ t0 ≤ {k - length} (steps t0 … t0 + {length - 1} must lie "
-        f"within the {what} {k} time steps)"))
+    t0 = runtime_check(t0, t0 + length > k, window_message(k, length, what))
     return jax.lax.dynamic_slice_in_dim(arr, t0, length)
 
 

@@ -330,10 +330,11 @@ def _entries(graph: FactorGraph, values: Any, plan: _Plan) -> list[Array]:
     return inverse_entries(graph, linearize(graph, values), plan)
 
 
-def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan,
-                    caller: str = "marginals") -> list[Array]:
-    """:func:`_entries` at a linearisation ``lin`` of ``graph`` (traceable); ``caller``
-    names the public function in the error of a host method differentiated."""
+def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan, caller: str = "marginals",
+                    instead: str = "method='dense' or method='pcg' to differentiate "
+                                   "marginal covariances") -> list[Array]:
+    """:func:`_entries` at a linearisation ``lin`` of ``graph`` (traceable). A host method
+    differentiated raises naming ``caller`` and what to use ``instead``."""
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
     flat_i, flat_j = plan.flat_i, plan.flat_j
@@ -346,7 +347,7 @@ def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan,
                                   for n in plan.layout_names]).astype(dtype)
         pattern = st.schur.pattern
         vals = _sparse_entries(data, pattern.indices, pattern.indptr, flat_i, flat_j,
-                               plan.method, caller)
+                               plan.method, caller, instead)
     else:
         free_l = free
         if plan.method == "pcg":
@@ -355,7 +356,7 @@ def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan,
             data = csr_values(graph, lin).at[st.diag_pos].add(1.0 - free)
             if plan.method == "sparse":
                 vals = _sparse_entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j,
-                                       plan.method, caller)
+                                       plan.method, caller, instead)
             else:
                 vals = _dense_entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j)
     vals = vals * free_l[flat_i] * free_l[flat_j]
@@ -384,15 +385,13 @@ def _dense_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,
 
 
 def _sparse_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,
-                    j: np.ndarray, method: str, caller: str) -> Array:
+                    j: np.ndarray, method: str, caller: str, instead: str) -> Array:
     """Entries by selected inversion on the host (``method`` "sparse" or "schur"). The
-    callback has no derivative: differentiating raises, naming ``caller`` and its methods
-    that have one."""
-    other = ("method='dense' or method='pcg' to differentiate marginal covariances"
-             if caller == "marginals" else "method='dense' to differentiate")
+    callback has no derivative: differentiating raises, naming ``caller`` and what to use
+    ``instead``."""
     data = eqxi.nondifferentiable(data, msg=(
         f"{caller}(method={method!r}) is not differentiable (the factorisation and "
-        f"selected inversion run on the host); use {other}"))
+        f"selected inversion run on the host); use {instead}"))
 
     def host(d: Any, ind: Any, ptr: Any) -> np.ndarray:
         return selinv.inverse_entries(np.asarray(d, np.float64), ind, ptr, i, j).astype(

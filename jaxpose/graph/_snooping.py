@@ -109,7 +109,8 @@ def statistics(graph: FactorGraph, values: Any, blocks_plan: _Plan) -> tuple[Arr
     """:func:`deletion_statistics` with the covariance blocks' :func:`plan` made
     beforehand (traceable: ``graph`` may be traced, the plan is static)."""
     lin = linearize(graph, values)
-    blocks = inverse_entries(graph, lin, blocks_plan, "deletion_statistics")
+    blocks = inverse_entries(graph, lin, blocks_plan, "deletion_statistics",
+                             "method='dense' to differentiate")
     out = []
     for r, jac, cov in zip(lin.residuals, lin.jacobians, blocks, strict=True):
         j = jnp.concatenate(jac, axis=-1)  # (m, rdim, D)
