@@ -80,6 +80,7 @@ from .._forward_only import forward_mode_only
 from .._precision import full_precision
 from ..lie import manifold
 from ..lie._base import runtime_check, small_matmul
+from ..results import Results
 
 Array = jax.Array
 PyTree = Any
@@ -172,7 +173,12 @@ class FixedLagSmoother(eqx.Module):
     is solved with block-tridiagonal Cholesky in O(K·d³)), ``prior_point`` (K, ...)
     stacked linearisation point, ``frozen`` (K,) states in the prior,
     ``count`` () number of filled slots (≤ K), ``iterations`` () Gauss–Newton iterations of
-    the last update (incremental mode: 1 if it re-linearised, else 0), ``lin`` (K, ...)
+    the last update (incremental mode: 1 if it re-linearised, else 0), ``status`` () int32
+    :class:`~jaxpose.results.Results` code of the last update (``status_name``): CONVERGED
+    (the change fell below ``tol``; incremental mode: a finite step), MAX_STEPS
+    (``max_iterations`` ran out first) or NON_FINITE (a step was not finite, e.g. a
+    singular window system, a state no factor determines: the estimate is the last
+    finite iterate, the guess if the first step failed), ``lin`` (K, ...)
     the linearisation point (:meth:`linearization_point`) of the kept linearisation:
     for chains (``max_loops=0``; else None) the oldest-first elimination of the window
     (module docstring), ``msg_info`` (K, d, d) and ``msg_grad`` (K, d) the message into
@@ -197,6 +203,7 @@ class FixedLagSmoother(eqx.Module):
     frozen: Array
     count: Array
     iterations: Array
+    status: Array
     lin: PyTree
     msg_info: Array | None
     msg_grad: Array | None
@@ -303,6 +310,7 @@ class FixedLagSmoother(eqx.Module):
         self.frozen = jnp.zeros((k,), bool)
         self.count = jnp.zeros((), jnp.int32)
         self.iterations = jnp.zeros((), jnp.int32)
+        self.status = jnp.asarray(Results.CONVERGED, jnp.int32)
         self.motion, self.unary, self.loop = motion, unary, loop
         self.window, self.max_iterations = window, max_iterations
         eps = jnp.finfo(dtype).eps
@@ -355,6 +363,11 @@ class FixedLagSmoother(eqx.Module):
     def tangent_dim(self) -> int:
         """Tangent size d of one state."""
         return manifold.tangent_size(_take(self.states, 0))
+
+    @property
+    def status_name(self) -> str | Any:
+        """``status`` as text (``"converged"``, ``"max_steps"``, ``"non_finite"``)."""
+        return Results.name_of(self.status)
 
     @property
     def valid(self) -> Array:
@@ -696,14 +709,17 @@ class FixedLagSmoother(eqx.Module):
             step = jnp.where(ok, step, 0.0).reshape(k, d)
             x_new = _where(ok, jax.vmap(self._plus)(y, step), x)
             change = jax.vmap(self._minus)(x_new, x)
-            done = ~ok | (jnp.max(jnp.abs(change)) < self.tol) | (it + 1 >= self.max_iterations)
-            return x_new, it + 1, done, y, cache
+            small = jnp.max(jnp.abs(change)) < self.tol
+            status = jnp.where(~ok, Results.NON_FINITE, jnp.where(
+                small, Results.CONVERGED, jnp.where(
+                    it + 1 >= self.max_iterations, Results.MAX_STEPS, Results.RUNNING)))
+            return x_new, it + 1, status.astype(jnp.int32), y, cache
 
-        start = (self.states, jnp.zeros((), jnp.int32), jnp.zeros((), bool), self.lin,
-                 self._linearization())
-        x, it, _, lin, cache = jax.lax.while_loop(lambda c: ~c[2], body, start)
-        return eqx.tree_at(lambda s: (s.states, s.iterations, s.lin),
-                           self._with_linearization(cache), (x, it, lin))
+        start = (self.states, jnp.zeros((), jnp.int32), jnp.asarray(Results.RUNNING, jnp.int32),
+                 self.lin, self._linearization())
+        x, it, status, lin, cache = jax.lax.while_loop(lambda c: c[2] < 0, body, start)
+        return eqx.tree_at(lambda s: (s.states, s.iterations, s.status, s.lin),
+                           self._with_linearization(cache), (x, it, status, lin))
 
     def _marginalize_first(self) -> tuple[Array, Array, Array]:
         """Prior on slots 1..K-1 (shifted to 0..K-2, last slot empty) after eliminating
@@ -759,7 +775,10 @@ class FixedLagSmoother(eqx.Module):
             largest = jnp.max(jnp.abs(delta), axis=1)  # +inf where the step is not finite
             check = (self.phase == 0) | ~jnp.isfinite(largest)
             exceed = moving & check & ~(largest <= self.relinearize_threshold) & (passes == 0)
-            s = eqx.tree_at(lambda t: t.lin, s, _where(exceed, s.states, s.lin))
+            status = jnp.where(jnp.all(jnp.isfinite(largest)), Results.CONVERGED,
+                               Results.NON_FINITE).astype(jnp.int32)
+            s = eqx.tree_at(lambda t: (t.lin, t.status), s,
+                            (_where(exceed, s.states, s.lin), status))
             return s, jnp.maximum(jnp.argmax(exceed) - 1, 0), passes + 1, jnp.any(exceed)
 
         start = (self, jnp.asarray(k - 2), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
