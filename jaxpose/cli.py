@@ -364,9 +364,12 @@ def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
           f"{float(sol.cost):.6e}  robust cost {float(sol.robust_cost):.6e}  "
           f"GNC iterations {int(sol.iterations)}  LM iterations {int(sol.inner_iterations)}  "
           f"mu {float(sol.mu):.3g}  status {sol.status_name}")
-    deleted = int(sol.deletions)
+    deleted, readmitted = int(sol.deletions), int(sol.readmissions)
+    search = ", ".join(part for part in (
+        f"{deleted} rejected" if deleted else "", f"{readmitted} re-admitted" if readmitted else "",
+    ) if part)
     print(f"loop closures: {int(loops.sum()) - rejected.size} inliers, {rejected.size} "
-          f"rejected" + (f", {deleted} of them by the deletion test" if deleted else "")
+          f"rejected" + (f" (local search after GNC: {search})" if search else "")
           + (f" (edges {', '.join(map(str, rejected[:10]))}"
              f"{', ...' if rejected.size > 10 else ''})" if rejected.size else ""))
     print(f"time: {total_s:.3f} s (including compilation)")

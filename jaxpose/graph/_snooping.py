@@ -18,13 +18,24 @@ contradict much (high leverage: the solution bent to fit it). ``I − L_k`` (the
 singular for a factor that alone constrains some direction (a bridge of the graph):
 removing it would leave that direction free and the test cannot see it; T_k is then NaN.
 
-Used by :func:`jaxpose.graph.gnc`'s deletion test (``max_deletions``).
+A factor left out of the solve (``kept`` in :func:`statistics`) gets the mirror image,
+its *addition statistic* (the innovation test of a Kalman update)
+
+    T_k = r̄_kᵀ (I + L̄_k)⁻¹ r̄_k,   L̄_k = J̄_k Σ_k J̄_kᵀ,
+
+r̄, J̄ its whitened residual and Jacobian at X*, Σ from the kept factors: what adding
+factor k and re-solving adds to ``Σ s`` in the linearised model (``I + L̄_k`` is the
+covariance of the factor's prediction error; always invertible).
+
+Used by :func:`jaxpose.graph.gnc`'s local search (``max_deletions``,
+``max_readmissions``).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -77,8 +88,9 @@ def plan(graph: FactorGraph, method: str, caller: str = "deletion_statistics") -
 
 
 def deletion_statistics(graph: FactorGraph, values: Any = None, *,
-                        method: str = "auto") -> tuple[Array, ...]:
-    """Per factor group, (m,) deletion statistics ``T_k`` at ``values`` (module docstring).
+                        method: str = "auto", kept: Any = None) -> tuple[Array, ...]:
+    """Per factor group, (m,) deletion statistics ``T_k`` at ``values`` (module docstring);
+    with ``kept``, the addition statistics of the factors left out.
 
     Args:
         graph: a :class:`~jaxpose.graph.FactorGraph` without Schur elimination; robust
@@ -89,11 +101,16 @@ def deletion_statistics(graph: FactorGraph, values: Any = None, *,
         method: how Σ's blocks are computed: ``"dense"`` (Cholesky; jit, vmap, grad),
             ``"sparse"`` (CHOLMOD's selected inversion on the host; jit, sequential vmap),
             ``"auto"`` (dense up to the solver's ``dense_max`` dimensions).
+        kept: optional, per factor group a (m,) bool array (a bare array for a one-group
+            graph): the factors of the solve ``values`` solves. A factor left out gets
+            its addition statistic (what adding it and re-solving adds to ``Σ s``);
+            default: every factor kept.
 
     Returns:
-        One (m,) array per factor group: ``T_k`` (≥ |r̃_k|² ≥ 0; 0 for a factor with zero
-        information, NaN where ``I − L_k`` has an eigenvalue below
-        :data:`REDUNDANCY_MIN`: the factor alone constrains a direction). A singular H (a
+        One (m,) array per factor group: ``T_k`` (≥ |r̃_k|² ≥ 0 for a kept factor, in
+        [0, |r̃_k|²] for one left out; 0 for a factor with zero information, NaN where
+        ``I − L_k`` has an eigenvalue below :data:`REDUNDANCY_MIN`: the factor alone
+        constrains a direction). A singular H (a
         free gauge) gives non-finite values.
     """
     if not isinstance(graph, FactorGraph):
@@ -101,24 +118,47 @@ def deletion_statistics(graph: FactorGraph, values: Any = None, *,
             f"deletion_statistics(graph): expected a FactorGraph, got {type(graph).__name__}")
     values = graph.variables if values is None else values
     check_variables(graph, values, "deletion_statistics(values)")
-    return statistics(with_checked_kernels(graph), values, plan(graph, method))
+    if kept is not None:
+        kept = (kept,) if len(graph.factors) == 1 and not isinstance(kept, (tuple, list)) \
+            else tuple(kept)
+        if len(kept) != len(graph.factors):
+            raise ValueError(f"deletion_statistics(kept): expected {len(graph.factors)} arrays "
+                             f"(one per factor group), got {len(kept)}")
+        kept = tuple(jnp.asarray(k) for k in kept)
+        for g, (k, f) in enumerate(zip(kept, graph.factors, strict=True)):
+            if k.dtype != bool or k.shape != (f.count,):
+                raise ValueError(f"deletion_statistics(kept[{g}]): expected a bool array of "
+                                 f"shape ({f.count},), got {k.dtype} {k.shape}")
+    return statistics(with_checked_kernels(graph), values, plan(graph, method), kept)
 
 
 @full_precision
-def statistics(graph: FactorGraph, values: Any, blocks_plan: _Plan) -> tuple[Array, ...]:
+def statistics(graph: FactorGraph, values: Any, blocks_plan: _Plan,
+               kept: tuple[Array, ...] | None = None) -> tuple[Array, ...]:
     """:func:`deletion_statistics` with the covariance blocks' :func:`plan` made
-    beforehand (traceable: ``graph`` may be traced, the plan is static)."""
+    beforehand (traceable: ``graph`` may be traced, the plan is static). ``kept``: per
+    factor group, (m,) bools, the factors in the solve (default: all); the others get
+    their addition statistic (module docstring), Σ comes from the kept ones."""
     lin = linearize(graph, values)
-    blocks = inverse_entries(graph, lin, blocks_plan, "deletion_statistics",
+    if kept is None:
+        kept = tuple(jnp.ones(r.shape[:1], bool) for r in lin.residuals)
+    mask = [k.astype(r.dtype) for k, r in zip(kept, lin.residuals, strict=True)]
+    solved = eqx.tree_at(
+        lambda t: (t.residuals, t.jacobians), lin,
+        (tuple(r * m[:, None] for r, m in zip(lin.residuals, mask, strict=True)),
+         tuple(tuple(j * m[:, None, None] for j in jac)
+               for jac, m in zip(lin.jacobians, mask, strict=True))))
+    blocks = inverse_entries(graph, solved, blocks_plan, "deletion_statistics",
                              "method='dense' to differentiate")
     out = []
-    for r, jac, cov in zip(lin.residuals, lin.jacobians, blocks, strict=True):
+    for r, jac, cov, k in zip(lin.residuals, lin.jacobians, blocks, kept, strict=True):
         j = jnp.concatenate(jac, axis=-1)  # (m, rdim, D)
-        redundancy = jnp.eye(r.shape[-1], dtype=r.dtype) - j @ cov @ jnp.swapaxes(j, -1, -2)
-        redundancy = 0.5 * (redundancy + jnp.swapaxes(redundancy, -1, -2))
-        lowest = jnp.linalg.eigvalsh(redundancy)[..., 0]
+        sign = jnp.where(k, -1.0, 1.0).astype(r.dtype)[:, None, None]
+        spread = jnp.eye(r.shape[-1], dtype=r.dtype) + sign * (j @ cov @ jnp.swapaxes(j, -1, -2))
+        spread = 0.5 * (spread + jnp.swapaxes(spread, -1, -2))
+        lowest = jnp.linalg.eigvalsh(spread)[..., 0]
         ok = lowest > max(REDUNDANCY_MIN, 1000 * float(jnp.finfo(r.dtype).eps))
-        safe = jnp.where(ok[:, None, None], redundancy, jnp.eye(r.shape[-1], dtype=r.dtype))
+        safe = jnp.where(ok[:, None, None], spread, jnp.eye(r.shape[-1], dtype=r.dtype))
         t = jnp.sum(r * jnp.linalg.solve(safe, r[..., None])[..., 0], -1)
         out.append(jnp.where(ok, t, jnp.nan))
     return tuple(out)
