@@ -203,7 +203,8 @@ def _bias_delta(b: Any, b_hat: Array, name: str) -> Array:
     arr = as_float(b, name)
     if arr.ndim == 0 or arr.shape[-1] != 3:
         raise ValueError(f"{name}: expected shape (..., 3), got {tuple(arr.shape)}")
-    return arr - b_hat
+    arr = runtime_check(arr, ~jnp.all(jnp.isfinite(arr)), f"{name}: expected finite values")
+    return arr.astype(b_hat.dtype) - b_hat
 
 
 def _vmap_n(fn: Any, n: int) -> Any:
@@ -334,7 +335,9 @@ def predict(
     acc_bias: Any = None,
 ) -> NavState:
     """``R_j = R_i ΔR``, ``v_j = v_i + g Δt + R_i Δv``, ``p_j = p_i + v_i Δt + ½ g Δt² +
-    R_i Δp`` (deltas bias-corrected to first order when biases are given); broadcasts."""
+    R_i Δp`` (deltas bias-corrected to first order when biases are given); broadcasts.
+    The result has the dtype of ``state`` and ``pre`` (gravity and biases are cast to it:
+    a list gravity made float32 data float64); non-finite gravity or biases raise."""
     if not isinstance(state, NavState):
         raise TypeError(f"predict(state): expected NavState, got {type(state).__name__}")
     if not isinstance(pre, Preintegrated):
@@ -343,6 +346,8 @@ def predict(
     if g.shape[-1:] != (3,):
         raise ValueError(f"predict(gravity): expected a 3-vector in the navigation frame, "
                          f"got shape {tuple(g.shape)}")
+    g = runtime_check(g, ~jnp.all(jnp.isfinite(g)), "predict(gravity): expected finite values")
+    g = g.astype(jnp.result_type(state.vel, state.pos, pre.vel))
     drot, dv, dp = pre.corrected(gyro_bias, acc_bias)
     t = pre.dt[..., None]
     q = state.rot.data
