@@ -86,6 +86,29 @@ def check_psd(mat: Array, name: str, *, strict: bool = False, symmetric: bool = 
         )
 
 
+def psd_checked(mat: Array, name: str, *, strict: bool = False) -> Array:
+    """``mat`` after :func:`check_psd`; a traced matrix (under ``jit``/``vmap``) is
+    checked in the compiled program instead (``eqx.error_if``: finite, symmetric, smallest
+    eigenvalue as :func:`check_psd` tolerates, one ``eigvalsh``), so a covariance computed
+    inside a jitted function is refused too. For matrices given once (noise, a starting
+    covariance), not per step."""
+    check_psd(mat, name, strict=strict)
+    if is_concrete(mat) or mat.size == 0:
+        return mat
+    m = jax.lax.stop_gradient(mat)
+    eps = float(jnp.finfo(mat.dtype).eps)
+    finite = jnp.all(jnp.isfinite(m))
+    safe = jnp.where(finite, m, 0.0)
+    scale = jnp.maximum(1.0, jnp.max(jnp.abs(safe)))
+    asym = jnp.max(jnp.abs(safe - jnp.swapaxes(safe, -1, -2)))
+    lo = jnp.min(jnp.linalg.eigvalsh(0.5 * (safe + jnp.swapaxes(safe, -1, -2))))
+    low = (lo <= 0.0) if strict else (lo < -1e2 * eps * scale * mat.shape[-1])
+    bad = ~finite | (asym > 1e3 * eps * scale) | low
+    kind = "positive-definite" if strict else "positive semi-definite"
+    return runtime_check(mat, bad, f"{name}: expected a finite, symmetric, {kind} matrix "
+                                   f"(checked under jit)")
+
+
 def check_horizon(horizon: Any, name: str = "horizon") -> int:
     """A positive Python int (static: it sets array shapes)."""
     if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
-from ..dynamics._checks import as_array, check_psd
+from ..dynamics._checks import as_array, check_psd, psd_checked
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_space
 from ..lie._base import runtime_check
@@ -31,9 +31,7 @@ class FilterResult(eqx.Module):
 
 def noise_matrix(M: Any, name: str, strict: bool = False) -> Array:
     """Validate a (k, k) covariance (symmetric PSD, or PD when ``strict``)."""
-    M = as_array(M, name, 2)
-    check_psd(M, name, strict=strict)
-    return M
+    return psd_checked(as_array(M, name, 2), name, strict=strict)
 
 
 def model_and_noise(model: Any, Q: Any, R: Any) -> tuple[System, Array, Array]:
@@ -45,13 +43,17 @@ def model_and_noise(model: Any, Q: Any, R: Any) -> tuple[System, Array, Array]:
     return model, noise_matrix(Q, "Q"), noise_matrix(R, "R", strict=True)
 
 
-def check_cov(P: Any, dim: int, name: str = "P") -> Array:
-    """A (dim, dim) covariance for a state with ``dim`` tangent coordinates."""
+def check_cov(P: Any, dim: int, name: str = "P", *, once: bool = False) -> Array:
+    """A (dim, dim) covariance for a state with ``dim`` tangent coordinates; its values
+    are checked where known, and also under ``jit`` with ``once`` (a starting covariance,
+    not a per-step one: :func:`~jaxpose.dynamics._checks.psd_checked`)."""
     P = as_array(P, name, 2)
     if P.shape != (dim, dim):
         raise ValueError(
             f"{name}: expected shape ({dim}, {dim}) (state tangent size), got {tuple(P.shape)}"
         )
+    if once:
+        return psd_checked(P, name)
     check_psd(P, name)
     return P
 

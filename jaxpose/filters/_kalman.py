@@ -63,8 +63,8 @@ class KalmanFilter(NoisyModelFilter):
 
     def step(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """Predict with ``u`` then update with ``y``; also ``filter(x, P, y, u, t)``.
-        ``P`` is checked as ``run``'s ``P0``: its shape always, its values (symmetric
-        positive semi-definite) where they are known (not under ``jit``).
+        ``P`` is checked for its shape always and for its values (symmetric positive
+        semi-definite) where they are known (not under ``jit``, unlike ``run``'s ``P0``).
         Compiled on first call (``eqx.filter_jit``; ``t`` is passed as an array, so a loop
         over time steps reuses one program)."""
         x = as_state(x)
@@ -84,7 +84,7 @@ class KalmanFilter(NoisyModelFilter):
         Compiled on first call (``eqx.filter_jit``): new arrays of the same shapes reuse
         the program."""
         x0 = as_state(x0, "x0")
-        P0 = check_cov(P0, tangent_space(x0).dim, "P0")  # eager: its values are checked
+        P0 = check_cov(P0, tangent_space(x0).dim, "P0", once=True)
         return _compiled_run(self, x0, P0, ys, us, jnp.asarray(t0))
 
     def _run(self, x0: Any, P0: Array, ys: Any, us: Array, t0: Array) -> FilterResult:

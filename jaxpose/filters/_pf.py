@@ -95,7 +95,7 @@ class ParticleFilter(NoisyModelFilter):
     def init(self, key: Array, x0: Any, P0: Any) -> ParticleState:
         """Particles drawn from ``x0 ⊕ N(0, P0)`` with equal weights."""
         ts = tangent_space(x0)
-        P0 = check_cov(P0, ts.dim, "P0")
+        P0 = check_cov(P0, ts.dim, "P0", once=True)
         N = self.num_particles
         L = psd_cholesky(P0)  # P0 = 0 → all particles at x0
         d = jax.random.normal(key, (N, ts.dim), P0.dtype) @ L.T
@@ -189,7 +189,7 @@ class ParticleFilter(NoisyModelFilter):
         (:class:`FilterResult`) and the ESS (N,) before resampling. Sizes are checked at
         trace time as in :meth:`EKF.run <jaxpose.filters.EKF.run>`. Compiled on first
         call (``eqx.filter_jit``)."""
-        P0 = check_cov(P0, tangent_space(x0).dim, "P0")  # eager: its values are checked
+        P0 = check_cov(P0, tangent_space(x0).dim, "P0", once=True)
         return _compiled_run(self, key, x0, P0, ys, us, jnp.asarray(t0))
 
     def _run(self, key: Array, x0: Any, P0: Any, ys: Any, us: Array,

@@ -380,3 +380,41 @@ def test_ukf_derivative_at_a_singular_covariance_raises():
     np.testing.assert_allclose(float(jax.grad(p00)(s)),
                                (float(p00(s + h)) - float(p00(s - h))) / (2 * h), rtol=1e-6)
     assert np.isfinite(float(p00(0.0)))  # values at P = 0 stay available
+
+
+@pytest.mark.parametrize("kind", ["EKF", "UKF", "PF"])
+def test_noise_and_start_covariances_are_checked_under_jit(kind):
+    """Q, R and P0 computed inside a jitted function (e.g. learned) skipped the value
+    checks: a negative-definite R ran through (NaN or skipped updates) and a P0 with a
+    negative eigenvalue gave numbers. They now raise in the compiled program too."""
+    jax.config.update("jax_enable_x64", True)
+    d, sys = _setup()
+    Filter = {"EKF": EKF, "UKF": UKF, "PF": None}[kind]
+
+    def run(Q, R, P0):
+        flt = _pf(sys, dict(d, Q=Q, R=R)) if kind == "PF" else Filter(sys, Q, R)
+        return _run_any(flt, d["x0"], P0, d["ys"], d["us"]).x
+
+    jitted = jax.jit(run)
+    good = (d["Q"], d["R"], d["P0"])
+    ref = run(*good)
+    np.testing.assert_allclose(jitted(*good), ref, rtol=1e-9, atol=1e-12)
+    cases = {
+        "R": (0, -np.asarray(d["R"]), "positive-definite"),
+        "Q": (1, -np.eye(3) * 0.1, "positive semi-definite"),
+        "P0": (2, np.diag([1.0, -1.0, 1.0]), "positive semi-definite"),
+    }
+    for name, (_, bad, kind_text) in cases.items():
+        args = dict(Q=d["Q"], R=d["R"], P0=d["P0"])
+        args[name] = bad
+        with pytest.raises(ValueError, match=rf"{name}: expected a positive"):
+            run(**args)  # eagerly: the existing check, with the eigenvalue
+        with pytest.raises(Exception, match=rf"{name}: expected a finite, symmetric, "
+                                            rf"{kind_text} matrix \(checked under jit\)"):
+            jax.block_until_ready(jitted(**args))
+    asym = np.asarray(d["Q"]) + np.triu(np.full((3, 3), 0.01), 1)
+    with pytest.raises(Exception, match=r"Q: expected a finite, symmetric"):
+        jax.block_until_ready(jitted(asym, d["R"], d["P0"]))
+    # differentiating a jitted run through a learned, valid Q still works
+    g = jax.grad(lambda s: jnp.sum(jitted(s * jnp.asarray(d["Q"]), d["R"], d["P0"])))(1.0)
+    assert np.isfinite(float(g))
