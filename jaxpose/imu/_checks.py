@@ -18,11 +18,15 @@ from ..lie import InvalidValueError
 Array = jax.Array
 
 
-def _non_negative(arr: Array, name: str) -> None:
-    """Refuse a concrete negative σ (squared, it would silently act as |σ|); a traced σ
-    is not checked."""
-    if not isinstance(arr, jax.core.Tracer) and bool(jnp.any(arr < 0)):
+def _non_negative(arr: Array, name: str) -> Array:
+    """Refuse a negative σ (squared, it would silently act as |σ|): eagerly with its
+    value, a traced σ (e.g. learned) in the compiled program (``eqx.error_if``)."""
+    if isinstance(arr, jax.core.Tracer):
+        return eqx.error_if(arr, jnp.any(arr < 0),
+                            f"{name}: expected σ ≥ 0 (a standard deviation; checked under jit)")
+    if bool(jnp.any(arr < 0)):
         raise ValueError(f"{name}: expected σ ≥ 0 (a standard deviation), got {np.asarray(arr)}")
+    return arr
 
 
 def scalar_var(x: Any, name: str, dtype: Any) -> Array:
@@ -30,7 +34,7 @@ def scalar_var(x: Any, name: str, dtype: Any) -> Array:
     arr = as_float(x, name).astype(dtype)
     if arr.ndim != 0:
         raise ValueError(f"{name}: expected a scalar σ, got shape {tuple(arr.shape)}")
-    _non_negative(arr, name)
+    arr = _non_negative(arr, name)
     return arr * arr
 
 
@@ -39,8 +43,7 @@ def noise_sigma(x: Any, name: str, dtype: Any) -> Array:
     arr = as_float(x, name).astype(dtype)
     if arr.shape not in ((), (3,)):
         raise ValueError(f"{name}: expected a scalar σ or shape (3,), got {tuple(arr.shape)}")
-    _non_negative(arr, name)
-    return jnp.broadcast_to(arr, (3,))
+    return jnp.broadcast_to(_non_negative(arr, name), (3,))
 
 
 def check_samples(

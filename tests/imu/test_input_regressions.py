@@ -137,6 +137,12 @@ def test_negative_noise_sigma_raises_instead_of_acting_as_its_magnitude(kw):
             ImuPreintegrator(**kw)
     ok = {"gyro_noise": 0.01, "acc_noise": 0.1, **{k: np.abs(v) for k, v in kw.items()}}
     assert np.isfinite(np.asarray(preintegrate(g, a, 0.01, **ok).cov)).all()
+    # a traced σ (learned noise) is checked in the compiled program
+    jitted = jax.jit(lambda s: preintegrate(g, a, 0.01, **{**ok, name: s}).cov)
+    with pytest.raises(Exception, match=rf"preintegrate\({name}\): expected σ ≥ 0 .*jit"):
+        jax.block_until_ready(jitted(jnp.asarray(kw[name])))
+    np.testing.assert_allclose(jitted(jnp.asarray(ok[name])),
+                               preintegrate(g, a, 0.01, **ok).cov, rtol=1e-12)
 
 
 def test_navstate_parts_must_share_the_batch_shape():
