@@ -274,13 +274,11 @@ def test_dense_inner_solver_runs_the_same_test_under_vmap():
     np.testing.assert_array_equal(np.asarray(batch.deletions), outliers.size)
 
 
-@pytest.mark.slow
-def test_manhattan_outlier_that_bends_the_estimate_is_removed():
-    """manhattan, 50 % wrong loop closures (seed 2): GNC alone keeps one wrong loop
-    closure whose residual is small (the trajectory bent to fit it; aligned APE 13 m);
-    the deletion test rejects it (APE 2.1 m, GTSAM's GNC 2.10 m)."""
+def _manhattan_half_wrong(seed):
+    """manhattan's clean optimum, and the graph with half its loop closures replaced by
+    random ones (``seed``) with their indices; skips without the shared data."""
     jax.config.update("jax_enable_x64", True)
-    from bench.pgo_outliers import DATA, ape_aligned
+    from bench.pgo_outliers import DATA
     from jaxpose import read_g2o
     from jaxpose.optim import Stopping
 
@@ -290,7 +288,17 @@ def test_manhattan_outlier_that_bends_the_estimate_is_removed():
     graph = read_g2o(path)
     clean, _ = pgo.optimize_pose_graph(graph, linear_solver="sparse", stopping=Stopping(
         max_steps=300, cost_rtol=1e-10, gtol=0.0, xtol=0.0))
-    bad, outliers = corrupt_loop_closures(graph, 0.5, seed=2)
+    return clean, *corrupt_loop_closures(graph, 0.5, seed=seed)
+
+
+@pytest.mark.slow
+def test_manhattan_outlier_that_bends_the_estimate_is_removed():
+    """manhattan, 50 % wrong loop closures (seed 2): GNC alone keeps one wrong loop
+    closure whose residual is small (the trajectory bent to fit it; aligned APE 13 m);
+    the deletion test rejects it (APE 2.1 m, GTSAM's GNC 2.10 m)."""
+    from bench.pgo_outliers import ape_aligned
+
+    clean, bad, outliers = _manhattan_half_wrong(seed=2)
     runs = {m: pgo.optimize_pose_graph(bad, robust="gnc", linear_solver="sparse",
                                        stopping=default_stopping(300),
                                        gnc_options={"max_deletions": m, "max_readmissions": 0})
@@ -309,18 +317,9 @@ def test_manhattan_true_loop_closures_rejected_at_a_bent_estimate_come_back():
     wrong loop closure but reject 35 true ones (aligned APE 1.91 m; GTSAM's GNC 0.665 m,
     the oracle that removes exactly the wrong ones 0.317 m). Re-admission takes back true
     ones only, each move lowering the TLS objective (APE below 0.35 m)."""
-    jax.config.update("jax_enable_x64", True)
-    from bench.pgo_outliers import DATA, ape_aligned, tls_objective
-    from jaxpose import read_g2o
-    from jaxpose.optim import Stopping
+    from bench.pgo_outliers import ape_aligned, tls_objective
 
-    path = DATA / "manhattan.g2o"
-    if not path.is_file():
-        pytest.skip(f"{path} not found")
-    graph = read_g2o(path)
-    clean, _ = pgo.optimize_pose_graph(graph, linear_solver="sparse", stopping=Stopping(
-        max_steps=300, cost_rtol=1e-10, gtol=0.0, xtol=0.0))
-    bad, outliers = corrupt_loop_closures(graph, 0.5, seed=3)
+    clean, bad, outliers = _manhattan_half_wrong(seed=3)
     runs = {m: pgo.optimize_pose_graph(bad, robust="gnc", linear_solver="sparse",
                                        stopping=default_stopping(300),
                                        gnc_options={"max_readmissions": m}) for m in (0, 50)}
