@@ -280,7 +280,8 @@ class RunResult(NamedTuple):
     """``latest`` stacked newest estimates (T, ...) after each step, ``latest_cov`` (T, d, d)
     their marginal covariances (None unless asked), ``trajectory`` (T, ...) each state's
     last estimate in the window, ``guesses`` (T, ...) the initial values fed, ``smoother``
-    the final smoother, ``iterations`` (T,) Gauss–Newton iterations per step."""
+    the final smoother, ``iterations`` (T,) Gauss–Newton iterations per step, ``status``
+    (T,) each update's :class:`~jaxpose.results.Results` code (``FixedLagSmoother.status``)."""
 
     latest: Any
     latest_cov: Any
@@ -288,6 +289,7 @@ class RunResult(NamedTuple):
     guesses: Any
     smoother: FixedLagSmoother
     iterations: Array
+    status: Array
 
 
 def _scan_impl(sm: FixedLagSmoother, steps: Steps, covariance: bool):
@@ -301,7 +303,7 @@ def _scan_impl(sm: FixedLagSmoother, steps: Steps, covariance: bool):
         else:
             s = s.update(x, d, *lp)
         cov = s.marginal_covariances()[-1] if covariance else None
-        return s, (s.latest(), cov, _take(s.states, 0), x, s.iterations)
+        return s, (s.latest(), cov, _take(s.states, 0), x, s.iterations, s.status)
 
     t = jax.tree.leaves(steps.data)[0].shape[0]
     sm, out = jax.lax.scan(body, sm, (jnp.arange(t), steps.data, steps.loops))
@@ -318,7 +320,7 @@ def run_scan(sm: FixedLagSmoother, steps: Steps) -> FixedLagSmoother:
 
 def run(sm: FixedLagSmoother, steps: Steps, *, covariance: bool = False) -> RunResult:
     """Replay ``steps`` through ``sm`` in one ``lax.scan``; see :class:`RunResult`."""
-    sm, (latest, cov, oldest, guesses, its) = _scan(sm, steps, covariance)
+    sm, (latest, cov, oldest, guesses, its, status) = _scan(sm, steps, covariance)
     t, k = jax.tree.leaves(steps.data)[0].shape[0], sm.window
     # state j leaves the window after step j + K - 1 (its estimate in slot 0 then)
     head = _take(oldest, jnp.arange(k - 1, t)) if t >= k else None
@@ -329,4 +331,4 @@ def run(sm: FixedLagSmoother, steps: Steps, *, covariance: bool = False) -> RunR
         if head is None
         else jax.tree.map(lambda a, b: jnp.concatenate([a[: t - n_tail], b]), head, tail)
     )
-    return RunResult(latest, cov, traj, guesses, sm, its)
+    return RunResult(latest, cov, traj, guesses, sm, its, status)

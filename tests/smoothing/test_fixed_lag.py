@@ -185,6 +185,7 @@ def test_pose_graph_replay_window_covering_the_graph_equals_batch():
     got = np.asarray(res.trajectory["pose"].data)
     np.testing.assert_allclose(got, ref_poses, atol=1e-5)
     assert isinstance(res.latest["pose"], SE2)
+    assert res.status.shape == (n,) and np.all(np.asarray(res.status) == 0)  # converged
 
 
 # ---------------------------------------------------------------- incremental updates
