@@ -494,7 +494,7 @@ def _run(
         Results.NON_FINITE,
         jnp.where(solved, Results.CONVERGED, Results.RUNNING),
     ).astype(jnp.int32)
-    deleting_on = surrogate == "tls" and config["max_deletions"] + config["max_readmissions"] > 0
+    search_on = surrogate == "tls" and config["max_deletions"] + config["max_readmissions"] > 0
 
     init = dict(
         x=x1,
@@ -510,10 +510,10 @@ def _run(
     )
     if config["max_iterations"] <= 0:
         init["status"] = jnp.where(init["status"] < 0, Results.MAX_STEPS, init["status"])
-    if deleting_on:  # phase 0: GNC, 1: local search; `final`: GNC's status
+    if search_on:  # phase 0: GNC, 1: local search; `final`: GNC's status
         init.update(final=init["status"], tls=tls_objective(s1, barc_sq, known_in, known_out),
                     phase=jnp.asarray(0, jnp.int32))
-        init = _enter_deletions(init, init["status"] >= 0)
+        init = _enter_search(init, init["status"] >= 0)
     weight_fn = tls_weights if surrogate == "tls" else gm_weights
 
     def gnc_weights(x: Any, mu: Array) -> Array:
@@ -541,15 +541,15 @@ def _run(
         mu, x = state["mu"], state["x"]
         plain = mu <= 0
         start = x if config["warm_start"] else x0
-        if deleting_on:
-            deleting = state["phase"] == 1
+        if search_on:
+            searching = state["phase"] == 1
             no_move = (lambda x, w, _: (w, jnp.asarray(False), jnp.asarray(False)))
-            w_move, worth, readmit = jax.lax.cond(deleting, move_candidate, no_move, x,
+            w_move, worth, readmit = jax.lax.cond(searching, move_candidate, no_move, x,
                                                   state["w"], state)
-            w = jnp.where(deleting, w_move, gnc_weights(x, mu))
-            start = _select(deleting, x, start)
+            w = jnp.where(searching, w_move, gnc_weights(x, mu))
+            start = _select(searching, x, start)
             x_new, ist, iits = jax.lax.cond(
-                ~deleting | worth,
+                ~searching | worth,
                 lambda: inner(start, _split(w, counts)),
                 lambda: (x, state["inner_status"], jnp.asarray(0, jnp.int32)),
             )
@@ -592,12 +592,12 @@ def _run(
             deletions=state["deletions"],
             readmissions=state["readmissions"],
         )
-        if not deleting_on:
+        if not search_on:
             return out
         tls_new = tls_objective(s_new, barc_sq, known_in, known_out)
         out.update(final=status, tls=jnp.where(finite, tls_new, state["tls"]),
                    phase=state["phase"])
-        out = _enter_deletions(out, status >= 0)
+        out = _enter_search(out, status >= 0)
         # a local-search move: kept only if the TLS objective decreased
         accept = worth & finite & (tls_new < state["tls"])
         n = state["deletions"] + (accept & ~readmit).astype(jnp.int32)
@@ -615,7 +615,7 @@ def _run(
             readmissions=n_in,
             status=jnp.where(accept & more, Results.RUNNING, state["final"]).astype(jnp.int32),
         )
-        return _select(deleting, step, out)
+        return _select(searching, step, out)
 
     out = jax.lax.while_loop(lambda st: st["status"] < 0, body, init)
     s = _squared_norms(graph, out["x"])
@@ -636,9 +636,9 @@ def _run(
     )
 
 
-def _enter_deletions(state: dict[str, Any], ended: Array) -> dict[str, Any]:
+def _enter_search(state: dict[str, Any], ended: Array) -> dict[str, Any]:
     """Where GNC's loop has ``ended`` (not non-finite), record its status in ``final``
-    and go on with the deletion test (phase 1, running)."""
+    and go on with the local search (phase 1, running)."""
     go = ended & (state["status"] != Results.NON_FINITE) & (state["phase"] == 0)
     out = dict(state)
     out["final"] = jnp.where(go, state["status"], state["final"]).astype(jnp.int32)
