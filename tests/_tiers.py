@@ -52,9 +52,11 @@ ALWAYS_DEFAULT = (
     "tests/graph/test_marginals_methods.py::",
     "tests/imu/test_bad_input.py::",
     "tests/imu/test_input_regressions.py::",
+    "tests/imu/test_predict_checks.py::",
     "tests/io/test_io_bad_input.py::",
     "tests/optim/test_bad_input.py::",
     "tests/smoothing/test_input_regressions.py::",
+    "tests/smoothing/test_status.py::",
 )
 HEADER = (
     "# Tests deselected from the default run (marked slow by tests/conftest.py): the default\n"
