@@ -214,6 +214,10 @@ def test_bad_input_is_named():
     problem = pgo.pose_graph_problem(synthetic_pose_graph("SE2", n_poses=6, seed=0)[0])
     with pytest.raises(ValueError, match="max_deletions"):
         gnc(problem, max_deletions=-1)
+    with pytest.raises(ValueError, match="max_readmissions"):
+        gnc(problem, max_readmissions=2.5)
+    with pytest.raises(ValueError, match="readmit_probability"):
+        gnc(problem, readmit_probability=1.0)
 
 
 # ----------------------------------------------------------------------------------
@@ -327,11 +331,37 @@ def test_manhattan_true_loop_closures_rejected_at_a_bent_estimate_come_back():
     truth[outliers] = False
     kept = {m: np.asarray(s.weights[0]) > 0.5 for m, (_, s) in runs.items()}
     assert not np.any(kept[0] & ~truth) and not np.any(kept[50] & ~truth)
-    assert int(runs[0][1].readmissions) == 0 and int(runs[50][1].readmissions) >= 20
-    assert np.sum(~kept[50] & truth) < np.sum(~kept[0] & truth) - 15
+    assert int(runs[0][1].readmissions) == 0 and int(runs[50][1].readmissions) >= 10
+    assert np.sum(~kept[50] & truth) <= np.sum(~kept[0] & truth) - 10
     assert ape_aligned("SE2", clean, runs[0][0]) > 1.5
-    assert ape_aligned("SE2", clean, runs[50][0]) < 0.35
+    assert ape_aligned("SE2", clean, runs[50][0]) < 0.25
     assert tls_objective(bad, runs[50][0]) < tls_objective(bad, runs[0][0]) - 50
+
+
+def test_a_wrong_loop_closure_just_below_the_threshold_is_not_re_admitted():
+    """intel, 30 % wrong loop closures (seed 1): GNC rejects every wrong one; one of them
+    has addition statistic 10.4, below c̄² = 11.34, so re-admitting it lowers the TLS
+    objective (by 0.45) — and moved the trajectory (aligned APE 0.020 → 0.65). Re-admission
+    asks for the median inlier's consistency (``readmit_probability=0.5``)."""
+    jax.config.update("jax_enable_x64", True)
+    from bench.pgo_outliers import DATA
+    from jaxpose import read_g2o
+
+    path = DATA / "intel.g2o"
+    if not path.is_file():
+        pytest.skip(f"{path} not found")
+    bad, outliers = corrupt_loop_closures(read_g2o(path), 0.3, seed=1)
+    truth = np.ones(bad.n_edges, bool)
+    truth[outliers] = False
+    runs = {p: pgo.optimize_pose_graph(bad, robust="gnc", linear_solver="sparse",
+                                       stopping=default_stopping(200),
+                                       gnc_options={"readmit_probability": p})[1]
+            for p in (0.5, 0.99)}
+    wrong = {p: np.flatnonzero((np.asarray(s.weights[0]) > 0.5) & ~truth)
+             for p, s in runs.items()}
+    assert wrong[0.5].size == 0 and int(runs[0.5].readmissions) == 0
+    assert wrong[0.99].size == 1 and int(runs[0.99].readmissions) == 1
+    assert float(runs[0.99].robust_cost) < float(runs[0.5].robust_cost)  # the objective's pick
 
 
 def test_differentiating_the_sparse_method_names_deletion_statistics():
