@@ -18,7 +18,8 @@ poses with pose 0 held (GTSAM: a prior with σ = 1e-6, a known inlier):
 * ``oracle``: jaxpose LM (no kernel) on the corrupted graph with the replaced edges
   removed, i.e. told which edges are outliers. Replacing loop closures removes their
   information, so even a perfect outlier rejection does not reach the clean optimum: the
-  oracle's APE is the floor any robust method can reach on that draw.
+  oracle's APE is what perfect rejection reaches on that draw (a floor in expectation; on
+  one draw, leaving out some true loop closures can land nearer the clean optimum).
 
 Error: APE = translation RMSE against the clean graph's optimum (jaxpose LM on the
 uncorrupted graph, from the same start), two ways: after aligning the first poses (the
