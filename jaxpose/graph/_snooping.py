@@ -132,6 +132,16 @@ def deletion_statistics(graph: FactorGraph, values: Any = None, *,
     return statistics(with_checked_kernels(graph), values, plan(graph, method), kept)
 
 
+def _masked(lin: Any, kept: tuple[Array, ...]) -> Any:
+    """``lin`` with the rows of the factors not ``kept`` zeroed (the solve without them)."""
+    mask = [k.astype(r.dtype) for k, r in zip(kept, lin.residuals, strict=True)]
+    return eqx.tree_at(
+        lambda t: (t.residuals, t.jacobians), lin,
+        (tuple(r * m[:, None] for r, m in zip(lin.residuals, mask, strict=True)),
+         tuple(tuple(j * m[:, None, None] for j in jac)
+               for jac, m in zip(lin.jacobians, mask, strict=True))))
+
+
 @full_precision
 def statistics(graph: FactorGraph, values: Any, blocks_plan: _Plan,
                kept: tuple[Array, ...] | None = None) -> tuple[Array, ...]:
@@ -140,14 +150,9 @@ def statistics(graph: FactorGraph, values: Any, blocks_plan: _Plan,
     factor group, (m,) bools, the factors in the solve (default: all); the others get
     their addition statistic (module docstring), Σ comes from the kept ones."""
     lin = linearize(graph, values)
+    solved = lin if kept is None else _masked(lin, kept)
     if kept is None:
         kept = tuple(jnp.ones(r.shape[:1], bool) for r in lin.residuals)
-    mask = [k.astype(r.dtype) for k, r in zip(kept, lin.residuals, strict=True)]
-    solved = eqx.tree_at(
-        lambda t: (t.residuals, t.jacobians), lin,
-        (tuple(r * m[:, None] for r, m in zip(lin.residuals, mask, strict=True)),
-         tuple(tuple(j * m[:, None, None] for j in jac)
-               for jac, m in zip(lin.jacobians, mask, strict=True))))
     blocks = inverse_entries(graph, solved, blocks_plan, "deletion_statistics",
                              "method='dense' to differentiate")
     out = []
