@@ -707,6 +707,19 @@ class LieGroup(_Element):
         coefficients have a shorter form on that range (SO3, SE3, SE2) override it."""
         return cls._jl_inv(a)
 
+    @classmethod
+    def _jl_inv_principal_dual(cls, a: Array, y: Array) -> tuple[Array, Array, Array]:
+        """``(J, Jᵀy, ∂(Jᵀy)/∂a)`` with J = ``_jl_inv_principal(a)`` (d, d), for one
+        tangent ``a`` (d,) and a fixed ``y`` (d,): what the exact Hessian of a between
+        factor needs (forward mode here; SE3 overrides it with a closed form)."""
+        def jty(x: Array) -> tuple[Array, tuple[Array, Array]]:
+            jac = cls._jl_inv_principal(x)
+            out = jnp.sum(jac * y[:, None], 0)
+            return out, (out, jac)
+
+        dual, (out, jac) = jax.jacfwd(jty, has_aux=True)(a)
+        return jac, out, dual
+
 
 def _shape_args(shape: tuple[Any, ...]) -> tuple[int, ...]:
     """Accept reshape(2, 3) and reshape((2, 3))."""
