@@ -54,6 +54,13 @@ def check_last(arr: Array, size: int, name: str, what: str) -> None:
         )
 
 
+def _psd_limits(eps: float, scale: Any, k: int) -> tuple[Any, Any]:
+    """(largest |M − Mᵀ|, lowest eigenvalue) that rounding alone gives a symmetric positive
+    semi-definite k×k matrix whose largest entry is ``scale`` (≥ 1) in a dtype of
+    precision ``eps``: one rule for the eager and the compiled check."""
+    return 1e3 * eps * scale, -1e2 * eps * scale * k
+
+
 def check_psd(mat: Array, name: str, *, strict: bool = False, symmetric: bool = True) -> None:
     """Raise if a concrete matrix (or stack) is not symmetric positive (semi-)definite.
 
@@ -70,7 +77,8 @@ def check_psd(mat: Array, name: str, *, strict: bool = False, symmetric: bool = 
     eps = float(jnp.finfo(mat.dtype).eps)
     scale = max(1.0, float(np.max(np.abs(m)))) if m.size else 1.0
     asym = float(np.max(np.abs(m - np.swapaxes(m, -1, -2)))) if m.size else 0.0
-    if symmetric and asym > 1e3 * eps * scale:
+    max_asym, min_eig = _psd_limits(eps, scale, mat.shape[-1])
+    if symmetric and asym > max_asym:
         raise ValueError(f"{name}: expected a symmetric matrix (max |M − Mᵀ| = {asym:.3g})")
     if m.size == 0:
         return
@@ -80,7 +88,7 @@ def check_psd(mat: Array, name: str, *, strict: bool = False, symmetric: bool = 
         raise ValueError(
             f"{name}: expected a positive-definite matrix, smallest eigenvalue {lo:.3g}"
         )
-    if lo < -1e2 * eps * scale * m.shape[-1]:
+    if lo < min_eig:
         raise ValueError(
             f"{name}: expected a positive semi-definite matrix, smallest eigenvalue {lo:.3g}"
         )
@@ -102,8 +110,9 @@ def psd_checked(mat: Array, name: str, *, strict: bool = False) -> Array:
     scale = jnp.maximum(1.0, jnp.max(jnp.abs(safe)))
     asym = jnp.max(jnp.abs(safe - jnp.swapaxes(safe, -1, -2)))
     lo = jnp.min(jnp.linalg.eigvalsh(0.5 * (safe + jnp.swapaxes(safe, -1, -2))))
-    low = (lo <= 0.0) if strict else (lo < -1e2 * eps * scale * mat.shape[-1])
-    bad = ~finite | (asym > 1e3 * eps * scale) | low
+    max_asym, min_eig = _psd_limits(eps, scale, mat.shape[-1])
+    low = (lo <= 0.0) if strict else (lo < min_eig)
+    bad = ~finite | (asym > max_asym) | low
     kind = "positive-definite" if strict else "positive semi-definite"
     return runtime_check(mat, bad, f"{name}: expected a finite, symmetric, {kind} matrix "
                                    f"(checked under jit)")
