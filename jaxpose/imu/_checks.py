@@ -14,19 +14,18 @@ import numpy as np
 
 from .._checks import as_float_array as as_float
 from ..lie import InvalidValueError
+from ..lie._base import runtime_check
 
 Array = jax.Array
 
 
 def _non_negative(arr: Array, name: str) -> Array:
     """Refuse a negative σ (squared, it would silently act as |σ|): eagerly with its
-    value, a traced σ (e.g. learned) in the compiled program (``eqx.error_if``)."""
-    if isinstance(arr, jax.core.Tracer):
-        return eqx.error_if(arr, jnp.any(arr < 0),
-                            f"{name}: expected σ ≥ 0 (a standard deviation; checked under jit)")
-    if bool(jnp.any(arr < 0)):
-        raise ValueError(f"{name}: expected σ ≥ 0 (a standard deviation), got {np.asarray(arr)}")
-    return arr
+    value, a traced σ (e.g. learned) in the compiled program (``runtime_check``)."""
+    what = f"{name}: expected σ ≥ 0 (a standard deviation"
+    msg = (f"{what}; checked under jit)" if isinstance(arr, jax.core.Tracer)
+           else f"{what}), got {np.asarray(arr)}")
+    return runtime_check(arr, jnp.any(arr < 0), msg)
 
 
 def scalar_var(x: Any, name: str, dtype: Any) -> Array:
