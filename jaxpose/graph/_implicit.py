@@ -205,7 +205,7 @@ def _between_hessian(kernel: Any, xi: LieGroup, xj: LieGroup, z: LieGroup,
     antisymmetric, so Σ yₖ∇²rₖ = sym(K·J), and with y = Sᵀ(S·r):
     G = ρ′·(JᵀSᵀSJ + sym(K·J)) + 2ρ″·(Jᵀy)(Jᵀy)ᵀ, g = ρ′·Jᵀy. Exact at every (X, θ)
     and built from differentiable operations, hence differentiable again like the
-    generic rule (K from the group's ``_jl_inv_principal_dual``: a closed form for SE3,
+    generic rule (K from the group's ``_jl_inv_principal_dual``: closed forms for SE3 and SE2,
     one forward-mode Jacobian of Jr⁻¹ otherwise — not a second-order pass through Log,
     Exp and the products, which took twice the time on parking-garage).
     """

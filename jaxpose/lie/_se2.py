@@ -145,6 +145,29 @@ class SE2(LieGroup):
         return SE2._jl_inv(xi, principal=True)
 
     @staticmethod
+    def _jl_inv_principal_dual(xi: Array, y: Array) -> tuple[Array, Array, Array]:
+        # ∂(Jl⁻¹(ξ)ᵀy)/∂ξ in closed form. Jl⁻¹ = [[V⁻¹, c], [0, 1]] with V⁻¹ = h·I + ½θ·P,
+        # P = [[0, 1], [−1, 0]], h = (θ/2)cot(θ/2), and c = −V⁻¹·w = −θg·ρ − ½P·ρ,
+        # g = (h − 1)/θ². With y = (a, b): Jl⁻¹ᵀy = (h·a − ½θ·P·a, c·a + b), so
+        # ∂/∂θ of the first is 2θh′(t)·a − ½P·a; of the second, ∂/∂ρ = −θg·a + ½P·a and
+        # ∂/∂θ = −(g + 2t·g′(t))·(ρ·a), t = θ²
+        jac = SE2._jl_inv_principal(xi)
+        rx, ry, th = parts(xi)
+        ax, ay, _ = parts(y)
+        t = th * th
+        fh, fg = series.half_cot_half_principal, series.half_cot_half_minus_one_over_t_principal
+        dh, g, dg = series.computed_once(fh.derivative(t), fg(t), fg.derivative(t))
+        p_ax, p_ay = 0.5 * ay, -0.5 * ax  # ½P·a
+        zero = jnp.zeros_like(th)
+        d_theta = -(g + 2.0 * t * dg) * (rx * ax + ry * ay)
+        rows = [[zero, zero, 2.0 * th * dh * ax - p_ax],
+                [zero, zero, 2.0 * th * dh * ay - p_ay],
+                [-th * g * ax + p_ax, -th * g * ay + p_ay, d_theta]]
+        dual = jnp.stack([jnp.stack(r, -1) for r in rows], -2)
+        jty = jnp.sum(jac * y[..., :, None], -2)
+        return jac, jty, dual
+
+    @staticmethod
     def _hat(xi: Array) -> Array:
         top = jnp.concatenate([SO2._hat(xi[..., 2:]), xi[..., :2, None]], -1)
         return jnp.concatenate([top, jnp.zeros_like(top[..., :1, :])], -2)

@@ -444,6 +444,12 @@ half_cot_half_principal = _Fn.even(
     "half_cot_half_principal", _HALF_COT_LONG, math.pi**2 * 1.001, None,
     "half_cot_half for |θ| ≤ π (the range of the SE(2) logarithm) as one polynomial in t.",
 )
+half_cot_half_minus_one_over_t_principal = _Fn(
+    "half_cot_half_minus_one_over_t_principal", half_cot_half_principal.exact_coeffs[1:],
+    math.pi**2 * 1.001, None,
+    "((θ/2)·cot(θ/2) − 1)/θ² for |θ| ≤ π as one polynomial in t: SE(2)'s Jl⁻¹ column is "
+    "−θ·(this)·ρ − ½·[ρy, −ρx].",
+)
 se3_q_c2 = _Fn.even(
     "se3_q_c2",
     _scale(_shift(_add(_mono(2), _scale(_COS, 2), _mono(0, -2)), 4), Fraction(1, 2)),

@@ -452,31 +452,32 @@ def _ref_jl_inv_dual(G, a64: np.ndarray, y: np.ndarray) -> np.ndarray:
     return to_float(np.asarray(cols, object).T)
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: np.dtype(d).name)
-def test_se3_principal_jl_inv_dual_closed_form(dtype):
-    """SE3's closed-form ``_jl_inv_principal_dual`` (the exact Hessian of between factors
-    uses it) equals central differences of the fixed-point reference over angles 0 to
-    π − 1e-9, and its own derivative equals the forward-mode derivative of the generic
-    rule (jacfwd of ``_jl_inv_principal``) — what third derivatives through graph.solve use."""
+@pytest.mark.parametrize("G,dtype", _params(groups=(SE3, SE2)))
+def test_principal_jl_inv_dual_closed_form(G, dtype):
+    """SE3's and SE2's closed-form ``_jl_inv_principal_dual`` (the exact Hessian of between
+    factors uses it) equals central differences of the fixed-point reference over angles
+    0 to π − 1e-9, and its own derivative equals the forward-mode derivative of the
+    generic rule (jacfwd of ``_jl_inv_principal``) — what third derivatives through
+    graph.solve use."""
     from jaxpose.lie._base import LieGroup
 
-    th, a64 = sample_tangents(SE3)
+    th, a64 = sample_tangents(G)
     pick = np.unique(np.linspace(0, th.size - 1, 12).astype(int))
-    y64 = np.random.default_rng(7).normal(size=(pick.size, 6))
-    closed = jax.jit(jax.vmap(SE3._jl_inv_principal_dual))
+    y64 = np.random.default_rng(7).normal(size=(pick.size, G.tangent_dim))
+    closed = jax.jit(jax.vmap(G._jl_inv_principal_dual))
     jac, jty, dual = closed(jnp.asarray(a64[pick], dtype), jnp.asarray(y64, dtype))
     assert dual.dtype == dtype
-    want = np.stack([_ref_jl_inv_dual(SE3, a, y) for a, y in zip(a64[pick], y64, strict=True)])
+    want = np.stack([_ref_jl_inv_dual(G, a, y) for a, y in zip(a64[pick], y64, strict=True)])
     tol = {np.float64: 1e-13, np.float32: 2e-6}[dtype]
     err = rel_errors(dual, want)
-    assert err.max() <= tol, _report("SE3 jl_inv dual", th[pick], err, tol)
+    assert err.max() <= tol, _report(f"{_gid(G)} jl_inv dual", th[pick], err, tol)
     np.testing.assert_allclose(jty, np.einsum("nij,ni->nj", np.asarray(jac), y64), rtol=tol,
                                atol=tol)
 
     def generic(a, y):
-        return LieGroup._jl_inv_principal_dual.__func__(SE3, a, y)[2]
+        return LieGroup._jl_inv_principal_dual.__func__(G, a, y)[2]
 
-    second = jax.jit(jax.vmap(jax.jacfwd(lambda a, y: SE3._jl_inv_principal_dual(a, y)[2])))
+    second = jax.jit(jax.vmap(jax.jacfwd(lambda a, y: G._jl_inv_principal_dual(a, y)[2])))
     second_generic = jax.jit(jax.vmap(jax.jacfwd(generic)))
     args = (jnp.asarray(a64[pick], dtype), jnp.asarray(y64, dtype))
     np.testing.assert_allclose(second(*args), second_generic(*args), rtol=10 * tol,
