@@ -711,7 +711,7 @@ class LieGroup(_Element):
     def _jl_inv_principal_dual(cls, a: Array, y: Array) -> tuple[Array, Array, Array]:
         """``(J, Jᵀy, ∂(Jᵀy)/∂a)`` with J = ``_jl_inv_principal(a)`` (d, d), for one
         tangent ``a`` (d,) and a fixed ``y`` (d,): what the exact Hessian of a between
-        factor needs (forward mode here; SE3 overrides it with a closed form)."""
+        factor needs (forward mode here; SE3 and SE2 override it with closed forms)."""
         def jty(x: Array) -> tuple[Array, tuple[Array, Array]]:
             jac = cls._jl_inv_principal(x)
             out = jnp.sum(jac * y[:, None], 0)
