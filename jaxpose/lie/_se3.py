@@ -85,6 +85,26 @@ def q_block(rho: Array, phi: Array) -> Array:
     )
 
 
+def _jl_inv_from(rho: Array, phi: Array, t: Array, beta: Array, gamma: Array) -> Array:
+    """Jl⁻¹(ξ) (..., 6, 6) on the principal range from ξ's parts (..., 3), t = |φ|² and the
+    series coefficients β(t), γ(t) (..., ) (``SE3._jl_inv_principal``'s formula)."""
+    # I − ½·ad + β·ad² + γ·ad⁴ (series.AD_PRINCIPAL) in 3×3 blocks, P = [φ]×, R = [ρ]×:
+    # ad² = [[P², S], [0, P²]] with P² = φφᵀ − θ²I and S = PR + RP = ρφᵀ + φρᵀ − 2(φ·ρ)I,
+    # ad⁴ = [[−θ²P², T], [0, −θ²P²]] with T = P²S + SP² = −2(φ·ρ)φφᵀ − θ²(ρφᵀ + φρᵀ)
+    # + 4(φ·ρ)θ²I: outer products only (batched 6×6 products ran 3x slower on XLA:CPU)
+    d = 2.0 * sum(phi[..., i] * rho[..., i] for i in range(3))  # 2(φ·ρ)
+    beta, gamma = beta[..., None, None], gamma[..., None, None]
+    t, d = t[..., None, None], d[..., None, None]
+    eye = jnp.eye(3, dtype=phi.dtype)
+    pp = phi[..., :, None] * phi[..., None, :]
+    sym = rho[..., :, None] * phi[..., None, :] + phi[..., :, None] * rho[..., None, :]
+    ji = eye - 0.5 * skew(phi) + (beta - gamma * t) * (pp - t * eye)
+    q = (-0.5 * skew(rho) + beta * (sym - d * eye)
+         + gamma * (-d * pp - t * sym + 2.0 * d * t * eye))  # d = 2(φ·ρ)
+    return jnp.concatenate([jnp.concatenate([ji, q], -1),
+                            jnp.concatenate([jnp.zeros_like(ji), ji], -1)], -2)
+
+
 class SE3(LieGroup):
     """SE(3) element: ``data`` (..., 7) = ``[tx, ty, tz, qx, qy, qz, qw]``."""
 
@@ -179,26 +199,12 @@ class SE3(LieGroup):
         )
 
     @staticmethod
-    def _jl_inv_principal(xi: Array) -> Array:
-        # I − ½·ad + β·ad² + γ·ad⁴ (series.AD_PRINCIPAL) in 3×3 blocks, P = [φ]×, R = [ρ]×:
-        # ad² = [[P², S], [0, P²]] with P² = φφᵀ − θ²I and S = PR + RP = ρφᵀ + φρᵀ − 2(φ·ρ)I,
-        # ad⁴ = [[−θ²P², T], [0, −θ²P²]] with T = P²S + SP² = −2(φ·ρ)φφᵀ − θ²(ρφᵀ + φρᵀ)
-        # + 4(φ·ρ)θ²I: outer products only (batched 6×6 products ran 3x slower on XLA:CPU)
+    def _jl_inv_principal(xi: Array) -> Array:  # formula: _jl_inv_from
         rho, phi = _split(xi)
         t = series.safe_norm_sq(phi)
-        d = 2.0 * sum(phi[..., i] * rho[..., i] for i in range(3))  # 2(φ·ρ)
         beta, gamma = series.computed_once(series.se3_jinv_ad2_principal(t),
                                            series.se3_jinv_ad4_principal(t))
-        beta, gamma = beta[..., None, None], gamma[..., None, None]
-        t, d = t[..., None, None], d[..., None, None]
-        eye = jnp.eye(3, dtype=xi.dtype)
-        pp = phi[..., :, None] * phi[..., None, :]
-        sym = rho[..., :, None] * phi[..., None, :] + phi[..., :, None] * rho[..., None, :]
-        ji = eye - 0.5 * skew(phi) + (beta - gamma * t) * (pp - t * eye)
-        q = (-0.5 * skew(rho) + beta * (sym - d * eye)
-             + gamma * (-d * pp - t * sym + 2.0 * d * t * eye))  # d = 2(φ·ρ)
-        return jnp.concatenate([jnp.concatenate([ji, q], -1),
-                                jnp.concatenate([jnp.zeros_like(ji), ji], -1)], -2)
+        return _jl_inv_from(rho, phi, t, beta, gamma)
 
     @staticmethod
     def _jl_inv_principal_dual(xi: Array, y: Array) -> tuple[Array, Array, Array]:
@@ -207,13 +213,13 @@ class SE3(LieGroup):
         # _jl_inv_principal, Jl⁻¹ = [[J, Q], [0, J]], J = I − ½[φ]× + c·(φφᵀ − tI),
         # c = β − γt, and y = (a, b): Jl⁻¹ᵀy = (Jᵀa, Qᵀa + Jᵀb), so
         # ∂/∂ξ = [[0, D(a)], [∂(Qᵀa)/∂ρ, ∂(Qᵀa)/∂φ + D(b)]] with D(u) = ∂(Jᵀu)/∂φ
-        jac = SE3._jl_inv_principal(xi)
         rho, phi = _split(xi)
         a, b = _split(y)
         t = series.safe_norm_sq(phi)
         fb, fg = series.AD_PRINCIPAL
         beta, gamma, dbeta, dgamma = series.computed_once(fb(t), fg(t), fb.derivative(t),
                                                          fg.derivative(t))
+        jac = _jl_inv_from(rho, phi, t, beta, gamma)
         c, dc = beta - gamma * t, dbeta - dgamma * t - gamma
         eye = jnp.eye(3, dtype=xi.dtype)
 
