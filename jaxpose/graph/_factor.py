@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _small_linalg as small_linalg
 from ..lie._base import LieGroup, small_matmul
 from ..optim._correctors import Corrector, FastTriggs
 from ..optim._kernels import Kernel
@@ -202,7 +203,7 @@ def _traced_sqrt_information(information: Array, count: int) -> Array:
         raise ValueError(
             f"Factor(information): expected shape ({count}, r, r) or (r, r), got {om.shape}"
         )
-    lower = jnp.linalg.cholesky(0.5 * (om + jnp.swapaxes(om, 1, 2)))
+    lower = small_linalg.cholesky(om)
     lower = eqx.error_if(
         lower,
         ~jnp.all(jnp.isfinite(lower)),

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 
+from .. import _small_linalg as small_linalg
 from . import _cholmod as cholmod
 
 Array = jax.Array
@@ -187,7 +188,7 @@ def solve_pcg(
 
 def block_jacobi(blocks: tuple[Array, ...]) -> Callable[[Array], Array]:
     """Preconditioner from per-type diagonal blocks (n, d, d): applies their inverses."""
-    inverses = tuple(jnp.linalg.inv(b) for b in blocks)
+    inverses = tuple(small_linalg.spd_inv(b) for b in blocks)
 
     def apply(v: Array) -> Array:
         out, start = [], 0

@@ -30,6 +30,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .. import _small_linalg as small_linalg
 from ._analysis import SchurStructure, split_tangent
 from ._linear import solve_dense, solve_sparse_direct
 from ._pattern import scatter_blocks
@@ -193,7 +194,7 @@ def reduced_system(
     add = split_tangent(st, diag_add)
     diag_idx = jnp.arange(d_e)
     v = v.at[:, diag_idx, diag_idx].add(add[e])
-    v_inv = jnp.linalg.inv(v)
+    v_inv = small_linalg.inv(v)
 
     # S = U − Σ_pairs Y_a B_bᵀ over the upper triangle, accumulated in chunks
     y = [jnp.einsum("nie,nef->nif", wk, v_inv[p]) for wk, p in zip(w, sc.w_point, strict=True)]

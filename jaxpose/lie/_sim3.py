@@ -14,6 +14,7 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 
+from .. import _small_linalg as small_linalg
 from . import _quaternion as quat
 from . import series
 from ._base import (
@@ -93,7 +94,7 @@ class Sim3(LieGroup):
     def _log(x: Array) -> Array:
         phi = quat.log(x[..., 3:7])
         sigma = jnp.log(x[..., 7])
-        rho = jnp.linalg.solve(w_matrix(phi, sigma), x[..., :3, None])[..., 0]
+        rho = small_linalg.solve(w_matrix(phi, sigma), x[..., :3, None])[..., 0]
         return jnp.concatenate([rho, phi, sigma[..., None]], -1)
 
     @staticmethod
@@ -140,6 +141,21 @@ class Sim3(LieGroup):
             -1,
         )
         return jnp.concatenate([row0, row1, row2], -2)
+
+    @classmethod
+    def _jl_inv(cls, xi: Array) -> Array:
+        """Jl⁻¹ from Jl's block-triangular form (Ad is block upper triangular in (ρ, φ, σ),
+        so is its integral): Jl = [[X, Y, z], [0, J, 0], [0, 0, 1]] with J SO(3)'s Jl, so
+        Jl⁻¹ = [[X⁻¹, −X⁻¹·Y·J⁻¹, −X⁻¹·z], [0, J⁻¹, 0], [0, 0, 1]] (X⁻¹ a 3×3 adjugate,
+        J⁻¹ SO(3)'s closed form): no 7×7 solve, whose derivatives are large programs."""
+        jl = cls._jl(xi)
+        x_inv = small_linalg.inv(jl[..., :3, :3])
+        j_inv = quat.jl_inv(xi[..., 3:6])
+        coupling = -small_matmul(x_inv, jl[..., :3, 3:])  # −X⁻¹·[Y, z]
+        row0 = jnp.concatenate([x_inv, small_matmul(coupling[..., :3], j_inv),
+                                coupling[..., 3:]], -1)
+        rest = jnp.zeros_like(jl[..., 3:, :]).at[..., :3, 3:6].set(j_inv).at[..., 3, 6].set(1.0)
+        return jnp.concatenate([row0, rest], -2)
 
     @staticmethod
     def _hat(xi: Array) -> Array:

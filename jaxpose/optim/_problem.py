@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from .. import _small_linalg as small_linalg
 from ..lie import manifold
 from ._colouring import Pattern, SparseJacobian, compressed_jacobian, make_pattern
 from ._correctors import Corrector, FastTriggs
@@ -252,7 +253,7 @@ class Problem(eqx.Module):
                     jb = None if jb is None else lw * jb
                 else:
                     wb = jnp.reshape(jnp.broadcast_to(w, (*batch, d, d)), (nb, d, d))
-                    chol = jnp.linalg.cholesky(wb)
+                    chol = small_linalg.cholesky(wb)
                     chol = eqx.error_if(
                         chol,
                         ~jnp.all(jnp.isfinite(chol)),
