@@ -187,7 +187,9 @@ def solve_pcg(
 
 
 def block_jacobi(blocks: tuple[Array, ...]) -> Callable[[Array], Array]:
-    """Preconditioner from per-type diagonal blocks (n, d, d): applies their inverses."""
+    """Preconditioner from per-type diagonal blocks (n, d, d) of a symmetric positive-definite
+    matrix (every diagonal block of one is too): applies their inverses (NaN for a block
+    that is not positive definite)."""
     inverses = tuple(small_linalg.spd_inv(b) for b in blocks)
 
     def apply(v: Array) -> Array:

@@ -147,7 +147,8 @@ class Sim3(LieGroup):
         """Jl⁻¹ from Jl's block-triangular form (Ad is block upper triangular in (ρ, φ, σ),
         so is its integral): Jl = [[X, Y, z], [0, J, 0], [0, 0, 1]] with J SO(3)'s Jl, so
         Jl⁻¹ = [[X⁻¹, −X⁻¹·Y·J⁻¹, −X⁻¹·z], [0, J⁻¹, 0], [0, 0, 1]] (X⁻¹ a 3×3 adjugate,
-        J⁻¹ SO(3)'s closed form): no 7×7 solve, whose derivatives are large programs."""
+        J⁻¹ SO(3)'s closed form). No 7×7 LAPACK solve: batched, its derivatives deadlocked
+        XLA:CPU on 2 cores (:mod:`jaxpose._small_linalg`)."""
         jl = cls._jl(xi)
         x_inv = small_linalg.inv(jl[..., :3, :3])
         j_inv = quat.jl_inv(xi[..., 3:6])
