@@ -199,3 +199,17 @@ def test_schur_elimination_inverts_point_blocks_without_lapack():
         lambda s: s * jg.solve(problem, linear_solver="schur",
                                stopping=Stopping(max_steps=2)).cost, 1.0)
     assert "getrf" not in calls, calls
+
+
+def test_imu_information_has_one_lapack_call_at_most():
+    # its batched eigvalsh (the singularity check) and a batched LAPACK inverse side by
+    # side hung XLA:CPU on 2 cores (5000 windows): the inverse is written out
+    from jaxpose.imu import preintegrate
+
+    rng = np.random.default_rng(8)
+    pre = preintegrate(rng.normal(size=(50, 10, 3)) * 0.1, rng.normal(size=(50, 10, 3)), 0.01,
+                       gyro_noise=1e-3, acc_noise=1e-2)
+    calls = _custom_calls(lambda p: p.information, pre)
+    assert "getrf" not in calls and "potrf" not in calls, calls
+    info = np.asarray(pre.information)
+    np.testing.assert_allclose(info, np.linalg.inv(np.asarray(pre.cov)), rtol=1e-8)

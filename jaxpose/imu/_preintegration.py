@@ -42,6 +42,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .. import _small_linalg as small_linalg
 from .._precision import full_precision
 from ..lie import SO3
 from ..lie import _quaternion as quat
@@ -136,7 +137,11 @@ class Preintegrated(eqx.Module):
         w = jnp.linalg.eigvalsh(cov)
         eps = jnp.finfo(cov.dtype).eps
         singular = ~(w[..., 0] > cov.shape[-1] * eps * w[..., -1])
-        info = jnp.linalg.inv(cov)
+        # written out, not LAPACK: a batched LAPACK inverse next to the batched eigvalsh
+        # deadlocked XLA:CPU on 2 cores (5000 segments; jaxpose._small_linalg). NaN where
+        # the factorisation fails in rounding (condition near 1/eps): raised as singular
+        info = small_linalg.spd_inv(cov)
+        singular = singular | ~jnp.all(jnp.isfinite(info), axis=(-2, -1))
         info = eqx.error_if(
             info, jnp.any(singular),
             "Preintegrated.information: the covariance is singular (a zero noise density "
