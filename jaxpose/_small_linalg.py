@@ -8,12 +8,12 @@ the pool has threads (two on a 2-core machine, a Colab runtime or CI), every thr
 waits and the program never finishes: no error, no CPU use. jaxpose's per-factor and
 per-variable blocks (information matrices, block-Jacobi and Schur blocks, the
 similarity log's 3×3 solve, IMU windows' information) are batched over a whole graph,
-large enough to take that path. Written out — Cholesky factors and inverses of symmetric positive-definite
-matrices up to d = :data:`UNROLL_MAX`, general inverses and solves up to d = 3 (the
-adjugate) — they contain no custom call, and XLA fuses them into loops over the batch:
-on the CPU as fast as the per-matrix LAPACK calls or faster (6275 6×6 Cholesky factors
-1x, 2500 9×9 inverses 1.7x, 2000 3×3 inverses 10x). Larger matrices keep
-``jnp.linalg``.
+large enough to take that path. Written out — Cholesky factors and inverses of
+symmetric positive-definite matrices up to d = :data:`UNROLL_MAX`, general inverses and
+solves up to d = 3 (the adjugate) — they contain no custom call, and XLA fuses them
+into loops over the batch: on the CPU as fast as the per-matrix LAPACK calls or faster
+(6275 6×6 Cholesky factors 1x, 2500 9×9 inverses 1.7x, 2000 3×3 inverses 10x). Larger
+matrices keep ``jnp.linalg``.
 
 Every function is a composition of differentiable operations: derivatives of any
 order, ``jit`` and ``vmap`` as for any JAX code. Batch dimensions lead (``...``).
