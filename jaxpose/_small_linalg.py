@@ -56,7 +56,7 @@ def _nan_where_not(ok: Array, x: Array) -> Array:
 def cholesky(a: Array) -> Array:
     """Lower Cholesky factor L (..., d, d) of the symmetric positive-definite ``a``
     (..., d, d), L·Lᵀ = ½(a + aᵀ); all NaN where ``a`` is not positive definite (or not
-    finite), like ``jnp.linalg.cholesky``."""
+    finite): NaN like ``jnp.linalg.cholesky``'s, which keeps the upper zeros."""
     if a.shape[-1] > UNROLL_MAX:
         return jnp.linalg.cholesky(a)
     low, ok = _cholesky(a)
