@@ -205,8 +205,13 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _kernel(name: str | None, delta: float):
+def _kernel(name: str | None, delta: float | None):
+    """The robust kernel of ``--kernel NAME --kernel-delta DELTA`` (δ = 1 by default); a
+    δ without a kernel is an error, not silently ignored."""
     if name is None or name == "none":
+        if delta is not None:
+            raise CLIError("--kernel-delta scales a robust kernel: give one with --kernel "
+                           "(huber, cauchy, ...), or drop --kernel-delta")
         return None
     from . import optim
 
@@ -215,7 +220,7 @@ def _kernel(name: str | None, delta: float):
                "gemanmcclure": optim.GemanMcClure, "welsch": optim.Welsch}
     if name not in kernels:
         raise CLIError(f"--kernel: expected one of {sorted(kernels)}, got {name!r}")
-    return kernels[name](delta)
+    return kernels[name](1.0 if delta is None else delta)
 
 
 def _pose_graph_edge_costs(graph):
@@ -339,7 +344,7 @@ def _run_pgo(graph, *, kernel, solver, max_steps, verbose, dtype, init="odometry
     return sol.variables["pose"].data, sol
 
 
-def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
+def _run_pgo_gnc(graph, *, solver, max_steps, dtype, surrogate, init):
     """Outlier-robust solve (``--robust gnc``): graduated non-convexity with the odometry
     edges as known inliers; prints the summary and the rejected loop closures."""
     import jax
@@ -348,8 +353,6 @@ def _run_pgo_gnc(graph, *, kernel, solver, max_steps, dtype, surrogate, init):
     from .graph import _pgo as pgo
     from .graph import default_stopping
 
-    if kernel is not None:
-        raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
     t0 = time.perf_counter()
     poses, sol = pgo.optimize_pose_graph(
         graph, robust="gnc", init=init, dtype=dtype, gnc_options={"surrogate": surrogate}, fix=FIX,
@@ -399,8 +402,11 @@ def pgo_command(args: argparse.Namespace) -> int:
             raise CLIError(f"--plot {args.plot}: expected one of the extensions "
                            f"{sorted(formats)}, got {ext!r}")
     kernel = _kernel(args.kernel, args.kernel_delta)
-    if getattr(args, "robust", None) == "gnc" and kernel is not None:
+    if args.robust == "gnc" and kernel is not None:
         raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")
+    if args.gnc_surrogate is not None and args.robust != "gnc":
+        raise CLIError("--gnc-surrogate chooses the loss of --robust gnc: add --robust gnc, "
+                       "or drop --gnc-surrogate")
     try:
         graph = read_g2o(args.file, information=args.information)
     except (FormatError, OSError) as err:
@@ -415,10 +421,10 @@ def pgo_command(args: argparse.Namespace) -> int:
     ids = graph.vertex_ids[graph.edges]
     _check_initial_cost(_pose_graph_edge_costs(graph), dtype, lambda e: (
         f"{e} ({ids[e, 0]} -> {ids[e, 1]})"), "edge")
-    if getattr(args, "robust", None) == "gnc":
-        poses, sol = _run_pgo_gnc(graph, kernel=kernel, solver=args.solver,
-                                  max_steps=args.max_steps, dtype=dtype,
-                                  surrogate=args.gnc_surrogate, init=args.init)
+    if args.robust == "gnc":
+        poses, sol = _run_pgo_gnc(graph, solver=args.solver, max_steps=args.max_steps,
+                                  dtype=dtype, surrogate=args.gnc_surrogate or "tls",
+                                  init=args.init)
     else:
         poses, sol = _run_pgo(graph, kernel=kernel, solver=args.solver,
                               max_steps=args.max_steps, verbose=not args.quiet, dtype=dtype,
@@ -564,8 +570,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--robust", default=None, choices=["gnc"],
                    help="outlier-robust solve: graduated non-convexity (odometry edges are "
                         "known inliers; loop closures get inlier weights)")
-    q.add_argument("--gnc-surrogate", default="tls", choices=["tls", "gm"],
-                   help="GNC loss: truncated least squares or Geman-McClure")
+    q.add_argument("--gnc-surrogate", default=None, choices=["tls", "gm"],
+                   help="GNC loss: truncated least squares (default) or Geman-McClure; "
+                        "needs --robust gnc")
     q.add_argument("--solver", default="auto", choices=["auto", "sparse", "pcg", "dense"])
     q.add_argument("--max-steps", type=_int_at_least(0), default=100)
     q.add_argument("--init", default="auto", choices=["auto", "chordal", "odometry"],
@@ -605,7 +612,8 @@ def _solve_command(
 def _kernel_arguments(p: argparse.ArgumentParser, delta_help: str) -> None:
     """``--kernel`` and ``--kernel-delta`` (shared by ``pgo`` and ``ba``)."""
     p.add_argument("--kernel", default=None, help="robust kernel: huber, cauchy, tukey, ...")
-    p.add_argument("--kernel-delta", type=_positive_float, default=1.0, help=delta_help)
+    p.add_argument("--kernel-delta", type=_positive_float, default=None,
+                   help=f"{delta_help} (default 1; needs --kernel)")
 
 
 def _message(err: BaseException) -> str:

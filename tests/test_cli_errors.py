@@ -191,6 +191,38 @@ def test_bad_kernel_missing_file_and_help(tmp_path):
     assert status == 0 and "--debug" in out and "one line" in out
 
 
+@pytest.mark.parametrize("argv, needs", [
+    (["pgo", "F", "--kernel-delta", "2"], "--kernel-delta scales a robust kernel"),
+    (["pgo", "F", "--kernel", "none", "--kernel-delta", "2"], "--kernel-delta scales"),
+    (["pgo", "F", "--robust", "gnc", "--kernel-delta", "2"], "--kernel-delta scales"),
+    (["ba", "F", "--kernel-delta", "2"], "--kernel-delta scales a robust kernel"),
+    (["pgo", "F", "--gnc-surrogate", "gm"], "--gnc-surrogate chooses the loss of --robust"),
+    (["pgo", "F", "--robust", "gnc", "--kernel", "huber"], "GNC supplies its own robust"),
+])
+def test_options_that_would_be_ignored_are_refused(tmp_path, argv, needs):
+    """An option whose effect needs another one (a kernel's scale without a kernel, GNC's
+    loss without GNC) is refused before the solve instead of silently doing nothing."""
+    f = write(tmp_path, GOOD_G2O, "g.g2o")
+    status, _, err = run([f if a == "F" else a for a in argv])
+    assert status == 1 and needs in one_line(err, f"jaxpose {argv[0]}"), err
+
+
+def test_dependent_options_reach_the_solver(tmp_path):
+    """With what they depend on, the same options pass through: δ to the kernel, the
+    surrogate to GNC."""
+    f = write(tmp_path, GOOD_G2O, "g.g2o")
+    seen = {}
+
+    def stub_pgo(graph, **kw):
+        seen.update(kw)
+        return graph.poses, None
+
+    status, _, err = run(["pgo", f, "--kernel", "cauchy", "--kernel-delta", "2.5"], pgo=stub_pgo)
+    assert status == 0 and float(seen["kernel"].delta) == 2.5, err
+    status, _, _ = run(["pgo", f, "--kernel", "huber"], pgo=stub_pgo)
+    assert status == 0 and float(seen["kernel"].delta) == 1.0
+
+
 def test_g2o_without_edges_is_reported(tmp_path):
     f = write(tmp_path, ["VERTEX_SE2 0 0 0 0"], "v.g2o")
     status, _, err = run(["pgo", f])
