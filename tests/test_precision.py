@@ -115,3 +115,30 @@ def test_geometry_imu_and_smoother_entry_points():
     g = jnp.asarray(rng.normal(size=(20, 3)) * 0.1, F32)
     assert _assert_full(lambda a: preintegrate(g, a, jnp.full(20, 0.01, F32), gyro_noise=1e-3,
                                                acc_noise=1e-2).cov, g) > 0
+
+
+def test_filter_step_api_box_qp_and_riccati():
+    """The documented step-by-step filter methods (what docs/pypose-migration.md has
+    users call for PyPose-timed data) and the public control building blocks, not only
+    the ``run``/``step`` drivers."""
+    from jaxpose.control import box_qp, lq_problem, riccati
+    from jaxpose.filters import EKF, UKF, ParticleFilter
+
+    n = 3
+    model = LTI(jnp.eye(n, dtype=F32) * 0.9, jnp.ones((n, 1), F32))
+    x, P = jnp.ones(n, F32), jnp.eye(n, dtype=F32)
+    y, u = jnp.ones(n, F32), jnp.zeros(1, F32)
+    for filt in (EKF(model, 0.1 * P, 0.2 * P), UKF(model, 0.1 * P, 0.2 * P)):
+        assert _assert_full(lambda x: filt.predict(x, P, u)[1], x) > 0
+        assert _assert_full(lambda x: filt.update(x, P, y, u)[1], x) > 0
+    pf = ParticleFilter(model, 0.1 * P, 0.2 * P, num_particles=8)
+    key = jax.random.PRNGKey(0)
+    assert _assert_full(lambda p: pf.init(key, x, p).particles, P) > 0
+    state = pf.init(key, x, P)
+    assert _assert_full(lambda s: pf.estimate(s)[1], state) > 0
+    H = jnp.asarray([[2.0, 0.5], [0.5, 1.0]], F32)
+    lo, hi = jnp.full(2, -1.0, F32), jnp.ones(2, F32)
+    assert _assert_full(lambda g: box_qp(H, g, lo, hi, jnp.zeros(2, F32)).x,
+                        jnp.ones(2, F32)) > 0
+    problem = lq_problem(model, QuadraticCost(jnp.eye(n + 1, dtype=F32)), 4)
+    assert _assert_full(lambda F: riccati(F, *problem[1:])[0], problem[0]) > 0

@@ -17,6 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_solve
 
+from .._precision import full_precision
+from ..lie._base import runtime_check
+
 Array = jax.Array
 
 _ALPHAS = 0.5 ** np.arange(12.0)  # NumPy: a jnp constant compiled at import
@@ -44,13 +47,53 @@ def _clamped(x: Array, grad: Array, lo: Array, hi: Array) -> Array:
     return ((x <= lo) & (grad > 0)) | ((x >= hi) & (grad < 0))
 
 
+@full_precision
 def box_qp(
     H: Array, g: Array, lo: Array, hi: Array, x0: Array, iters: int = 20, unroll: bool = False
 ) -> BoxQPResult:
-    """Projected Newton for the box QP, warm-started at ``clip(x0, lo, hi)``.
+    """Projected Newton for the box QP, warm-started at ``clip(x0, lo, hi)``: H (m, m),
+    g, lo, hi, x0 (m,) (±inf bounds allowed).
 
-    ``unroll=True`` runs exactly ``iters`` iterations with ``lax.scan`` (reverse-mode
-    differentiable); otherwise a ``while_loop`` stops at convergence."""
+    ``unroll=True`` runs exactly ``iters`` (an int ≥ 1) iterations with ``lax.scan``
+    (reverse-mode differentiable); otherwise a ``while_loop`` stops at convergence.
+    Shapes are checked at trace time; NaN or crossed bounds (``lo > hi``, an empty box)
+    raise, eagerly or through ``eqx.error_if`` under ``jit``."""
+    check_box_iters(iters, "iters")
+    H, g, lo, hi, x0 = (jnp.asarray(a) for a in (H, g, lo, hi, x0))
+    m = g.shape[0] if g.ndim == 1 else -1
+    if g.ndim != 1 or H.shape != (m, m):
+        raise ValueError(f"H, g: expected shapes (m, m) and (m,), got {tuple(H.shape)} and "
+                         f"{tuple(g.shape)}")
+    for arr, name in ((lo, "lo"), (hi, "hi"), (x0, "x0")):
+        if arr.shape != (m,):
+            raise ValueError(f"{name}: expected shape ({m},) like g, got {tuple(arr.shape)}")
+    lo, hi = checked_box(lo, hi, "lo", "hi")
+    return _box_qp(H, g, lo, hi, x0, iters, unroll)
+
+
+def check_box_iters(iters: object, name: str) -> None:
+    """Refuse an iteration count below 1: zero iterations return the clipped warm start,
+    which the solvers would then report as converged."""
+    if isinstance(iters, bool) or not isinstance(iters, (int, np.integer)) or iters < 1:
+        raise ValueError(f"{name}: expected an int >= 1 (projected-Newton iterations per box "
+                         f"QP), got {iters!r}")
+
+
+def checked_box(lo: Array, hi: Array, lo_name: str, hi_name: str) -> tuple[Array, Array]:
+    """``(lo, hi)``, raising where either holds a NaN or ``lo > hi`` (an empty box):
+    eagerly when the values are known, else through ``eqx.error_if``."""
+    lo = runtime_check(lo, jnp.any(jnp.isnan(lo)),
+                       f"{lo_name}: contains NaN (use -inf for an unbounded input)")
+    hi = runtime_check(hi, jnp.any(jnp.isnan(hi)),
+                       f"{hi_name}: contains NaN (use +inf for an unbounded input)")
+    lo = runtime_check(lo, jnp.any(lo > hi),
+                       f"{lo_name}, {hi_name}: expected {lo_name} ≤ {hi_name} everywhere")
+    return lo, hi
+
+
+def _box_qp(H: Array, g: Array, lo: Array, hi: Array, x0: Array, iters: int, unroll: bool
+            ) -> BoxQPResult:
+    """:func:`box_qp` without its checks (the solvers check their bounds once)."""
     q = lambda z: 0.5 * z @ (H @ z) + g @ z
     x = jnp.clip(x0, lo, hi)
 

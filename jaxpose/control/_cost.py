@@ -114,13 +114,14 @@ class QuadraticCost(Cost):
     @classmethod
     def tracking(cls, Q: Any, tau_ref: Any, QT: Any = None, x_ref: Any = None) -> QuadraticCost:
         """``½ (τ − τ_ref)ᵀ Q (τ − τ_ref)`` (+ terminal ``½ (x − x_ref)ᵀ Q_T (x − x_ref)``),
-        up to a constant: ``p = −Q τ_ref``."""
+        up to a constant: ``p = −sym(Q) τ_ref`` (only Q's symmetric part counts, as in
+        the stage cost)."""
         Q = as_array(Q, "Q", (2, 3))
         tau_ref = as_array(tau_ref, "tau_ref", (1, 2))
-        p = -jnp.einsum("...ij,...j->...i", Q, tau_ref)
+        p = -jnp.einsum("...ij,...j->...i", _sym(Q), tau_ref)
         pT = None
         if QT is not None and x_ref is not None:
-            pT = -as_array(QT, "QT", 2) @ as_array(x_ref, "x_ref", 1)
+            pT = -_sym(as_array(QT, "QT", 2)) @ as_array(x_ref, "x_ref", 1)
         return cls(Q, p, QT, pT)
 
     @property

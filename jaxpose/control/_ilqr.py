@@ -25,9 +25,10 @@ import numpy as np
 
 from .._forward_only import forward_mode_only
 from .._precision import full_precision
-from ..dynamics._checks import as_array, is_concrete
+from ..dynamics._checks import as_array
 from ..dynamics._system import LTI, LTV, System
 from ..results import Results
+from ._boxqp import check_box_iters, checked_box
 from ._cost import Cost, QuadraticCost
 from ._lqr import backward_step, check_quadratic_cost, check_start_step
 
@@ -102,12 +103,8 @@ def _bounds(lower: Any, upper: Any, T: int, m: int, dtype: Any) -> tuple[Array, 
             )
     lo = jnp.broadcast_to(lo, (T, m)).astype(dtype)
     hi = jnp.broadcast_to(hi, (T, m)).astype(dtype)
-    for arr, nm in ((lo, "u_lower"), (hi, "u_upper")):
-        if is_concrete(arr) and bool(jnp.any(jnp.isnan(arr))):
-            raise ValueError(f"{nm}: contains NaN (use ±inf for an unbounded input)")
-    if is_concrete(lo) and is_concrete(hi) and bool(jnp.any(lo > hi)):
-        raise ValueError("u_lower, u_upper: expected u_lower ≤ u_upper everywhere")
-    return lo, hi
+    # traced limits (MPC's are differentiable fields) are checked under jit as well
+    return checked_box(lo, hi, "u_lower", "u_upper")
 
 
 def ilqr(
@@ -152,6 +149,7 @@ def ilqr(
             f"max_iter: expected a positive int (an integer array is accepted without "
             f"unroll), got {max_iter!r}"
         )
+    check_box_iters(box_iters, "box_iters")
     T, m = u_init.shape
     dtype = jnp.result_type(x0.dtype, u_init.dtype)
     x0, u_init = x0.astype(dtype), u_init.astype(dtype)

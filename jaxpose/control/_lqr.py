@@ -27,7 +27,7 @@ from ..dynamics._checks import as_array, check_horizon, start_step, window_messa
 from ..dynamics._system import LTI, LTV, System
 from ..lie._base import runtime_check
 from ..results import Results
-from ._boxqp import box_qp, free_block
+from ._boxqp import _box_qp, free_block
 from ._cost import Cost, QuadraticCost
 
 Array = jax.Array
@@ -80,7 +80,7 @@ def backward_step(
         Hu = jnp.where(jnp.all(jnp.isfinite(probe)), Hu, jnp.eye(m, dtype=Hu.dtype))
     if box is not None:
         lo, hi, k_warm = box
-        res = box_qp(Hu, qu, lo, hi, k_warm, iters=box_iters, unroll=unroll)
+        res = _box_qp(Hu, qu, lo, hi, k_warm, box_iters, unroll)
         k, fr, L, ok = res.x, res.free, res.L, res.ok
         K = -cho_solve((L, True), jnp.where(fr[:, None], Qux, 0.0))
         K = jnp.where(fr[:, None], K, 0.0)
@@ -107,6 +107,7 @@ def backward_step(
     return BackwardOut(K, k, V_new, v_new, dj1, dj2, ok, fr, L)
 
 
+@full_precision
 def riccati(
     F: Array,
     f: Array,
@@ -116,9 +117,11 @@ def riccati(
     cT: Array,
     free: Array | None = None,
     reg: Any = 0.0,
-) -> tuple[Array, Array, Array, Array, Array]:
+) -> tuple[Array, Array, Array, Array, Array, Array]:
     """Backward recursion: ``K`` (T, m, n), ``k`` (T, m), ``V`` (T+1, n, n), ``v``
-    (T+1, n) (``V[T] = C_T``), and ``ok`` (every Q_uu positive definite)."""
+    (T+1, n) (``V[T] = C_T``), ``ok`` (every Q_uu positive definite) and ``L``
+    (T, m, m), the lower Cholesky factors of the (``reg``-regularised) Q_uu. ``free``
+    (T, m) bools: inputs held at 0 where False."""
 
     def step(carry: tuple[Array, Array], inp: tuple[Array, ...]):
         V, v = carry
@@ -206,6 +209,12 @@ def lqr_solve(
             f"CT, cT: expected shapes ({n}, {n}) and ({n},), got "
             f"{tuple(CT.shape)} and {tuple(cT.shape)}"
         )
+    if free is not None:
+        free = jnp.asarray(free)
+        T, m = F.shape[0], F.shape[2] - n
+        if free.shape != (T, m) or free.dtype != jnp.bool_:
+            raise ValueError(f"free: expected a ({T}, {m}) (T, m) bool mask (False: the input "
+                             f"is held at 0), got {free.dtype} {tuple(free.shape)}")
     K, k, _, _, ok, _ = riccati(F, f, C, c, CT, cT, free)
     xs, us = policy_rollout(F, f, K, k, x0)
     cost = quadratic_total(C, c, CT, cT, xs, us)

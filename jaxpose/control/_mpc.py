@@ -36,6 +36,7 @@ from ..dynamics._system import LTI, LTV, System
 from ..optim._implicit import at_stationary_point
 from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
+from ._boxqp import check_box_iters
 from ._cost import Cost, QuadraticCost
 from ._ilqr import ILQRSolution, _bounds, _dynamics_jacobians, ilqr
 from ._lqr import (
@@ -263,6 +264,7 @@ class MPC(eqx.Module):
 
     def __check_init__(self) -> None:
         check_horizon(self.horizon)
+        check_box_iters(self.box_iters, "box_iters")
         if self.gradient not in GRADIENTS:
             raise ValueError(f"gradient: expected one of {GRADIENTS}, got {self.gradient!r}")
         if self.solver not in SOLVERS:

@@ -29,6 +29,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_jacobian, tangent_space
 from ._common import (
@@ -58,6 +59,7 @@ class EKF(KalmanFilter):
         super().__init__(model, Q, R, skip_nonfinite)
         self.joseph = joseph
 
+    @full_precision
     def predict(self, x: Any, P: Array, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """``x⁻ = f(x, u, t)``, ``P⁻ = F P Fᵀ + Q`` (``P`` checked as in :meth:`step`)."""
         x = as_state(x)

@@ -56,6 +56,7 @@ class KalmanFilter(NoisyModelFilter):
     def _update(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         """:meth:`update` and whether the measurement was used."""
 
+    @full_precision
     def update(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """Correct ``(x, P)`` with a measurement ``y`` (p,) of ``h(x, u, t)``; returns the
         posterior estimate and covariance (k, k). ``P`` is checked as in :meth:`step`."""

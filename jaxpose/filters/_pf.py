@@ -92,6 +92,7 @@ class ParticleFilter(NoisyModelFilter):
         self.num_particles = num_particles
         self.resample_threshold = float(resample_threshold)
 
+    @full_precision
     def init(self, key: Array, x0: Any, P0: Any) -> ParticleState:
         """Particles drawn from ``x0 ⊕ N(0, P0)`` with equal weights."""
         ts = tangent_space(x0)
@@ -102,6 +103,7 @@ class ParticleFilter(NoisyModelFilter):
         parts = jax.vmap(lambda e: ts.plus(x0, e))(d)
         return ParticleState(parts, jnp.full((N,), -jnp.log(N), P0.dtype))
 
+    @full_precision
     def estimate(self, state: ParticleState) -> tuple[Any, Array]:
         """Weighted mean and covariance (tangent coordinates) of the particles."""
         w = jnp.exp(state.log_weights - jax.scipy.special.logsumexp(state.log_weights))

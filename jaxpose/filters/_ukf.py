@@ -24,6 +24,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._precision import full_precision
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_space
 from ._common import (
@@ -91,6 +92,7 @@ class UKF(KalmanFilter):
         pts = jax.vmap(lambda d: ts.plus(x, d))(offs)
         return pts, offs, wm, wc
 
+    @full_precision
     def predict(self, x: Any, P: Array, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """Propagate the sigma points through ``f(·, u, t)``: predicted mean and ``P⁻`` (k, k) + Q.
 

@@ -354,3 +354,88 @@ def test_ilqr_and_mpc_shape_errors_name_the_argument():
         MPC(LTI(A2, B2), cost, T, u_upper=np.ones(3))(X2)
     with pytest.raises(ValueError, match=r"u_lower: expected a shape broadcastable to \(6, 1\)"):
         ilqr(LTI(A2, B2), cost, X2, np.zeros((T, 1)), u_lower=np.zeros((1, 6, 1)))
+
+
+# ----------------------------------------------------------------------------------
+# Found by an audit (session 48): inputs that gave a "converged" wrong answer
+# ----------------------------------------------------------------------------------
+def test_box_iters_below_one_are_refused():
+    """Zero projected-Newton iterations returned the clipped warm start (u = 0), which
+    iLQR then reported CONVERGED at a cost above the box-constrained optimum."""
+    A, B = np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]])
+    cost = QuadraticCost(np.diag([1.0, 0.1, 0.01]), None, np.eye(2))
+    for bad in (0, -3, 2.0, True):
+        with pytest.raises(ValueError, match="box_iters: expected an int >= 1"):
+            ilqr(LTI(A, B), cost, np.array([3.0, 0.5]), np.zeros((5, 1)), u_lower=-1.0,
+                 u_upper=1.0, box_iters=bad)
+        with pytest.raises(ValueError, match="box_iters: expected an int >= 1"):
+            MPC(LTI(A, B), cost, 5, u_lower=-1.0, u_upper=1.0, box_iters=bad)
+    with pytest.raises(ValueError, match="iters: expected an int >= 1"):
+        box_qp(np.eye(2), np.ones(2), -np.ones(2), np.ones(2), np.zeros(2), iters=0)
+    one = ilqr(LTI(A, B), cost, np.array([3.0, 0.5]), np.zeros((5, 1)), u_lower=-1.0,
+               u_upper=1.0, box_iters=1)
+    np.testing.assert_allclose(one.u[:, 0], [-1, -1, -1, -1, -0.5], atol=1e-9)  # enumeration
+
+
+def test_crossed_or_nan_limits_raise_under_jit():
+    """Traced limits (MPC's are differentiable fields) skipped the eager lo ≤ hi check:
+    under jit every control was clamped to u_upper with status CONVERGED."""
+    A, B = np.eye(2), np.ones((2, 1))
+    cost = QuadraticCost(np.eye(3))
+
+    @jax.jit
+    def mpc_u(lo, hi):
+        return MPC(LTI(A, B), cost, 4, u_lower=lo, u_upper=hi)(jnp.ones(2)).u
+
+    @jax.jit
+    def ilqr_u(lo, hi):
+        return ilqr(LTI(A, B), cost, jnp.ones(2), jnp.zeros((4, 1)), u_lower=lo, u_upper=hi).u
+
+    for solve in (mpc_u, ilqr_u):
+        with pytest.raises(RuntimeError, match="u_lower, u_upper: expected u_lower ≤ u_upper"):
+            jax.block_until_ready(solve(1.0, -1.0))
+        with pytest.raises(RuntimeError, match="u_lower: contains NaN"):
+            jax.block_until_ready(solve(jnp.nan, 1.0))
+        assert np.all(np.abs(solve(-0.1, 0.1)) <= 0.1 + 1e-12)  # a valid box still solves
+    with pytest.raises(ValueError, match="lo, hi: expected lo ≤ hi"):
+        box_qp(np.eye(2), np.ones(2), np.ones(2), -np.ones(2), np.zeros(2))
+    with pytest.raises(RuntimeError, match="lo, hi: expected lo ≤ hi"):
+        jax.block_until_ready(jax.jit(box_qp)(np.eye(2), np.ones(2), np.ones(2), -np.ones(2),
+                                              np.zeros(2)))
+    with pytest.raises(ValueError, match=r"hi: expected shape \(2,\) like g"):
+        box_qp(np.eye(2), np.ones(2), -np.ones(2), np.ones(3), np.zeros(2))
+    with pytest.raises(ValueError, match=r"H, g: expected shapes \(m, m\) and \(m,\)"):
+        box_qp(np.eye(3), np.ones(2), -np.ones(2), np.ones(2), np.zeros(2))
+
+
+def test_tracking_cost_with_a_nonsymmetric_weight():
+    """Only Q's symmetric part enters the stage cost, so the linear term must be
+    −sym(Q)·τ_ref: with −Q·τ_ref the minimum was not at τ_ref."""
+    Q = np.array([[2.0, 1.0, 0.0], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]])  # n = 2, m = 1
+    QT = np.array([[2.0, 1.0], [0.0, 2.0]])
+    ref, x_ref = np.array([1.0, -1.0, 0.5]), np.array([0.2, 0.3])
+    cost = QuadraticCost.tracking(Q, ref, QT=QT, x_ref=x_ref)
+    tau = np.array([0.3, 0.7, -0.4])
+    by_hand = 0.5 * (tau - ref) @ Q @ (tau - ref) - 0.5 * ref @ Q @ ref
+    np.testing.assert_allclose(cost.stage(tau[:2], tau[2:], 0), by_hand, rtol=1e-12)
+    x = tau[:2]
+    by_hand = 0.5 * (x - x_ref) @ QT @ (x - x_ref) - 0.5 * x_ref @ QT @ x_ref
+    np.testing.assert_allclose(cost.terminal(x), by_hand, rtol=1e-12)
+    grad = jax.grad(lambda t: cost.stage(t[:2], t[2:], 0))(jnp.asarray(ref))
+    np.testing.assert_allclose(grad, 0.0, atol=1e-12)
+
+
+def test_riccati_returns_what_it_documents_and_lqr_solve_checks_free():
+    from jaxpose.control import lq_problem, riccati
+
+    A, B = np.eye(2), np.ones((2, 1))
+    F, f, C, c, CT, cT = lq_problem(LTI(A, B), QuadraticCost(np.eye(3), None, np.eye(2)), 3)
+    K, k, V, v, ok, L = riccati(F, f, C, c, CT, cT)
+    assert K.shape == (3, 1, 2) and V.shape == (4, 2, 2) and L.shape == (3, 1, 1) and bool(ok)
+    Quu = C[-1, 2:, 2:] + F[-1, :, 2:].T @ CT @ F[-1, :, 2:]  # last step, by hand
+    np.testing.assert_allclose(L[-1] @ L[-1].T, Quu, rtol=1e-12)
+    for bad in (np.ones(3, bool), np.ones((3, 2), bool), np.ones((3, 1))):
+        with pytest.raises(ValueError, match=r"free: expected a \(3, 1\) \(T, m\) bool mask"):
+            lqr_solve(F, f, C, c, np.ones(2), CT, cT, free=bad)
+    held = lqr_solve(F, f, C, c, np.ones(2), CT, cT, free=np.array([[True], [False], [True]]))
+    assert float(held.u[1, 0]) == 0.0
