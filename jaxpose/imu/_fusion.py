@@ -117,7 +117,14 @@ def _fusion_options(fn: str, options: dict[str, Any]) -> _FusionOptions:
             f"{fn}: unexpected keyword arguments {unknown}; expected some of "
             f"{list(_FusionOptions._fields)}"
         )
-    return _DEFAULTS._replace(**options)
+    opts = _DEFAULTS._replace(**options)
+    for name, shapes in (("gyro_walk", [()]), ("acc_walk", [()]), ("gps_sigma", [(), (3,)]),
+                         ("prior_sigmas", [(4,)])):  # the noise options are checked later
+        value = np.asarray(getattr(opts, name), dtype=np.float64)
+        if value.shape not in shapes or not np.all((value > 0) & np.isfinite(value)):
+            raise ValueError(f"{fn}({name}): expected positive finite σ of shape "
+                             f"{' or '.join(map(str, shapes))}, got {getattr(opts, name)!r}")
+    return opts
 
 
 def _gps_keyframes(
@@ -140,6 +147,12 @@ def _gps_keyframes(
     if gi.size == 0 or np.any(np.diff(gi) < 0) or gi[0] < 0 or gi[-1] > n:
         raise ValueError(f"{fn}(gps_index): expected non-decreasing sample counts in [0, {n}]")
     keyframes = np.unique(np.concatenate([[0], gi]))
+    if keyframes.size < 2:
+        raise ValueError(f"{fn}(gps_index): expected a fix after sample 0 (fixes at sample 0 "
+                         f"only leave no IMU window to fuse), got {gi.tolist()}")
+    if jnp.shape(acc) != jnp.shape(gyro):
+        raise ValueError(f"{fn}(gyro, acc): expected the same shape (N, 3), got "
+                         f"{tuple(jnp.shape(gyro))} and {tuple(jnp.shape(acc))}")
     pre = preintegrate_windows(gyro, acc, dt, keyframes, gyro_noise=opts.gyro_noise,
                                acc_noise=opts.acc_noise,
                                integration_noise=opts.integration_noise)

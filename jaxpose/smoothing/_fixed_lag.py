@@ -67,6 +67,8 @@ States are pytrees mixing Lie groups and arrays (e.g. ``{"pose": SE3, "vel": (3,
 from __future__ import annotations
 
 import functools
+import math
+import numbers
 from collections.abc import Callable
 from typing import Any
 
@@ -281,6 +283,11 @@ class FixedLagSmoother(eqx.Module):
             )
         if max_loops > 0 and (loop is None or loop_data is None):
             raise ValueError("FixedLagSmoother(max_loops > 0): needs loop and loop_data")
+        if max_loops == 0 and (loop is not None or loop_data is not None):
+            raise ValueError(
+                "FixedLagSmoother(loop, loop_data): loop factors need slots: set max_loops "
+                "(the most loop factors one update adds), else they would be ignored"
+            )
         if not isinstance(max_iterations, int) or max_iterations < 1:
             raise ValueError(
                 f"FixedLagSmoother(max_iterations): expected an int >= 1, got {max_iterations!r}"
@@ -314,6 +321,10 @@ class FixedLagSmoother(eqx.Module):
         self.motion, self.unary, self.loop = motion, unary, loop
         self.window, self.max_iterations = window, max_iterations
         eps = jnp.finfo(dtype).eps
+        if tol is not None and (isinstance(tol, bool) or not isinstance(tol, numbers.Real)
+                                or not 0 < tol < math.inf):
+            raise ValueError(f"FixedLagSmoother(tol): expected a finite float > 0 or None, "
+                             f"got {tol!r}")
         self.tol = float(tol) if tol is not None else (1e-8 if eps < 1e-10 else 1e-4)
         self.exact_prior_jacobian = bool(exact_prior_jacobian)
         self.first_estimate = bool(first_estimate)
@@ -808,6 +819,12 @@ class FixedLagSmoother(eqx.Module):
         _check_shapes(guess, _take(self.states, 0), "guess", "example state")
         _check_shapes(data, _take(self.data, 0), "data", "example data")
         m = self.loop_lag.shape[1]
+        if not m and not (loop_lag is None and loop_valid is None and loop_data is None):
+            raise ValueError(
+                "FixedLagSmoother.update: loop_lag, loop_valid or loop_data given to a smoother "
+                "without loop factors (max_loops=0): they would be ignored; build it with "
+                "loop=, loop_data= and max_loops > 0"
+            )
         if m:
             if loop_lag is None or loop_valid is None or loop_data is None:
                 raise ValueError(

@@ -4,9 +4,10 @@ A jitted call pays a fixed host-side cost per array it returns (about 4 µs each
 2-core CPU, measured: 35 outputs 0.16 ms, one output 0.015 ms). A
 :class:`~jaxpose.smoothing.FixedLagSmoother` has ~35 arrays, so for small windows that
 cost is most of an update. :class:`PackedSmoother` holds the same smoother as one array
-(every leaf raveled and cast to the smoother's floating dtype, concatenated in pytree
-order) plus a static layout (tree structure, shapes, dtypes), so an update returns one
-array; with ``donate_argnums=0`` it is also written in place::
+(every leaf raveled and cast to the widest floating dtype among the smoother's and its
+data's leaves, concatenated in pytree order) plus a static layout (tree structure,
+shapes, dtypes), so an update returns one array; with ``donate_argnums=0`` it is also
+written in place::
 
     packed = PackedSmoother(smoother)
     step = jax.jit(PackedSmoother.update, donate_argnums=0)
@@ -14,9 +15,11 @@ array; with ``donate_argnums=0`` it is also written in place::
         packed = step(packed, guess, data)
     smoother = packed.unpack()
 
-The round trip is exact: the integer leaves are counters and lags bounded by the window
-and the iteration limit, and booleans are 0/1, all exactly representable in float32 and
-float64. Packed smoothers of one configuration share a layout (the jit cache is hit);
+The round trip is exact: the smoother's integer leaves are counters and lags bounded by
+the window and the iteration limit, booleans are 0/1, float data keep their precision (a
+float64 leaf makes the buffer float64), and integer data beyond the buffer's exact range
+(±2^24 in float32, ±2^53 in float64: e.g. nanosecond timestamps) raise instead of being
+rounded. Packed smoothers of one configuration share a layout (the jit cache is hit);
 they vmap (the buffer gains the batch axis) and differentiate like the smoother.
 """
 
@@ -29,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..lie._base import runtime_check
 from ._fixed_lag import FixedLagSmoother
 
 Array = jax.Array
@@ -75,8 +79,12 @@ class PackedSmoother(eqx.Module):
                 f"PackedSmoother(smoother): expected a FixedLagSmoother, got "
                 f"{type(smoother).__name__}"
             )
-        leaves, treedef = jax.tree.flatten(smoother)
-        dtype = smoother.prior_grad.dtype
+        paths, treedef = jax.tree_util.tree_flatten_with_path(smoother)
+        leaves = [x for _, x in paths]
+        dtype = jnp.result_type(smoother.prior_grad.dtype,
+                                *[x.dtype for x in leaves if jnp.issubdtype(x.dtype, jnp.floating)])
+        leaves = [_exact_in(x, dtype, jax.tree_util.keystr(path))
+                  if _is_step_data(path) else x for path, x in paths]
         self.layout = _Layout(treedef, tuple((tuple(jnp.shape(x)), jnp.dtype(x.dtype))
                                              for x in leaves))
         self.buffer = jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])
@@ -96,6 +104,30 @@ class PackedSmoother(eqx.Module):
                loop_valid: Any = None, loop_data: PyTree = None) -> PackedSmoother:
         """:meth:`FixedLagSmoother.update` on the packed smoother (same arguments)."""
         return PackedSmoother(self.unpack().update(guess, data, loop_lag, loop_valid, loop_data))
+
+
+def _is_step_data(path: tuple) -> bool:
+    """Whether a leaf holds the user's step or loop data (the smoother's own integer
+    leaves are bounded by the window and the iteration limit)."""
+    return getattr(path[0], "name", None) in ("data", "loop_data")
+
+
+def _exact_in(x: Array, dtype: Any, where: str) -> Array:
+    """``x``, raising (eagerly, or through ``eqx.error_if`` under ``jit``) where an integer
+    leaf holds a value that ``dtype`` cannot represent exactly (beyond ±2^(mantissa + 1))."""
+    if not jnp.issubdtype(x.dtype, jnp.integer):
+        return x
+    limit = 2 ** (jnp.finfo(dtype).nmant + 1)
+    if jnp.iinfo(x.dtype).max <= limit:
+        return x
+    beyond = x > limit
+    if jnp.issubdtype(x.dtype, jnp.signedinteger):
+        beyond = beyond | (x < -limit)
+    return runtime_check(
+        x, jnp.any(beyond),
+        f"PackedSmoother: the integer data smoother{where} holds a value beyond ±{limit}, "
+        f"which the {jnp.dtype(dtype).name} buffer cannot hold exactly; give it as a float of "
+        f"that dtype or keep the FixedLagSmoother unpacked")
 
 
 __all__ = ["PackedSmoother"]

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxpose.imu import NavState
+from jaxpose.imu import NavState, fuse_imu_gps
 from jaxpose.lie import InvalidValueError
 from jaxpose.smoothing import FixedLagSmoother
 from jaxpose.smoothing import examples as ex
@@ -88,3 +88,45 @@ def test_imu_gps_steps_keeps_every_fix_at_one_keyframe():
 
     p = jnp.array([0.3, -0.1, 0.7])
     np.testing.assert_allclose(jax.grad(cost)(p), ((p - fixes) / sigma**2).sum(0), atol=1e-12)
+
+
+# Found by an audit (session 48): options accepted and then ignored or misread
+def test_loop_factors_without_slots_are_refused():
+    """With the default max_loops=0 the loop factors were silently dropped: the estimate
+    was the chain's, not the weighted least-squares solution with the loop."""
+    with pytest.raises(ValueError, match=r"FixedLagSmoother\(loop, loop_data\): .*max_loops"):
+        FixedLagSmoother(X0, D0, window=3, motion=_motion, unary=_unary, loop=_motion,
+                         loop_data=D0)
+    sm = _smoother()
+    with pytest.raises(ValueError, match=r"update: loop_lag, loop_valid or loop_data given"):
+        sm.update(X0, D0, jnp.array([1]), jnp.array([True]), {"z": jnp.zeros((1, 2))})
+
+
+@pytest.mark.parametrize("tol", [-1.0, 0.0, float("nan"), float("inf"), "1e-3", True])
+def test_tolerance_must_be_positive_and_finite(tol):
+    """tol=-1 or NaN made every update run to max_iterations and report max_steps."""
+    with pytest.raises(ValueError, match=r"FixedLagSmoother\(tol\): expected a finite float"):
+        FixedLagSmoother(X0, D0, window=3, motion=_motion, unary=_unary, tol=tol)
+
+
+@pytest.mark.parametrize("option, value", [
+    ("gps_sigma", -0.5), ("gps_sigma", 0.0), ("gps_sigma", (1.0, 2.0)),
+    ("prior_sigmas", (-0.01, -0.5, -0.1, -1e-3)), ("prior_sigmas", (0.1, 0.1, 0.1)),
+    ("gyro_walk", -1e-3), ("acc_walk", float("nan")),
+])
+def test_imu_gps_steps_refuses_what_fuse_imu_gps_refuses(option, value):
+    """A negative σ acted as |σ| (it is squared in the cost) and σ = 0 put inf into the
+    step data; fuse_imu_gps, whose factors these steps reproduce, raises for each."""
+    z = np.zeros((4, 3))
+    with pytest.raises(ValueError, match=rf"imu_gps_steps\({option}\): expected positive"):
+        ex.imu_gps_steps(z, z, 0.01, [4], np.zeros((1, 3)), NavState.identity(),
+                         **{option: value})
+
+
+def test_fusion_errors_name_the_users_arguments():
+    z = np.zeros((4, 3))
+    for fn in (ex.imu_gps_steps, fuse_imu_gps):
+        with pytest.raises(ValueError, match=r"\(gps_index\): expected a fix after sample 0"):
+            fn(z, z, 0.01, [0], np.zeros((1, 3)), NavState.identity())
+        with pytest.raises(ValueError, match=r"\(gyro, acc\): expected the same shape"):
+            fn(z, z[:3], 0.01, [3], np.zeros((1, 3)), NavState.identity())

@@ -139,3 +139,42 @@ def test_bad_input():
     packed = PackedSmoother(_smoother(3))
     with pytest.raises(TypeError, match="guess"):
         packed.update({"q": jnp.zeros(2)}, {"z": jnp.zeros(2), "w": jnp.zeros(())})
+
+
+def test_round_trip_keeps_wider_data_exact():
+    """A float32 smoother with float64 and int64 step data: every leaf was cast to float32
+    (a timestamp 16777217 came back as 16777216, 6378137.3 as 6378137.5, and the packed
+    update then solved with the rounded data)."""
+    f32 = jnp.float32
+    x0 = jnp.zeros(2, f32)
+    d0 = {"z": jnp.zeros(2, f32), "stamp": jnp.zeros((), jnp.int64),
+          "ecef": jnp.zeros(3, jnp.float64)}
+    sm = FixedLagSmoother(x0, d0, window=3, motion=lambda xp, x, d: (x - xp) - d["z"],
+                          unary=lambda x, d: x - (d["ecef"][:2] - 6378137.0).astype(x.dtype))
+    d = {"z": jnp.ones(2, f32), "stamp": jnp.asarray(16777217, jnp.int64),
+         "ecef": jnp.asarray([6378137.3, 6378137.25, 0.0])}
+    sm = sm.update(jnp.zeros(2, f32), d)
+    packed = PackedSmoother(sm)
+    assert packed.buffer.dtype == jnp.float64
+    for a, b in zip(jax.tree.leaves(packed.unpack()), jax.tree.leaves(sm), strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(packed.update(x0, d).unpack().latest(),
+                                  sm.update(x0, d).latest())
+
+
+def test_integer_data_beyond_the_buffers_exact_range_raise():
+    x0, d0 = jnp.zeros(2, jnp.float32), {"z": jnp.zeros(2, jnp.float32),
+                                         "stamp": jnp.zeros((), jnp.int64)}
+    sm = FixedLagSmoother(x0, d0, window=3, motion=lambda xp, x, d: x - xp - d["z"])
+    d = {"z": jnp.ones(2, jnp.float32), "stamp": jnp.asarray(2**24 + 1, jnp.int64)}
+    sm = sm.update(x0, d)
+    with pytest.raises(ValueError, match=r"PackedSmoother: the integer data .*\.data\['stamp'\]"
+                                         r" holds a value beyond ±16777216"):
+        PackedSmoother(sm)
+    with pytest.raises(RuntimeError, match=r"holds a value beyond ±16777216"):
+        jax.block_until_ready(jax.jit(lambda s: PackedSmoother(s).buffer)(sm))
+    ok = FixedLagSmoother(x0, d0, window=3, motion=lambda xp, x, d: x - xp - d["z"])
+    for stamp in (2**24, -2**24):  # the limits themselves are exact
+        ok = ok.update(x0, {"z": jnp.ones(2, jnp.float32), "stamp": jnp.asarray(stamp)})
+    np.testing.assert_array_equal(PackedSmoother(ok).unpack().data["stamp"], ok.data["stamp"])
