@@ -43,8 +43,8 @@ def homo2cart(coordinates: Any) -> Array:
     """Divide by the last coordinate: (..., D+1) → (..., D).
 
     A last coordinate of (nearly) zero is replaced by ±tiny with its sign kept (0 counts
-    as positive), as in PyPose, so the result is large but finite and so is its
-    derivative."""
+    as positive), as in PyPose: no 0/0 NaN, but the result overflows to ±inf unless the
+    other coordinates are tiny too (a point on the camera plane projects to infinity)."""
     x = as_float_array(coordinates, "homo2cart(coordinates)")
     if x.ndim == 0 or x.shape[-1] < 2:
         raise ValueError(f"homo2cart(coordinates): expected an array of shape (..., D+1) with "

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from .._precision import full_precision
+from ..lie._base import runtime_check
 from ._kdtree import build_kdtree, query_kdtree
 from ._util import Array, batch_shape, flatten_batch, points_array, safe_norm
 
@@ -166,7 +167,8 @@ def knn(
     ``"auto"`` (see :func:`resolve_method`). Leading batch axes broadcast (batches are
     processed one after another so memory stays bounded). ``tile``: queries per tile of the
     brute-force search (default from ``budget``, the number of elements of one (tile, M)
-    distance block). ``squared=True`` returns squared distances.
+    distance block). ``squared=True`` returns squared distances. Non-finite points are
+    never selected; a non-finite query raises (eagerly, or ``eqx.error_if`` under ``jit``).
 
     Returns :class:`KNNResult` (distances (..., N, k) ascending, indices (..., N, k))."""
     q = points_array(query, "knn(query)", None, min_points=0)
@@ -185,6 +187,10 @@ def knn(
     batch = batch_shape(q.shape[:-2], p.shape[:-2], names=("query", "points"))
     dtype = jnp.result_type(q.dtype, p.dtype)
     q, p = q.astype(dtype), p.astype(dtype)
+    # both methods: brute force gave a NaN distance and an arbitrary index, the tree raised
+    q = runtime_check(q, ~jnp.all(jnp.isfinite(q)),
+                      "knn(query): contains NaN or inf (a non-finite query has no nearest "
+                      "point; drop or fix those rows first)")
     n = q.shape[-2]
     if n == 0:
         return KNNResult(jnp.zeros((*batch, 0, k), dtype), jnp.zeros((*batch, 0, k), jnp.int32))

@@ -252,10 +252,13 @@ def _epnp_single(pw: Array, uv: Array, k: Array) -> tuple[Array, Array]:
     poses, errs = poses.reshape(-1, 7), errs.reshape(-1)
     best = poses[jnp.argmin(errs)]
     collinear = lam[1] <= 1e3 * eps * lam_max
+    inputs_finite = jnp.all(jnp.isfinite(pw)) & jnp.all(jnp.isfinite(uv))
     finite = jnp.all(jnp.isfinite(best)) & jnp.isfinite(jnp.min(errs))
-    finite = finite & jnp.all(jnp.isfinite(pw)) & jnp.all(jnp.isfinite(uv))
-    status = jnp.where(~finite, Results.NON_FINITE,
-                       jnp.where(collinear, Results.DEGENERATE, Results.CONVERGED))
+    # collinear points before a non-finite estimate: on a line every candidate can fail
+    # the Z > 0 test (errors all inf), which is the degeneracy, not bad input
+    status = jnp.where(~inputs_finite, Results.NON_FINITE,
+                       jnp.where(collinear, Results.DEGENERATE,
+                                 jnp.where(finite, Results.CONVERGED, Results.NON_FINITE)))
     best = jnp.where(jnp.all(jnp.isfinite(best)), best, SE3.identity(dtype=dtype).data)
     return best, status.astype(jnp.int32)
 

@@ -67,7 +67,9 @@ def _optimal_rotation_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tupl
     scale = (jnp.abs(tr[..., 0, 0]) + jnp.finfo(h.dtype).tiny)[..., None, None]
     a = a / scale
     lhs = a @ a + jnp.finfo(h.dtype).eps * eye
-    omega = jnp.linalg.solve(lhs, (a @ b[..., None]) / scale)[..., 0]
+    # a/scale, not (a·b)/scale: reverse mode would divide the cotangent by the tiny
+    # scale first (inf) and then multiply by a = 0 (NaN)
+    omega = jnp.linalg.solve(lhs, (a / scale) @ b[..., None])[..., 0]
     return r, r @ skew(omega)
 
 

@@ -98,3 +98,58 @@ def test_shape_errors_name_the_argument(rng):
         estimate_normals(rng.normal(size=(6, 3)), 3, viewpoint=np.zeros(2))
     with pytest.raises(InvalidValueError, match=r"associate\(ref_stamps\).*ascending"):
         associate(np.array([0.0, 2.0, 1.0]), np.array([0.0, 1.0, 2.0]))
+
+
+# Found by an audit (session 48)
+def test_kabsch_reverse_mode_with_coincident_points_is_finite(rng):
+    """With a zero cross-covariance (coincident source or target points, one point) the
+    rotation's tangent is 0, and forward mode gave it; reverse mode divided the cotangent
+    by the tiny scale first (inf) and then multiplied by 0: an all-NaN gradient. The
+    translation is c_t − R·c_s, so d/ds Σ t = −(1/N)·Σ_rows R: forward mode is the
+    reference, and it is finite."""
+    tgt = jnp.asarray(rng.normal(size=(4, 3)))
+    same = jnp.ones((4, 3))
+    f = lambda s: svdtf(s, tgt).data.sum()  # noqa: E731
+    np.testing.assert_allclose(jax.grad(f)(same), jax.jacfwd(f)(same), atol=1e-12)
+    g = lambda t: svdtf(tgt, t).data.sum()  # noqa: E731
+    np.testing.assert_allclose(jax.grad(g)(same), jax.jacfwd(g)(same), atol=1e-12)
+    u = lambda s: umeyama(s, tgt[:1]).data.sum()  # noqa: E731
+    np.testing.assert_allclose(jax.grad(u)(same[:1]), jax.jacfwd(u)(same[:1]), atol=1e-12)
+    # a regular configuration keeps its derivative (central differences)
+    src = jnp.asarray(rng.normal(size=(4, 3)))
+    np.testing.assert_allclose(jax.grad(f)(src), _central_jacobian(f, np.asarray(src)),
+                               rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("skew, n", [(1.5, 5), (0.0, 6)])
+def test_epnp_on_finite_collinear_points_is_degenerate(skew, n):
+    """On a line every candidate pose could fail the Z > 0 test (all errors inf), and the
+    status said NON_FINITE for finite input; the documented status is DEGENERATE."""
+    from jaxpose.geometry import epnp
+    from jaxpose.lie import SE3
+    from jaxpose.results import Results
+
+    cam = np.array([[500.0, skew, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 1.0]])
+    pose = SE3.exp(jnp.array([0.1, -0.2, 4.0, 0.3, -0.2, 0.5]))
+    pw = np.outer(np.arange(1.0, n + 1), [1.0, 2.0, 3.0]) * 0.1
+    px = np.asarray(point2pixel(pw, cam, pose))
+    for refine in (False, True):
+        assert int(epnp(pw, px, cam, refine=refine).status) == Results.DEGENERATE
+    bad = px.copy()
+    bad[0, 0] = np.nan
+    assert int(epnp(pw, bad, cam).status) == Results.NON_FINITE
+
+
+@pytest.mark.parametrize("method", ["brute", "kdtree"])
+def test_knn_refuses_a_nan_query_with_either_method(method):
+    """Brute force returned a NaN distance and an arbitrary index where the k-d tree
+    raised, and method='auto' picks between them by problem size."""
+    from jaxpose.geometry import knn
+
+    pts = np.arange(12.0).reshape(4, 3)
+    q = np.array([[0.0, 1.0, 2.0], [np.nan, 0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"knn\(query\): contains NaN or inf"):
+        knn(q, pts, method=method)
+    with pytest.raises(RuntimeError, match=r"knn\(query\): contains NaN or inf"):
+        jax.block_until_ready(jax.jit(lambda a: knn(a, pts, method=method).indices)(q))
+    assert int(knn(q[:1], pts, method=method).indices[0, 0]) == 0
