@@ -288,18 +288,25 @@ def bias_walk_factor(
     name: str = "bias_walk",
 ) -> Factor:
     """Random-walk factors between biases ``i`` and ``j`` (m,) separated by ``dt`` (m,)
-    seconds: covariance ``diag(σ_bg²·1₃, σ_ba²·1₃)·dt`` with walk densities ``gyro_walk``
-    [rad/s²/√Hz] and ``acc_walk`` [m/s³/√Hz] (scalars or (3,))."""
+    seconds (a scalar: the same interval for every factor): covariance
+    ``diag(σ_bg²·1₃, σ_ba²·1₃)·dt`` with walk densities ``gyro_walk`` [rad/s²/√Hz] and
+    ``acc_walk`` [m/s³/√Hz] (scalars or (3,))."""
     d = np.asarray(dt, dtype=np.float64)
     if d.ndim > 1:
         raise ValueError(f"bias_walk_factor(dt): expected shape (m,), got {d.shape}")
-    d = d.reshape(-1)
+    d = np.full(np.size(i), float(d)) if d.ndim == 0 else d
     m = d.shape[0]
     ii, jj = _indices(i, m, "bias_walk_factor(i)"), _indices(j, m, "bias_walk_factor(j)")
     if not np.all(d > 0):
         raise ValueError("bias_walk_factor(dt): every interval must be positive")
-    sg = np.broadcast_to(np.asarray(gyro_walk, dtype=np.float64), (3,))
-    sa = np.broadcast_to(np.asarray(acc_walk, dtype=np.float64), (3,))
+    walks = {}
+    for name, value in (("gyro_walk", gyro_walk), ("acc_walk", acc_walk)):
+        walks[name] = np.asarray(value, dtype=np.float64)
+        if walks[name].shape not in ((), (3,)):
+            raise ValueError(f"bias_walk_factor({name}): expected a scalar or (3,) σ, got "
+                             f"shape {walks[name].shape}")
+    sg = np.broadcast_to(walks["gyro_walk"], (3,))
+    sa = np.broadcast_to(walks["acc_walk"], (3,))
     if not (np.all(sg > 0) and np.all(sa > 0)):
         raise ValueError("bias_walk_factor(gyro_walk, acc_walk): expected positive σ")
     var = np.concatenate([sg * sg, sa * sa])[None, :] * d[:, None]

@@ -159,3 +159,17 @@ def test_navstate_parts_must_share_the_batch_shape():
     state = NavState(rot, np.zeros((4, 3)), np.ones((4, 3)))
     assert state[1].shape == () and state.pose().data.shape == (4, 7)
     assert jax.vmap(lambda s: s.pos.sum())(state).shape == (4,)
+
+
+def test_bias_walk_factor_scalar_interval_and_walk_shapes():
+    """A scalar dt means one interval for every factor (it raised, blaming ``i``); a σ of
+    the wrong shape is named (it was a bare NumPy broadcast error)."""
+    from jaxpose.imu import bias_walk_factor
+
+    one = bias_walk_factor([0, 1, 2], [1, 2, 3], 0.1, 1e-3, 2e-3)
+    each = bias_walk_factor([0, 1, 2], [1, 2, 3], [0.1, 0.1, 0.1], 1e-3, 2e-3)
+    np.testing.assert_array_equal(one.sqrt_info, each.sqrt_info)
+    expected = 1.0 / np.sqrt(np.r_[[1e-6] * 3, [4e-6] * 3] * 0.1)  # 1/(σ·√dt), closed form
+    np.testing.assert_allclose(np.diagonal(np.asarray(one.sqrt_info)[0]), expected, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"bias_walk_factor\(gyro_walk\): expected a scalar or"):
+        bias_walk_factor([0, 1], [1, 2], 0.1, [1e-3, 1e-3], 1e-3)
