@@ -133,8 +133,9 @@ def synthetic_pose_graph(
     Returns:
         ``(graph, ground_truth)``: ``graph.poses`` chain the noisy odometry from the true first
         pose (the identity), so the initial guess drifts; ``graph.fixed = [0]``; edges are
-        ordered by their later vertex (odometry ``(k, k+1)`` before loop closures ending at
-        ``k+1``). ``ground_truth`` is (n, 7) SE3 or (n, 4) SE2 storage.
+        ordered by their later vertex, then their earlier one (loop closures ``(i, k+1)``,
+        i < k, before the odometry edge ``(k, k+1)``). ``ground_truth`` is (n, 7) SE3 or
+        (n, 4) SE2 storage.
     """
     if kind not in ("SE3", "SE2"):
         raise ValueError(f"synthetic_pose_graph: kind must be 'SE3' or 'SE2', got {kind!r}")
@@ -225,8 +226,11 @@ def corrupt_loop_closures(
     count = int(round(float(fraction) * loops.size))
     out = np.sort(rng.choice(loops, count, replace=False)) if count else np.zeros(0, np.int64)
     i = rng.integers(0, n, count)
-    gap = rng.integers(2, n - 1, count) if n > 3 else np.full(count, 2)
-    j = (i + gap) % n  # never i or i ± 1
+    if n > 3:
+        j = (i + rng.integers(2, n - 1, count)) % n  # never i or i ± 1
+    else:  # three poses: (0, 2) is the only non-consecutive pair ((i + 2) % 3 is i − 1)
+        i = 2 * (i % 2)
+        j = 2 - i
     edges[out] = np.stack([i, j], 1)
     meas = graph.measurements.copy()
     dim = 3 if graph.kind == "SE3" else 2
@@ -267,10 +271,10 @@ def synthetic_bal(
 
     Scene: points uniform in the unit ball; cameras on a ring of radius 4 around it (heights
     uniform in [−0.5, 0.5]), each looking at a point near the origin, so every point is in
-    front of every camera (``P_z ≤ −3`` in BAL's convention) at ``‖p‖ ≲ 0.35``. Intrinsics:
-    ``f ~ U(720, 880)``, ``k1 ~ U(−0.1, 0.1)``, ``k2 ~ U(−0.01, 0.01)``. Each point is seen
-    by ``obs_per_point`` consecutive cameras on the ring (random start), as in a video;
-    observations are ordered by point, then camera, like the BAL files.
+    front of every camera (``P_z`` about −3 or below in BAL's convention) at ``‖p‖ ≲ 0.35``.
+    Intrinsics: ``f ~ U(720, 880)``, ``k1 ~ U(−0.1, 0.1)``, ``k2 ~ U(−0.01, 0.01)``. Each
+    point is seen by ``obs_per_point`` consecutive cameras on the ring (random start), as
+    in a video; observations are ordered by point, then camera, like the BAL files.
 
     Args:
         n_cameras, n_points: problem size.

@@ -137,7 +137,9 @@ def from_jaxlie(x: Any) -> LieGroup:
 def to_torch(x: Any) -> Any:
     """A JAX array (or a jaxpose element: its ``.data``) → a ``torch.Tensor`` of the same
     shape and dtype, sharing memory through DLPack where possible (CPU and same-device
-    GPU arrays), else copied through host memory."""
+    GPU arrays), else copied through host memory. A shared tensor must not be modified in
+    place (``mul_``, ``+=``, ``out=``): that would change the JAX array, which JAX assumes
+    immutable; ``.clone()`` it first (as :func:`to_pypose` does)."""
     torch = _torch()
     if isinstance(x, (LieGroup, LieAlgebra)):
         x = x.data
@@ -160,9 +162,16 @@ def from_torch(t: Any, dtype: Any = None) -> jax.Array:
     raw = t.detach()
     if hasattr(raw, "tensor"):  # LieTensor -> plain tensor
         raw = raw.tensor()
-    raw = raw.cpu().contiguous()
-    arr = jnp.asarray(raw.numpy())
-    return arr if dtype is None else arr.astype(dtype)
+    raw = raw.cpu().contiguous().numpy()
+    if dtype is None and raw.dtype.kind in "iu" and raw.dtype.itemsize == 8 and raw.size \
+            and not jax.config.jax_enable_x64:
+        info = np.iinfo(np.int32 if raw.dtype.kind == "i" else np.uint32)
+        if raw.min() < info.min or raw.max() > info.max:  # JAX would wrap them silently
+            raise ValueError(
+                f"from_torch(t): {raw.dtype} values beyond {np.dtype(info.dtype).name}'s range "
+                f"with JAX's x64 mode off, where they would wrap around (2**40 → 0); enable "
+                f'it (jax.config.update("jax_enable_x64", True)) or pass dtype=')
+    return jnp.asarray(raw if dtype is None else raw.astype(dtype))
 
 
 _PP_TYPES = {

@@ -59,7 +59,10 @@ def _lookup(cls: type[Results], status: Any, field: Any) -> str | np.ndarray:
         raise TypeError(
             "status: expected a concrete int or int array (text cannot be produced inside "
             f"jit/vmap), got {type(status).__name__}") from err
-    if codes.dtype.kind not in "iub" and not (
+    if codes.dtype.kind == "b":  # a mask like status == CONVERGED is not a status
+        raise TypeError("status: expected integer status codes, got a bool array (a mask "
+                        "such as status == Results.CONVERGED is not a status)")
+    if codes.dtype.kind not in "iu" and not (
             codes.dtype.kind == "f" and np.all(codes == np.round(codes))):
         raise TypeError(f"status: expected integer status codes, got dtype {codes.dtype}")
     known = {int(m): field(m) for m in cls}

@@ -148,3 +148,19 @@ def test_torch_arrays_and_bad_input():
         interop.from_torch(np.zeros(3))
     with pytest.raises(TypeError, match=r"to_torch\(x\): got a traced value"):
         jax.jit(interop.to_torch)(x32)
+
+
+def test_from_torch_refuses_integers_that_would_wrap_without_x64():
+    """With x64 off an int64 2**40 came back as 0 (JAX narrows to int32 by wrapping)."""
+    torch = pytest.importorskip("torch")
+    before = jax.config.jax_enable_x64
+    try:
+        jax.config.update("jax_enable_x64", False)
+        with pytest.raises(ValueError, match=r"from_torch\(t\): int64 values beyond int32"):
+            interop.from_torch(torch.tensor([2**40, 1]))
+        small = interop.from_torch(torch.tensor([2**30, -5]))
+        assert small.dtype == jnp.int32 and small.tolist() == [2**30, -5]
+        np.testing.assert_array_equal(interop.from_torch(torch.tensor([2**40]),
+                                                         dtype=jnp.float32), [2.0**40])
+    finally:
+        jax.config.update("jax_enable_x64", before)

@@ -56,3 +56,12 @@ def test_solvers_report_the_shared_codes():
     batched = jax.vmap(lambda a: jp.optim.least_squares(lambda x, b: x - b, jnp.zeros(1), a))(
         jnp.ones((3, 1)))
     assert batched.status_name.tolist() == ["converged"] * 3
+
+
+def test_a_bool_mask_is_not_a_status():
+    """``status == Results.CONVERGED`` (a mask) was read as codes 1/0: converged problems
+    were labelled 'max_steps' and the others 'converged'."""
+    mask = np.array([0, 1]) == int(Results.CONVERGED)
+    for lookup in (Results.name_of, Results.message_of):
+        with pytest.raises(TypeError, match="got a bool array"):
+            lookup(mask)

@@ -179,7 +179,10 @@ def solve_pcg(
     psd = lx.positive_semidefinite_tag
     operator = lx.FunctionLinearOperator(matvec, structure, tags=psd)
     preconditioner = lx.FunctionLinearOperator(precond, structure, tags=psd)
-    atol = jnp.asarray(rtol, b.dtype) * jnp.linalg.norm(b)
+    # floored at the smallest normal number: an atol of exactly 0 made lineax's test 0/0
+    # (NaN, read as converged) on every zero entry of b, so CG stopped after one step
+    atol = jnp.maximum(jnp.asarray(rtol, b.dtype) * jnp.linalg.norm(b),
+                       jnp.finfo(b.dtype).tiny)
     solver = lx.CG(rtol=0.0, atol=atol, norm=_two_norm, max_steps=max_iters)
     sol = lx.linear_solve(operator, b, solver, options={"preconditioner": preconditioner},
                           throw=False)

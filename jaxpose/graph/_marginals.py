@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._precision import full_precision
+from ..optim._stopping import check_tolerance
 from . import _linear as linear
 from . import _selinv as selinv
 from ._problem import FactorGraph, check_variables, csr_values, hessian_vector, linearize
@@ -214,6 +215,12 @@ def marginals(
     """
     if method not in METHODS:
         raise ValueError(f"marginals(method={method!r}): expected one of {METHODS}")
+    check_tolerance(cg_rtol, "marginals(cg_rtol)", positive=True)
+    for name, value in (("cg_max_iters", cg_max_iters), ("batch_size", batch_size)):
+        if (value is not None or name == "cg_max_iters") and (
+                isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"marginals({name}={value!r}): expected an int >= 1"
+                             + (" or None" if name == "batch_size" else ""))
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"marginals(graph): expected a FactorGraph, got {type(graph).__name__}")
     if solution is None:

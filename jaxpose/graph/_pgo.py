@@ -160,6 +160,9 @@ def optimize_pose_graph(
         raise ValueError(f"optimize_pose_graph(robust={robust!r}): expected None or 'gnc'")
     if robust == "gnc" and kernel is not None:
         raise ValueError("optimize_pose_graph(kernel, robust='gnc'): give one, not both")
+    if robust is None and gnc_options:
+        raise ValueError("optimize_pose_graph(gnc_options): used by robust='gnc' only; add "
+                         "robust='gnc' or drop gnc_options")
     if information is not None:
         info, _ = _apply_policy(graph.information, information, "optimize_pose_graph")
         graph = replace(graph, information=info)

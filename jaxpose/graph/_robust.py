@@ -63,6 +63,7 @@ Weights enter the inner solve by scaling each factor's square-root information b
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from typing import Any
 
@@ -730,6 +731,10 @@ def gnc(
         raise ValueError(f"gnc(inner={inner!r}): expected one of {INNER_SOLVERS}")
     if not mu_step > 1.0:
         raise ValueError(f"gnc(mu_step={mu_step!r}): expected a float > 1")
+    for name, value in (("cost_rtol", cost_rtol), ("weights_tol", weights_tol)):
+        if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and value >= 0):
+            raise ValueError(f"gnc({name}={value!r}): expected a tolerance >= 0 (NaN or a "
+                             f"negative value switches the stopping test off)")
     if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 0):
         raise ValueError(f"gnc(max_iterations={max_iterations!r}): expected an int >= 0")
     for name, value in (("max_deletions", max_deletions), ("max_readmissions", max_readmissions)):

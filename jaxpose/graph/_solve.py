@@ -36,7 +36,7 @@ from .._compile import loops_compile_whole
 from .._precision import full_precision
 from ..optim import _iterate
 from ..optim._solver import LevenbergMarquardt
-from ..optim._stopping import Stopping
+from ..optim._stopping import Stopping, check_tolerance
 from ..optim._strategies import LambdaFactor, NormalEquations, Strategy
 from ..results import Results
 from . import _linear as linear
@@ -164,6 +164,8 @@ class PCG(eqx.Module):
     def __check_init__(self) -> None:
         if isinstance(self.rtol, str) and self.rtol != "inexact":
             raise ValueError(f"PCG(rtol={self.rtol!r}): expected a float or 'inexact'")
+        if not isinstance(self.rtol, str):
+            check_tolerance(self.rtol, "PCG(rtol)", positive=True)
         if not (isinstance(self.max_iters, int) and self.max_iters >= 1):
             raise ValueError(f"PCG(max_iters={self.max_iters!r}): expected an int >= 1")
 

@@ -725,7 +725,18 @@ def _check_writable_graph(graph: PoseGraph, poses: np.ndarray) -> None:
                 f"write_g2o({name}): row {k} ({label(k)}) has a zero {what} "
                 f"{arr[k, rot].tolist()}; read_g2o would reject the file"
             )
-    # the file holds the upper triangle: check the symmetric matrix read_g2o will rebuild
+    # the file holds the upper triangle: an asymmetric matrix would come back changed
+    # (the tolerance of graph.Factor's check: rounding-level asymmetry is harmless)
+    asym = np.flatnonzero(~np.all(np.isclose(graph.information,
+                                             np.swapaxes(graph.information, 1, 2),
+                                             rtol=1e-9, atol=1e-12), axis=(1, 2)))
+    if asym.size:
+        e = int(asym[0])
+        raise ValueError(
+            f"write_g2o(graph.information): matrix {e} is not symmetric "
+            f"{graph.information[e].tolist()}; the file holds its upper triangle, so "
+            "read_g2o would return a different matrix (symmetrise it first)")
+    # check the symmetric matrix read_g2o will rebuild
     t = graph.information.shape[-1]
     r, c = np.triu_indices(t)
     info = np.zeros_like(graph.information)
@@ -765,7 +776,10 @@ def _all_spd(m: np.ndarray) -> bool:
 
 
 def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
-    """Write ``graph`` as a g2o file (full float precision, so reading it back is exact).
+    """Write ``graph`` as a g2o file in full float precision: reading it back returns the
+    written numbers, except that :func:`read_g2o` normalises quaternions (a non-unit one
+    comes back normalised; a unit one may move by an ulp) and rebuilds each information
+    matrix from its upper triangle.
 
     Args:
         path: file to write (overwritten).
@@ -780,8 +794,9 @@ def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
     Raises:
         ValueError: before the file is opened, for anything :func:`read_g2o` would reject:
             non-finite poses, measurements or information, zero quaternions (SE3) or
-            ``(cos θ, sin θ) = (0, 0)`` (SE2), information matrices that are not positive
-            definite, self-loop edges, duplicate vertex ids or a graph without vertices.
+            ``(cos θ, sin θ) = (0, 0)`` (SE2), information matrices that are not symmetric
+            or not positive definite, self-loop edges, duplicate vertex ids or a graph
+            without vertices.
     """
     t = _DIMS[graph.kind][1]
     if poses is None:

@@ -430,6 +430,9 @@ class LieGroup(_Element):
         """Identity element with batch ``shape`` (an int ``n`` means ``(n,)``)."""
         shape = as_batch_shape(shape, f"{cls.__name__}.identity(shape)")
         dtype = jnp.result_type(float) if dtype is None else dtype
+        if not jnp.issubdtype(dtype, jnp.floating):  # the constructor would promote it
+            raise TypeError(f"{cls.__name__}.identity(dtype={dtype!r}): expected a floating "
+                            f"dtype")
         ident = jnp.asarray(cls._identity_data(), dtype)
         return cls(jnp.broadcast_to(ident, (*shape, cls.storage_dim)))
 
@@ -465,7 +468,10 @@ class LieGroup(_Element):
         rotation with det > 0 to ``tol`` relative to its own size (default 1e-9 float64,
         1e-5 float32) — a large translation does not widen the tolerance — that the
         bottom row is ``[0 … 0 1]`` and that every entry is finite. ``check=False``
-        projects onto the group instead."""
+        maps any matrix onto the group instead: for 3-D rotations the normalised
+        quaternion of Shepperd's method, which for a matrix off SO(3) by ε is within O(ε)
+        of, but not, the nearest rotation in the Frobenius norm (scipy's; project with an
+        SVD first where that matters)."""
         m = as_float_array(matrix, f"{cls.__name__}.from_matrix(matrix)")
         n = cls.matrix_dim
         if m.ndim < 2 or m.shape[-2:] != (n, n):

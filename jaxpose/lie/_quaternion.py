@@ -196,7 +196,8 @@ def from_matrix(m: Array) -> Array:
 
     The branch with the largest pivot is selected without boolean-mask assignment, and
     every branch is evaluated at a safe pivot, so derivatives stay finite. A matrix that
-    is only approximately orthogonal is projected (the result is normalised)."""
+    is only approximately orthogonal gives the normalised quaternion of that branch: a
+    rotation within O(ε) of it, not the nearest one in the Frobenius norm."""
     r00, r01, r02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
     r10, r11, r12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
     r20, r21, r22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]

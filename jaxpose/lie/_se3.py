@@ -7,7 +7,9 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._precision import FULL
 from . import _quaternion as quat
@@ -287,11 +289,18 @@ class SE3(LieGroup):
 
     @classmethod
     def from_rotation_translation(cls, rotation: SO3, translation: Array) -> SE3:
-        """SE3 from an SO3 ``rotation`` (…) and a ``translation`` (…, 3); batch shapes broadcast."""
-        t = jnp.asarray(translation, rotation.dtype)
+        """SE3 from an SO3 ``rotation`` (…) and a ``translation`` (…, 3); batch shapes
+        broadcast; an array translation's dtype promotes with the rotation's (as in
+        ``compose``: float64 is not rounded to a float32 rotation's dtype), Python numbers
+        and lists take the rotation's."""
+        arrays = (np.ndarray, np.generic, jax.Array)
+        t = jnp.asarray(translation)
+        dtype = (jnp.result_type(rotation.dtype, t.dtype) if isinstance(translation, arrays)
+                 else rotation.dtype)
+        t, q = t.astype(dtype), rotation.data.astype(dtype)
         shape = jnp.broadcast_shapes(rotation.shape, t.shape[:-1])
         return cls(jnp.concatenate([jnp.broadcast_to(t, (*shape, 3)),
-                                    jnp.broadcast_to(rotation.data, (*shape, 4))], -1))
+                                    jnp.broadcast_to(q, (*shape, 4))], -1))
 
 
 se3.group = SE3

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 from .._precision import full_precision
 from ..lie import manifold
 from ._correctors import Corrector
+from ._linear import check_rcond
 from ._problem import Problem, as_problem
 from ._solution import Solution
 
@@ -72,6 +73,10 @@ def covariance(
     """
     if method not in METHODS:
         raise ValueError(f"covariance(method={method!r}): expected one of {METHODS}")
+    if rcond is not None and method != "svd":
+        raise ValueError(f"covariance(rcond={rcond!r}): only method='svd' drops small "
+                         f"eigenvalues; got method={method!r}")
+    check_rcond(rcond, "covariance(rcond)")
     if isinstance(params, Solution):
         params = params.params
     problem = as_problem(residual_fn, weights=weights, kernel=kernel, corrector=corrector,

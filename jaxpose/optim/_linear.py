@@ -31,6 +31,7 @@ solver class chosen by the user stays the same and runs on that form:
 from __future__ import annotations
 
 import abc
+import numbers
 
 import equinox as eqx
 import jax
@@ -39,6 +40,7 @@ import lineax as lx
 
 from ._colouring import BlockHessian, as_dense
 from ._sparse_hessian import SparseHessian
+from ._stopping import check_tolerance
 
 Array = jax.Array
 
@@ -105,6 +107,9 @@ class SVD(LinearSolver):
 
     rcond: float | None = eqx.field(default=None, static=True)
 
+    def __check_init__(self) -> None:
+        check_rcond(self.rcond, "SVD(rcond)")
+
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         if isinstance(hess, BlockHessian):
             return hess.solve(-grad, diag_add, "svd", self.rcond)
@@ -123,6 +128,15 @@ class CG(LinearSolver):
     atol: float = eqx.field(default=1e-12, static=True)
     max_steps: int | None = eqx.field(default=None, static=True)
 
+    def __check_init__(self) -> None:
+        # a NaN tolerance or no step gives δ = 0, which the stopping rules would read
+        # as convergence
+        check_tolerance(self.rtol, "CG(rtol)")
+        check_tolerance(self.atol, "CG(atol)")
+        if self.max_steps is not None and (isinstance(self.max_steps, bool) or not isinstance(
+                self.max_steps, int) or self.max_steps < 1):
+            raise ValueError(f"CG(max_steps={self.max_steps!r}): expected an int >= 1 or None")
+
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         n = grad.shape[0]
         steps = 10 * max(n, 1) if self.max_steps is None else self.max_steps
@@ -135,6 +149,16 @@ class CG(LinearSolver):
         tol_floor = 10 * jnp.finfo(grad.dtype).eps
         solver = lx.CG(rtol=max(self.rtol, float(tol_floor)), atol=self.atol, max_steps=steps)
         return lx.linear_solve(op, -grad, solver, throw=False).value
+
+
+def check_rcond(rcond: object, name: str) -> None:
+    """Refuse a cut-off ratio outside [0, 1) or NaN: at 1 or above every singular value is
+    dropped (a zero step or covariance), NaN drops them all too."""
+    if rcond is None or (not isinstance(rcond, bool) and isinstance(rcond, numbers.Real)
+                         and 0 <= rcond < 1):
+        return
+    raise ValueError(f"{name}={rcond!r}: expected None or a float in [0, 1) (singular values "
+                     f"below rcond·σ_max are dropped)")
 
 
 __all__ = ["LinearSolver", "Cholesky", "LU", "QR", "SVD", "CG"]

@@ -39,11 +39,10 @@ def _runner(
     solver: AbstractSolver, stopping: Stopping, *, verbose: bool, history: bool, unrolled: bool
 ) -> Callable[[Problem, PyTree, PyTree], Solution]:
     def run(problem: Problem, params: PyTree, args: PyTree) -> Solution:
-        # with a loop, the residuals are evaluated in it only (its first trial linearises
-        # at params); their initial NaN/Inf check is attached to the solution instead
-        loop = stopping.budget > 0
+        # the residuals are evaluated in the first trial only (it linearises at params);
+        # their initial NaN/Inf check is attached to the solution instead
         state = solver._init(problem, params, args, stopping, history=history,
-                             evaluate=not loop)
+                             evaluate=False)
 
         def body(s: SolverState) -> SolverState:
             return solver._step(problem, s, args, stopping, verbose)
@@ -58,7 +57,9 @@ def _runner(
                 )
             else:
                 state = jax.lax.while_loop(cond, body, state)
-            state = _iterate.check_initial_cost(state, INITIAL_NOT_FINITE)
+        else:  # no step: the first trial only linearises (status MAX_STEPS, or CONVERGED
+            state = body(state)  # by gtol), so grad_norm and cost are those at params
+        state = _iterate.check_initial_cost(state, INITIAL_NOT_FINITE)
         return _to_solution(state, history)
 
     return run

@@ -6,6 +6,7 @@ stops on its own. One *iteration* is one trial step (accepted or rejected).
 
 from __future__ import annotations
 
+import numbers
 from typing import NamedTuple
 
 import equinox as eqx
@@ -15,6 +16,16 @@ import jax.numpy as jnp
 from ..results import Results
 
 Array = jax.Array
+
+
+def check_tolerance(value: object, name: str, *, positive: bool = False) -> None:
+    """Refuse a Python or NumPy number that is NaN or negative (``positive``: also zero),
+    which would silently switch a test off or on; arrays (possibly traced) pass."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return
+    if not (value > 0 if positive else value >= 0):
+        kind = "positive" if positive else "non-negative"
+        raise ValueError(f"{name}={value!r}: expected a {kind} tolerance")
 
 
 class StopOnPlateau(eqx.Module):
@@ -42,6 +53,7 @@ class StopOnPlateau(eqx.Module):
             raise ValueError(f"StopOnPlateau(steps={self.steps!r}): expected an int >= 1")
         if not (isinstance(self.patience, int) and self.patience >= 1):
             raise ValueError(f"StopOnPlateau(patience={self.patience!r}): expected an int >= 1")
+        check_tolerance(self.decreasing, "StopOnPlateau(decreasing)")
 
 
 class Stopping(eqx.Module):
@@ -87,9 +99,7 @@ class Stopping(eqx.Module):
         if not (isinstance(self.max_rejects, int) and self.max_rejects >= 1):
             raise ValueError(f"max_rejects={self.max_rejects!r}: expected an int >= 1")
         for name in ("cost_atol", "cost_rtol", "gtol", "xtol"):
-            val = getattr(self, name)
-            if isinstance(val, (int, float)) and val < 0:
-                raise ValueError(f"{name}={val!r}: expected a non-negative tolerance")
+            check_tolerance(getattr(self, name), name)
         if self.plateau is not None and not isinstance(self.plateau, StopOnPlateau):
             raise TypeError(f"stop: expected StopOnPlateau or None, got {type(self.plateau)}")
 

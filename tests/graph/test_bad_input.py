@@ -257,3 +257,44 @@ def test_traced_kernel_parameter_outside_its_domain_raises_in_solve():
         assert np.all(np.isfinite(np.asarray(jax.jit(fn)(jnp.asarray(0.5)))))
         with pytest.raises(Exception, match=msg):
             jax.block_until_ready(jax.jit(fn)(jnp.asarray(-0.5)))
+
+
+# Found by an audit (session 48)
+def test_pcg_tolerance_zero_is_refused_and_solve_pcg_does_not_stop_early():
+    """rtol = 0 made the CG's absolute tolerance 0, so lineax's test was 0/0 = NaN on every
+    zero entry of the right-hand side (fixed variables always give some) and read as
+    converged after one iteration: the step was not the Newton step."""
+    import jax
+
+    from jaxpose.graph import PCG, marginals
+    from jaxpose.graph import _linear as linear
+
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match=r"PCG\(rtol\)=.*: expected a positive tolerance"):
+            PCG(rtol=bad)
+    a = jnp.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.0], [0.0, 0.0, 1.0]])
+    b = jnp.array([1.0, 2.0, 0.0])
+    x, _ = jax.jit(lambda b: linear.solve_pcg(lambda v: a @ v, b, lambda v: v, rtol=0.0,
+                                              max_iters=50))(b)
+    np.testing.assert_allclose(x, np.linalg.solve(np.asarray(a), np.asarray(b)), atol=1e-12)
+    graph = FactorGraph([_between([0, 1], [1, 2])], {"pose": _poses(3)}, fixed={"pose": [0]})
+    for name, value in (("cg_rtol", 0.0), ("cg_max_iters", 0), ("batch_size", -3)):
+        with pytest.raises(ValueError, match=rf"marginals\({name}"):
+            marginals(graph, method="pcg", **{name: value})
+
+
+def test_gnc_tolerances_and_gnc_options_without_gnc():
+    """A negative or NaN GNC tolerance switched its stopping test off (40 outer iterations
+    and MAX_STEPS where 8 converge); gnc_options without robust='gnc' were ignored, even a
+    misspelt one."""
+    from jaxpose.datasets import synthetic_pose_graph
+    from jaxpose.graph import gnc, optimize_pose_graph, pose_graph_problem
+
+    pg, _ = synthetic_pose_graph("SE2", n_poses=5, noise=(0.01, 0.01), seed=0)
+    problem = pose_graph_problem(pg)
+    for name in ("cost_rtol", "weights_tol"):
+        for bad in (-1.0, float("nan")):
+            with pytest.raises(ValueError, match=rf"gnc\({name}=.*expected a tolerance >= 0"):
+                gnc(problem, **{name: bad})
+    with pytest.raises(ValueError, match=r"gnc_options\): used by robust='gnc' only"):
+        optimize_pose_graph(pg, gnc_options={"surogate": "gm"})

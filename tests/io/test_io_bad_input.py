@@ -387,3 +387,36 @@ def test_fuzz_read_imu_gps(tmp_path, data):
     for line in data.decode("utf-8-sig", errors="replace").splitlines():
         if line.strip():
             assert_plain_numbers([f.strip() for f in line.strip().split(",")[1:]])
+
+
+def test_write_g2o_refuses_an_asymmetric_information_matrix(tmp_path):
+    """The file holds the upper triangle, so an asymmetric matrix came back changed (by
+    5.0 in the audit's case) without a word; rounding-level asymmetry is still written."""
+    import dataclasses
+
+    g, _ = synthetic_pose_graph("SE2", n_poses=4, seed=0)
+    info = g.information.copy()
+    info[1, 2, 0] += 5.0
+    with pytest.raises(ValueError, match=r"write_g2o\(graph.information\): matrix 1 is not "
+                                         r"symmetric"):
+        write_g2o(tmp_path / "a.g2o", dataclasses.replace(g, information=info))
+    info = g.information.copy()
+    info[1, 2, 0] *= 1 + 1e-14
+    write_g2o(tmp_path / "b.g2o", dataclasses.replace(g, information=info))
+    np.testing.assert_allclose(read_g2o(tmp_path / "b.g2o").information, g.information,
+                               rtol=1e-13)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_corrupt_loop_closures_on_three_poses_never_joins_consecutive_poses(seed):
+    """(i + 2) % 3 is i − 1: with three poses the "outliers" joined consecutive poses."""
+    from jaxpose.datasets import corrupt_loop_closures
+
+    g = PoseGraph(kind="SE2", vertex_ids=np.arange(3),
+                  poses=np.array([[0, 0, 1.0, 0], [1, 0, 1, 0], [2, 0, 1, 0]]),
+                  edges=np.array([[0, 1], [1, 2], [0, 2]]),
+                  measurements=np.array([[1, 0, 1.0, 0], [1, 0, 1, 0], [2, 0, 1, 0]]),
+                  information=np.eye(3)[None].repeat(3, 0))
+    bad, out = corrupt_loop_closures(g, 1.0, seed=seed)
+    assert out.size == 1
+    assert np.all(np.abs(np.diff(bad.edges[out], axis=1)) != 1)

@@ -706,3 +706,19 @@ def test_out_of_range_concrete_jax_array_indices_raise(kind):
     # traced: no value to check, JAX clamps (documented)
     clamped = jax.jit(lambda y, i: y[i])(x, jnp.array(5))
     np.testing.assert_array_equal(np.asarray(clamped.data), data[2])
+
+
+def test_from_rotation_translation_promotes_like_compose_and_identity_needs_a_float():
+    """A float64 translation was rounded to a float32 rotation's dtype (1 + 1e-9 → 1.0);
+    identity(dtype=int32) returned float64."""
+    from jaxpose.lie import SE3, SO3
+
+    rot = SO3.identity(dtype=jnp.float32)
+    t64 = np.array([1.0 + 1e-9, 0.0, 0.0])
+    x = SE3.from_rotation_translation(rot, t64)
+    y = SE3.identity(dtype=jnp.float32).compose(SE3(np.concatenate([t64, [0, 0, 0, 1.0]])))
+    assert x.dtype == y.dtype == jnp.float64
+    assert float(x.translation()[0]) - 1.0 == pytest.approx(1e-9, rel=1e-6)
+    assert SE3.from_rotation_translation(rot, [1.0, 2.0, 3.0]).dtype == jnp.float32
+    with pytest.raises(TypeError, match=r"SO3.identity\(dtype=.*expected a floating dtype"):
+        SO3.identity(dtype=jnp.int32)

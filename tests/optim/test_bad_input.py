@@ -157,3 +157,54 @@ def test_all_nan_trials_end_non_finite_within_a_small_budget(max_steps):
         max_steps=2,
     )
     assert int(sol.status) == jp.Results.MAX_STEPS
+
+
+# Found by an audit (session 48): options that switched a test off, or a zero step read as
+# convergence
+def _rosenbrock(p, _):
+    return jnp.array([p[0] - 1.0, 10 * (p[1] - p[0] ** 2)])
+
+
+def test_zero_budget_reports_max_steps_and_the_gradient_at_the_start():
+    """max_steps=0 gave status RUNNING (-1) and grad_norm 0 from a placeholder system;
+    graph.solve gives MAX_STEPS. At (-1.2, 1): g = Jᵀr = (-107.8, -44) by hand."""
+    x0 = jnp.array([-1.2, 1.0])
+    sol = jo.least_squares(_rosenbrock, x0, max_steps=0)
+    assert sol.status_name == "max_steps" and int(sol.num_steps) == 0
+    np.testing.assert_allclose(float(sol.grad_norm), 107.8, rtol=1e-12)
+    np.testing.assert_allclose(float(sol.cost), 0.5 * (2.2**2 + 4.4**2), rtol=1e-12)
+    np.testing.assert_array_equal(sol.params, x0)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: jo.Stopping(gtol=float("nan")), r"gtol=nan: expected a non-negative"),
+    (lambda: jo.Stopping(xtol=-1e-3), r"xtol=-0.001: expected a non-negative"),
+    (lambda: jo.StopOnPlateau(steps=50, decreasing=float("nan")), r"decreasing\)=nan"),
+    (lambda: jo.CG(rtol=float("nan")), r"CG\(rtol\)=nan"),
+    (lambda: jo.CG(atol=-1.0), r"CG\(atol\)=-1.0"),
+    (lambda: jo.CG(max_steps=0), r"CG\(max_steps=0\): expected an int >= 1"),
+    (lambda: jo.SVD(rcond=float("nan")), r"SVD\(rcond\)=nan: expected None or a float in"),
+    (lambda: jo.SVD(rcond=1.0), r"SVD\(rcond\)=1.0"),
+    (lambda: jo.LevenbergMarquardt(accept_ratio=1.5), r"0 ≤ accept_ratio < 1"),
+    (lambda: jo.LevenbergMarquardt(diag_min=1.0, diag_max=0.1), r"0 ≤ diag_min ≤ diag_max"),
+    (lambda: jo.LevenbergMarquardt(diag_min=float("nan")), r"diag_min=nan"),
+])
+def test_options_that_would_fake_convergence_are_refused(make, match):
+    """Each gave a zero step (or switched a test off), read as CONVERGED at the start
+    point of Rosenbrock's problem (cost 12.1 against the optimum 0) or DIVERGED there."""
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_covariance_rcond_is_checked_and_only_for_svd():
+    """rcond=nan dropped every eigenvalue (an all-zero covariance); with method='cholesky'
+    it was silently ignored."""
+    a, b = _singular_args()
+    a = a[:, :3]  # full rank
+    x = jnp.asarray(np.linalg.lstsq(a, b, rcond=None)[0])
+    with pytest.raises(ValueError, match=r"covariance\(rcond\)=nan"):
+        jo.covariance(_lin, x, (a, b), method="svd", rcond=float("nan"))
+    with pytest.raises(ValueError, match=r"only method='svd' drops small eigenvalues"):
+        jo.covariance(_lin, x, (a, b), rcond=1e-8)
+    np.testing.assert_allclose(jo.covariance(_lin, x, (a, b), method="svd", rcond=1e-8),
+                               np.linalg.inv(a.T @ a), rtol=1e-10)
