@@ -154,8 +154,9 @@ def to_torch(x: Any) -> Any:
 
 def from_torch(t: Any, dtype: Any = None) -> jax.Array:
     """A ``torch.Tensor`` (a ``LieTensor`` too: its raw data) → a JAX array of the same
-    shape; detached from torch's autograd. ``dtype`` casts (e.g. float64 → float32 when
-    x64 is off, where JAX would otherwise downcast with a warning)."""
+    shape; detached from torch's autograd. ``dtype`` casts. With JAX's x64 mode off,
+    float64 becomes float32 (JAX's rule, silently) and int64 int32, where values beyond
+    int32's range raise instead of wrapping around."""
     torch = _torch()
     if not isinstance(t, torch.Tensor):
         raise TypeError(f"from_torch(t): expected a torch.Tensor, got {type(t).__name__}")

@@ -29,7 +29,7 @@ from ._analysis import fixed_indices
 from ._factor import Factor
 from ._problem import FactorGraph
 from ._reprojection import reprojection_jacobian, reprojection_residual
-from ._solve import GraphSolution, solve
+from ._solve import GraphLinearSolver, GraphSolution, solve
 
 Array = jax.Array
 
@@ -136,19 +136,23 @@ def optimize_bal(
     problem: BALProblem,
     *,
     kernel: Any = None,
-    linear_solver: str = "schur",
+    linear_solver: str | GraphLinearSolver = "schur",
     fix_intrinsics: bool = False,
     fixed_cameras: Any = (),
     dtype: Any = None,
     **solve_kwargs: Any,
 ) -> tuple[BALProblem, GraphSolution]:
     """Bundle-adjust a BAL problem; returns (the optimised problem, the solution).
+    ``linear_solver``: a method name or a :class:`~jaxpose.graph.GraphLinearSolver`
+    (``"schur"`` eliminates the points).
 
     Defaults suited to BA (override through ``solve_kwargs``): Marquardt damping
     (``damping="diagonal"``) and Nielsen's rule from λ₀ = 1e-4
     (``strategy=Nielsen(1e-4)``), as Ceres' LM."""
+    method = (linear_solver.method if isinstance(linear_solver, GraphLinearSolver)
+              else linear_solver)
     graph = bundle_adjustment_problem(
-        problem, kernel=kernel, eliminate=linear_solver == "schur",
+        problem, kernel=kernel, eliminate=method == "schur",
         fix_intrinsics=fix_intrinsics, fixed_cameras=fixed_cameras, dtype=dtype,
     )
     opts: dict[str, Any] = dict(damping="diagonal", strategy=Nielsen(1e-4))

@@ -298,3 +298,16 @@ def test_gnc_tolerances_and_gnc_options_without_gnc():
                 gnc(problem, **{name: bad})
     with pytest.raises(ValueError, match=r"gnc_options\): used by robust='gnc' only"):
         optimize_pose_graph(pg, gnc_options={"surogate": "gm"})
+
+
+def test_optimize_bal_takes_a_graph_linear_solver_object():
+    """GraphLinearSolver("schur") was compared with the string "schur": no points were
+    eliminated and the solve asked the caller to rebuild a graph it never built."""
+    from jaxpose.datasets import synthetic_bal
+    from jaxpose.graph import GraphLinearSolver, optimize_bal
+
+    prob, _ = synthetic_bal(6, 30, seed=0)
+    a = optimize_bal(prob, linear_solver=GraphLinearSolver("schur"), fixed_cameras=[0, 1])[1]
+    b = optimize_bal(prob, linear_solver="schur", fixed_cameras=[0, 1])[1]
+    assert a.status_name == "converged"
+    np.testing.assert_allclose(float(a.cost), float(b.cost), rtol=1e-12)
