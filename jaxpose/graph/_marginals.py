@@ -216,11 +216,13 @@ def marginals(
     if method not in METHODS:
         raise ValueError(f"marginals(method={method!r}): expected one of {METHODS}")
     check_tolerance(cg_rtol, "marginals(cg_rtol)", positive=True)
-    for name, value in (("cg_max_iters", cg_max_iters), ("batch_size", batch_size)):
-        if (value is not None or name == "cg_max_iters") and (
-                isinstance(value, bool) or not isinstance(value, int) or value < 1):
-            raise ValueError(f"marginals({name}={value!r}): expected an int >= 1"
-                             + (" or None" if name == "batch_size" else ""))
+    def positive_int(value: Any) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool) and value >= 1
+
+    if not positive_int(cg_max_iters):
+        raise ValueError(f"marginals(cg_max_iters={cg_max_iters!r}): expected an int >= 1")
+    if batch_size is not None and not positive_int(batch_size):
+        raise ValueError(f"marginals(batch_size={batch_size!r}): expected an int >= 1 or None")
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"marginals(graph): expected a FactorGraph, got {type(graph).__name__}")
     if solution is None:

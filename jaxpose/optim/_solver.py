@@ -254,10 +254,9 @@ class LevenbergMarquardt(AbstractSolver):
             raise TypeError(f"strategy: expected a Strategy, got {type(self.strategy).__name__}")
         # outside these a trial is never accepted (DIVERGED at the start) or the damping
         # is not finite; checked where the values are Python numbers
-        numbers_ = [v for v in (self.diag_min, self.diag_max, self.accept_ratio)
-                    if isinstance(v, int | float)]
-        if len(numbers_) == 3 and not (0 <= self.diag_min <= self.diag_max
-                                       and 0 <= self.accept_ratio < 1):
+        values = (self.diag_min, self.diag_max, self.accept_ratio)
+        if all(isinstance(v, int | float) for v in values) and not (
+                0 <= self.diag_min <= self.diag_max and 0 <= self.accept_ratio < 1):
             raise ValueError(f"LevenbergMarquardt: expected 0 ≤ diag_min ≤ diag_max and "
                              f"0 ≤ accept_ratio < 1, got diag_min={self.diag_min!r}, "
                              f"diag_max={self.diag_max!r}, accept_ratio={self.accept_ratio!r}")
