@@ -181,7 +181,8 @@ def shard_vmap(
     ``in_axes`` per positional argument: ``0`` (batched along the leading axis of every
     leaf) or ``None`` (the same value for all, replicated). Batches that are not a multiple
     of the device count are padded with copies of the last element and the padding is
-    removed from the outputs.
+    removed from the outputs, which then come back replicated (a batch of 5 on 4 devices),
+    not batch-sharded: same values, a different sharding.
 
     ``method``:
 

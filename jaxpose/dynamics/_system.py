@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import as_array, check_last, start_step, step_index, step_window
+from ._checks import as_array, check_horizon, check_last, start_step, step_index, step_window
 
 Array = jax.Array
 
@@ -163,9 +163,12 @@ class _Linear(_Affine, System):
     def _at(self, t: Any) -> tuple[Array, ...]:
         """``(A, B, C, D, c1, c2)`` at step ``t``."""
 
-    def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:
+    def _check_sizes(self, x: Array, u: Array) -> None:
         check_last(x, self.A.shape[-1], "x", "state size n = A.shape[-1]")
         check_last(u, self.B.shape[-1], "u", "input size m = B.shape[-1]")
+
+    def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:
+        self._check_sizes(x, u)
         A, B, _, _, c1, _ = self._at(t)
         return _mv(A, x) + _mv(B, u) + c1
 
@@ -197,12 +200,14 @@ class LTI(_Linear):
 
     def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:
         x, u = jnp.asarray(x), jnp.asarray(u)
+        self._check_sizes(x, u)
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], jnp.shape(t))
         return LinearizedSystem(*(jnp.broadcast_to(a, (*batch, *a.shape)) for a in self._at(t)))
 
     def matrices(self, horizon: int, t0: Any = 0) -> tuple[Array, Array]:
         """``(F, f)`` stacked over the horizon: F (T, n, n+m) = [A B], f (T, n) = c1
         (the same at every step ``t0`` … ``t0 + T − 1``)."""
+        horizon = check_horizon(horizon)
         start_step(t0)
         F = jnp.concatenate([self.A, self.B], -1)
         return (
@@ -241,12 +246,14 @@ class LTV(_Linear):
 
     def linearize(self, x: Array, u: Array, t: Any = 0) -> LinearizedSystem:
         x, u, t = jnp.asarray(x), jnp.asarray(u), jnp.asarray(t)
+        self._check_sizes(x, u)
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], t.shape)
         return LinearizedSystem(*self._at(jnp.broadcast_to(t, batch)))
 
     def matrices(self, horizon: int, t0: Any = 0) -> tuple[Array, Array]:
         """``(F, f)`` for the ``horizon`` steps ``t0`` … ``t0 + T − 1``: F (T, n, n+m),
         f (T, n). ``t0`` may be traced; steps outside the system's raise (never clamp)."""
+        horizon = check_horizon(horizon)  # a negative one sliced arr[t0:-2]
         t0 = start_step(t0)
         F = jnp.concatenate([self.A, self.B], -1)
         return (step_window(F, t0, horizon, "LTV system's"),

@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._kernels import Kernel
+from ._kernels import Kernel, _check_param, _is_traced
 
 Array = jax.Array
 
@@ -60,6 +60,9 @@ class FastTriggs(Corrector):
         return w[:, None] * e, w[:, None, None] * jac
 
 
+_MIN_D_OK = lambda v: (v > 0) & (v <= 1)  # noqa: E731  (Triggs' min_d, NaN fails)
+
+
 class Triggs(Corrector):
     """Triggs et al. (1999, eq. 11) correction including the ρ'' curvature term:
 
@@ -80,10 +83,13 @@ class Triggs(Corrector):
     negative_curvature: bool = eqx.field(default=True, static=True)
 
     def __check_init__(self) -> None:
-        if isinstance(self.min_d, (int, float)) and not 0 < self.min_d <= 1:
-            raise ValueError(f"Triggs(min_d={self.min_d!r}): expected 0 < min_d <= 1")
+        # known values (Python, NumPy or concrete JAX) here, traced ones in __call__
+        _check_param("Triggs", "min_d", self.min_d, _MIN_D_OK, "in (0, 1]")
 
     def __call__(self, kernel: Kernel, e: Array, jac: Array) -> tuple[Array, Array]:
+        if _is_traced(self.min_d):  # 0 gave inf/NaN residuals, > 1 an overstated curvature
+            e = eqx.error_if(e, ~jnp.all(_MIN_D_OK(self.min_d)),
+                             "Triggs(min_d): min_d has to be in (0, 1]")
         s = jnp.sum(e * e, axis=-1)
         d1 = kernel.derivative(s)
         d2 = kernel.second_derivative(s)

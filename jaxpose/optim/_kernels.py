@@ -142,8 +142,8 @@ class PseudoHuber(Kernel):
     _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
-        d2 = self.delta**2
-        return 2.0 * d2 * (jnp.sqrt(1.0 + s / d2) - 1.0)
+        # 2δ²(√(1+s/δ²) − 1) without the cancellation (exactly 0 in float32 for s < 1e-7)
+        return 2.0 * s / (jnp.sqrt(1.0 + s / self.delta**2) + 1.0)
 
     def derivative(self, s: Array) -> Array:
         return 1.0 / jnp.sqrt(1.0 + s / self.delta**2)
@@ -182,7 +182,8 @@ class SoftLOne(Kernel):
     _constraints = _POSITIVE_DELTA
 
     def __call__(self, s: Array) -> Array:
-        return 2.0 * (jnp.sqrt(1.0 + self.delta**2 * s) - 1.0)
+        d2s = self.delta**2 * s  # 2(√(1+δ²s) − 1) without the cancellation at small s
+        return 2.0 * d2s / (jnp.sqrt(1.0 + d2s) + 1.0)
 
     def derivative(self, s: Array) -> Array:
         d2 = self.delta**2
@@ -228,8 +229,16 @@ class Tolerant(Kernel):
 
     def __call__(self, s: Array) -> Array:
         a, b = self.a, self.b
-        offset = b * jax.nn.softplus(jnp.asarray(-a / b, jnp.result_type(s)))
-        return b * jax.nn.softplus((s - a) / b) - offset
+        dtype = jnp.result_type(s)
+        x = s / b
+        # b·(softplus((s − a)/b) − softplus(−a/b)) = b·log1p(σ(−a/b)·expm1(s/b)): no
+        # cancellation at small s; the difference form where expm1 would overflow (the
+        # stable form's input clamped, so its unused derivative stays finite)
+        near = x < 30.0
+        lead = jax.nn.sigmoid(jnp.asarray(-a / b, dtype))
+        stable = b * jnp.log1p(lead * jnp.expm1(jnp.minimum(x, 30.0)))
+        offset = b * jax.nn.softplus(jnp.asarray(-a / b, dtype))
+        return jnp.where(near, stable, b * jax.nn.softplus((s - a) / b) - offset)
 
     def derivative(self, s: Array) -> Array:
         return jax.nn.sigmoid((s - self.a) / self.b)
@@ -268,7 +277,10 @@ class Tukey(Kernel):
     def __call__(self, s: Array) -> Array:
         d2 = self.delta**2
         u = jnp.minimum(s / d2, 1.0)
-        return d2 / 3.0 * (1.0 - (1.0 - u) ** 3)
+        # 1 − (1 − u)³ expanded where it cancels (small u), as written where the expanded
+        # form's derivative would (u near 1: (1 − u)² as 1 − 2u + u²); both accurate
+        expanded = u * (3.0 - 3.0 * u + u * u)
+        return d2 / 3.0 * jnp.where(u < 0.5, expanded, 1.0 - (1.0 - u) ** 3)
 
     def derivative(self, s: Array) -> Array:
         u = s / self.delta**2

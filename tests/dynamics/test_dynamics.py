@@ -321,3 +321,22 @@ def test_bad_input_errors():
         rollout(sys, np.ones(3), np.ones(2))
     with pytest.raises(ValueError, match="B: expected 4 time steps"):
         LTV(np.ones((4, 2, 2)), np.ones((3, 2, 1)))
+
+
+def test_matrices_and_linearize_check_their_arguments():
+    """Found by an audit (session 48): LTV.matrices(-2) sliced A[0:-2] (a 1-step window of
+    a 3-step system), LTI.matrices(-2) was a raw broadcast error, and linearize accepted
+    inputs of any size where state_transition refuses them."""
+    A, B = np.eye(2), np.ones((2, 1))
+    ltv = LTV(np.stack([A] * 3), np.stack([B] * 3))
+    for system in (LTI(A, B), ltv):
+        for bad in (0, -2):
+            with pytest.raises(ValueError, match="horizon: expected a positive int"):
+                system.matrices(bad)
+        with pytest.raises(TypeError, match="horizon: expected a positive int"):
+            system.matrices(2.0)
+        with pytest.raises(ValueError, match=r"x: expected last dimension 2"):
+            system.linearize(np.ones(5), np.ones(1))
+        with pytest.raises(ValueError, match=r"u: expected last dimension 1"):
+            system.linearize(np.ones(2), np.ones(4))
+    assert ltv.matrices(2, t0=1)[0].shape == (2, 2, 3)
