@@ -14,6 +14,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._system import System
 
@@ -44,15 +45,24 @@ def integrate(
     f: Deriv, x: Array, u: Array, tau: Any, dt: Any, method: str = "rk4", substeps: int = 1
 ) -> Array:
     """Advance ``x`` by ``dt`` with ``substeps`` steps of ``method`` (``"euler"``/``"rk4"``)."""
-    if method not in _STEPPERS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-    if not isinstance(substeps, int) or substeps < 1:
-        raise ValueError(f"substeps: expected a positive int, got {substeps!r}")
+    substeps = _check_integration(method, substeps)
     step = _STEPPERS[method]
     h = dt / substeps
     for i in range(substeps):
         x = step(f, x, u, tau + i * h, h)
     return x
+
+
+def _check_integration(method: Any, substeps: Any, dt: Any = None) -> int:
+    """``substeps`` as an int, refusing an unknown ``method``, ``substeps`` < 1 and a
+    known ``dt`` ≤ 0 or NaN (traced ``dt`` pass)."""
+    if method not in _STEPPERS:
+        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+        raise ValueError(f"substeps: expected a positive int, got {substeps!r}")
+    if isinstance(dt, (int, float, np.number)) and not dt > 0:
+        raise ValueError(f"dt: expected a positive time step, got {dt!r}")
+    return int(substeps)
 
 
 class ContinuousSystem(System):
@@ -75,6 +85,9 @@ class ContinuousSystem(System):
     def _substeps(self) -> int:
         return getattr(self, "substeps", 1)
 
+    def __check_init__(self) -> None:  # at construction, not at the first step
+        _check_integration(self._method, self._substeps, self.dt)
+
     def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:
         tau = jnp.asarray(t) * self.dt
         return integrate(self.derivative, x, u, tau, self.dt, self._method, self._substeps)
@@ -92,10 +105,7 @@ class Discretized(System):
     observe: Callable[..., Array] | None = None
 
     def __check_init__(self) -> None:
-        if self.method not in _STEPPERS:
-            raise ValueError(f"method: expected one of {METHODS}, got {self.method!r}")
-        if not isinstance(self.substeps, int) or self.substeps < 1:
-            raise ValueError(f"substeps: expected a positive int, got {self.substeps!r}")
+        _check_integration(self.method, self.substeps, self.dt)
 
     def state_transition(self, x: Array, u: Array, t: Any = 0) -> Array:
         tau = jnp.asarray(t) * self.dt

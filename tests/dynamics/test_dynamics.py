@@ -340,3 +340,22 @@ def test_matrices_and_linearize_check_their_arguments():
         with pytest.raises(ValueError, match=r"u: expected last dimension 1"):
             system.linearize(np.ones(2), np.ones(4))
     assert ltv.matrices(2, t0=1)[0].shape == (2, 2, 3)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"dt": 0.0}, "dt: expected a positive time step"),
+    ({"dt": -0.1}, "dt: expected a positive time step"),
+    ({"method": "rk45"}, "method: expected one of"),
+    ({"substeps": 0}, "substeps: expected a positive int"),
+])
+def test_models_check_their_integration_options_at_construction(kw, match):
+    """The models accepted these and failed at the first step (Discretized refused them at
+    construction); a NumPy integer is a valid substep count."""
+    for model in (Pendulum, CartPole, Bicycle):
+        with pytest.raises(ValueError, match=match):
+            model(**kw)
+    with pytest.raises(ValueError, match=match):
+        Discretized(lambda x, u, t: -x, **({"dt": 0.1} | kw))
+    x = integrate(lambda x, u, t: -x, jnp.ones(1), jnp.zeros(1), 0.0, 0.1,
+                  substeps=np.int64(2))
+    np.testing.assert_allclose(x, np.exp(-0.1), rtol=1e-6)  # RK4, two steps
