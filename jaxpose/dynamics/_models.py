@@ -16,6 +16,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._checks import check_last
 from ._integrators import ContinuousSystem
@@ -28,6 +29,17 @@ def _check_sizes(model: Any, x: Array, u: Array, state: str, inputs: str) -> Non
     name = type(model).__name__
     check_last(jnp.asarray(x), len(state.split(", ")), "x", f"{name} state [{state}]")
     check_last(jnp.asarray(u), len(inputs.split(", ")), "u", f"{name} inputs [{inputs}]")
+
+
+def _check_positive(model: Any, *names: str) -> None:
+    """Refuse a known (Python or NumPy) parameter that is not positive and finite: a
+    length of 0 divided by zero at the first step (NaN when traced). Traced and JAX-array
+    parameters (learned ones) pass."""
+    for name in names:
+        value = getattr(model, name)
+        if isinstance(value, (int, float, np.number)) and not 0 < value < np.inf:
+            raise ValueError(f"{type(model).__name__}({name}={value!r}): expected a positive "
+                             f"finite value")
 
 
 class CartPole(ContinuousSystem):
@@ -43,6 +55,9 @@ class CartPole(ContinuousSystem):
     gravity: Any = 9.81
     method: str = eqx.field(static=True, default="rk4")
     substeps: int = eqx.field(static=True, default=1)
+
+    def __check_init__(self) -> None:
+        _check_positive(self, "cart_mass", "length")  # a massless pole is a valid limit
 
     def derivative(self, x: Array, u: Array, tau: Any) -> Array:
         _check_sizes(self, x, u, "x, ẋ, θ, θ̇", "force")
@@ -70,6 +85,9 @@ class Pendulum(ContinuousSystem):
     method: str = eqx.field(static=True, default="rk4")
     substeps: int = eqx.field(static=True, default=1)
 
+    def __check_init__(self) -> None:
+        _check_positive(self, "length", "mass")
+
     def derivative(self, x: Array, u: Array, tau: Any) -> Array:
         _check_sizes(self, x, u, "θ, ω", "torque")
         th, om = x[0], x[1]
@@ -95,6 +113,9 @@ class Bicycle(ContinuousSystem):
     )
     method: str = eqx.field(static=True, default="rk4")
     substeps: int = eqx.field(static=True, default=1)
+
+    def __check_init__(self) -> None:
+        _check_positive(self, "wheelbase")
 
     def derivative(self, x: Array, u: Array, tau: Any) -> Array:
         _check_sizes(self, x, u, "px, py, ψ, v", "a, δ")

@@ -359,3 +359,15 @@ def test_models_check_their_integration_options_at_construction(kw, match):
     x = integrate(lambda x, u, t: -x, jnp.ones(1), jnp.zeros(1), 0.0, 0.1,
                   substeps=np.int64(2))
     np.testing.assert_allclose(x, np.exp(-0.1), rtol=1e-6)  # RK4, two steps
+
+
+def test_models_refuse_known_non_positive_lengths_and_masses():
+    """Pendulum(length=0) failed with a bare ZeroDivisionError at the first step; traced
+    parameters (learned ones) are not checked at construction and still differentiate."""
+    for model, kw in ((Pendulum, {"length": 0.0}), (Pendulum, {"mass": -1.0}),
+                      (CartPole, {"length": float("nan")}), (Bicycle, {"wheelbase": 0.0})):
+        with pytest.raises(ValueError, match=rf"{model.__name__}\({next(iter(kw))}=.*positive"):
+            model(**kw)
+    grad = jax.grad(lambda length: Pendulum(length=length).state_transition(
+        jnp.ones(2), jnp.zeros(1))[1])(1.5)
+    assert np.isfinite(float(grad))
