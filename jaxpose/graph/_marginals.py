@@ -216,6 +216,7 @@ def marginals(
     if method not in METHODS:
         raise ValueError(f"marginals(method={method!r}): expected one of {METHODS}")
     check_tolerance(cg_rtol, "marginals(cg_rtol)", positive=True)
+
     def positive_int(value: Any) -> bool:
         return isinstance(value, int) and not isinstance(value, bool) and value >= 1
 

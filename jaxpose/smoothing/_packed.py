@@ -81,8 +81,8 @@ class PackedSmoother(eqx.Module):
             )
         paths, treedef = jax.tree_util.tree_flatten_with_path(smoother)
         leaves = [x for _, x in paths]
-        dtype = jnp.result_type(smoother.prior_grad.dtype,
-                                *[x.dtype for x in leaves if jnp.issubdtype(x.dtype, jnp.floating)])
+        # the widest float leaf (the smoother's own, e.g. prior_grad, or its data's)
+        dtype = jnp.result_type(*[x.dtype for x in leaves if jnp.issubdtype(x.dtype, jnp.floating)])
         leaves = [_exact_in(x, dtype, jax.tree_util.keystr(path))
                   if _is_step_data(path) else x for path, x in paths]
         self.layout = _Layout(treedef, tuple((tuple(jnp.shape(x)), jnp.dtype(x.dtype))
