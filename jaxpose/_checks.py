@@ -22,6 +22,19 @@ def require(name: str, cond: bool, msg: str) -> None:
         raise ValueError(f"{name}: {msg}")
 
 
+def check_count(value: Any, name: str, minimum: int = 1) -> int:
+    """``value`` as a Python int, refusing anything but a Python or NumPy integer ``>=
+    minimum`` (a bool is not a count): TypeError for another type, ValueError below
+    ``minimum``; both say "{name}: expected an int >= {minimum}, got ...". Counts that set
+    array shapes or loop lengths are static, so this runs on concrete values only."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name}: expected an int >= {minimum}, got {type(value).__name__} "
+                        f"{value!r}")
+    if value < minimum:
+        raise ValueError(f"{name}: expected an int >= {minimum}, got {value!r}")
+    return int(value)
+
+
 def as_float_array(x: Any, name: str, what: str = "an array of numbers") -> Array:
     """``x`` as a real floating JAX array (integers promoted to the default float).
 

@@ -145,7 +145,7 @@ def test_mpc_call_and_closed_loop_compile_once(monkeypatch, rng=np.random.defaul
     assert g.shape == (2,) and np.all(np.isfinite(g))
 
     # closed_loop's own body (its check runs at trace time only once compiled)
-    calls = counter(monkeypatch, mpc_mod, "check_horizon")
+    calls = counter(monkeypatch, mpc_mod, "check_count")
     assert_traced_once(
         calls,
         lambda: closed_loop(mpc, system, np.ones(2), 5),

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_solve
 
+from .._checks import check_count
 from .._precision import full_precision
 from ..lie._base import runtime_check
 
@@ -58,7 +59,7 @@ def box_qp(
     (reverse-mode differentiable); otherwise a ``while_loop`` stops at convergence.
     Shapes are checked at trace time; NaN or crossed bounds (``lo > hi``, an empty box)
     raise, eagerly or through ``eqx.error_if`` under ``jit``."""
-    check_box_iters(iters, "iters")
+    check_count(iters, "iters")
     H, g, lo, hi, x0 = (jnp.asarray(a) for a in (H, g, lo, hi, x0))
     m = g.shape[0] if g.ndim == 1 else -1
     if g.ndim != 1 or H.shape != (m, m):
@@ -69,14 +70,6 @@ def box_qp(
             raise ValueError(f"{name}: expected shape ({m},) like g, got {tuple(arr.shape)}")
     lo, hi = checked_box(lo, hi, "lo", "hi")
     return _box_qp(H, g, lo, hi, x0, iters, unroll)
-
-
-def check_box_iters(iters: object, name: str) -> None:
-    """Refuse an iteration count below 1: zero iterations return the clipped warm start,
-    which the solvers would then report as converged."""
-    if isinstance(iters, bool) or not isinstance(iters, (int, np.integer)) or iters < 1:
-        raise ValueError(f"{name}: expected an int >= 1 (projected-Newton iterations per box "
-                         f"QP), got {iters!r}")
 
 
 def checked_box(lo: Array, hi: Array, lo_name: str, hi_name: str) -> tuple[Array, Array]:

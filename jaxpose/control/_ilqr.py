@@ -23,12 +23,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_count
 from .._forward_only import forward_mode_only
 from .._precision import full_precision
 from ..dynamics._checks import as_array
 from ..dynamics._system import LTI, LTV, System
 from ..results import Results
-from ._boxqp import check_box_iters, checked_box
+from ._boxqp import checked_box
 from ._cost import Cost, QuadraticCost
 from ._lqr import backward_step, check_quadratic_cost, check_start_step
 
@@ -149,7 +150,7 @@ def ilqr(
             f"max_iter: expected a positive int (an integer array is accepted without "
             f"unroll), got {max_iter!r}"
         )
-    check_box_iters(box_iters, "box_iters")
+    check_count(box_iters, "box_iters")
     T, m = u_init.shape
     dtype = jnp.result_type(x0.dtype, u_init.dtype)
     x0, u_init = x0.astype(dtype), u_init.astype(dtype)

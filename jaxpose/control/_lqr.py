@@ -22,8 +22,9 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
+from .._checks import check_count
 from .._precision import full_precision
-from ..dynamics._checks import as_array, check_horizon, start_step, window_message
+from ..dynamics._checks import as_array, start_step, window_message
 from ..dynamics._system import LTI, LTV, System
 from ..lie._base import runtime_check
 from ..results import Results
@@ -248,7 +249,7 @@ def lq_problem(
     """``(F, f, C, c, C_T, c_T)`` for a linear system and quadratic cost over the steps
     ``t0`` … ``t0 + horizon − 1`` (an LTV system's or time-varying cost's steps there;
     ``t0`` may be traced)."""
-    horizon = check_horizon(horizon)
+    horizon = check_count(horizon, "horizon")
     if not isinstance(system, (LTI, LTV)):
         raise TypeError(
             f"system: LQR needs an LTI or LTV system, got {type(system).__name__};"
@@ -311,7 +312,7 @@ def lqr(system: System, cost: QuadraticCost, x0: Any, horizon: int, t0: Any = 0
     Compiled with ``eqx.filter_jit``: ``horizon`` (a Python int) is static, the arrays of
     ``system``, ``cost`` and ``x0`` and the step ``t0`` are traced; shape checks run at
     trace time, ``t0``'s range eagerly (``eqx.error_if`` when it is traced)."""
-    check_horizon(horizon)
+    check_count(horizon, "horizon")
     return _lqr(system, cost, x0, horizon, check_start_step(system, cost, horizon, t0))
 
 
@@ -345,7 +346,7 @@ class LQR(eqx.Module):
 
     def __init__(self, system: System, cost: QuadraticCost, horizon: int):
         lq_problem(system, cost, horizon)  # validates
-        self.system, self.cost, self.horizon = system, cost, check_horizon(horizon)
+        self.system, self.cost, self.horizon = system, cost, check_count(horizon, "horizon")
 
     def __call__(self, x0: Any, u_lower: Any = None, u_upper: Any = None, t0: Any = 0
                  ) -> LQRSolution:

@@ -30,13 +30,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_count
 from .._precision import full_precision
-from ..dynamics._checks import as_array, check_horizon
+from ..dynamics._checks import as_array
 from ..dynamics._system import LTI, LTV, System
 from ..optim._implicit import at_stationary_point
 from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
-from ._boxqp import check_box_iters
 from ._cost import Cost, QuadraticCost
 from ._ilqr import ILQRSolution, _bounds, _dynamics_jacobians, ilqr
 from ._lqr import (
@@ -263,8 +263,8 @@ class MPC(eqx.Module):
     box_iters: int = eqx.field(static=True, default=20)
 
     def __check_init__(self) -> None:
-        check_horizon(self.horizon)
-        check_box_iters(self.box_iters, "box_iters")
+        check_count(self.horizon, "horizon")
+        check_count(self.box_iters, "box_iters")
         if self.gradient not in GRADIENTS:
             raise ValueError(f"gradient: expected one of {GRADIENTS}, got {self.gradient!r}")
         if self.solver not in SOLVERS:
@@ -393,7 +393,7 @@ def closed_loop(
     if not isinstance(plant, System):
         raise TypeError(
             f"closed_loop(plant): expected a jaxpose.dynamics.System, got {type(plant).__name__}")
-    steps = check_horizon(steps, "steps")
+    steps = check_count(steps, "steps")
     x0 = as_array(x0, "x0", 1)
     T, m = mpc.horizon, mpc._m(x0, u_init)
     for k, what in time_varying_steps(mpc.system, mpc.cost):

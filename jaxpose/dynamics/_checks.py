@@ -118,15 +118,6 @@ def psd_checked(mat: Array, name: str, *, strict: bool = False) -> Array:
                                    f"(checked under jit)")
 
 
-def check_horizon(horizon: Any, name: str = "horizon") -> int:
-    """A positive Python int (static: it sets array shapes)."""
-    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):
-        raise TypeError(f"{name}: expected a positive int, got {type(horizon).__name__}")
-    if int(horizon) <= 0:
-        raise ValueError(f"{name}: expected a positive int, got {int(horizon)}")
-    return int(horizon)
-
-
 def check_finite(x: Array, name: str) -> None:
     """Raise on concrete non-finite values (no-op under tracing)."""
     if is_concrete(x) and not bool(jnp.all(jnp.isfinite(x))):

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_count
 from ._system import System
 
 Array = jax.Array
@@ -58,11 +59,9 @@ def _check_integration(method: Any, substeps: Any, dt: Any = None) -> int:
     known ``dt`` ≤ 0 or NaN (traced ``dt`` pass)."""
     if method not in _STEPPERS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
-        raise ValueError(f"substeps: expected a positive int, got {substeps!r}")
     if isinstance(dt, (int, float, np.number)) and not dt > 0:
         raise ValueError(f"dt: expected a positive time step, got {dt!r}")
-    return int(substeps)
+    return check_count(substeps, "substeps")
 
 
 class ContinuousSystem(System):

@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import as_array, check_horizon, check_last, start_step, step_index, step_window
+from .._checks import check_count
+from ._checks import as_array, check_last, start_step, step_index, step_window
 
 Array = jax.Array
 
@@ -207,7 +208,7 @@ class LTI(_Linear):
     def matrices(self, horizon: int, t0: Any = 0) -> tuple[Array, Array]:
         """``(F, f)`` stacked over the horizon: F (T, n, n+m) = [A B], f (T, n) = c1
         (the same at every step ``t0`` … ``t0 + T − 1``)."""
-        horizon = check_horizon(horizon)
+        horizon = check_count(horizon, "horizon")
         start_step(t0)
         F = jnp.concatenate([self.A, self.B], -1)
         return (
@@ -253,7 +254,7 @@ class LTV(_Linear):
     def matrices(self, horizon: int, t0: Any = 0) -> tuple[Array, Array]:
         """``(F, f)`` for the ``horizon`` steps ``t0`` … ``t0 + T − 1``: F (T, n, n+m),
         f (T, n). ``t0`` may be traced; steps outside the system's raise (never clamp)."""
-        horizon = check_horizon(horizon)  # a negative one sliced arr[t0:-2]
+        horizon = check_count(horizon, "horizon")  # a negative one sliced arr[t0:-2]
         t0 = start_step(t0)
         F = jnp.concatenate([self.A, self.B], -1)
         return (step_window(F, t0, horizon, "LTV system's"),

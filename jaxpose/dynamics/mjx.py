@@ -34,6 +34,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_count
 from ._system import System
 
 Array = jax.Array
@@ -72,8 +73,7 @@ class MJXSystem(System):
     def __check_init__(self) -> None:
         if self.observe not in OBSERVE:
             raise ValueError(f"observe: expected one of {OBSERVE}, got {self.observe!r}")
-        if not isinstance(self.substeps, int) or self.substeps < 1:
-            raise ValueError(f"substeps: expected a positive int, got {self.substeps!r}")
+        check_count(self.substeps, "substeps")
         if self.params is not None and self.bind is None:
             raise ValueError("params: given without bind(model, params) to apply them")
         mjx = _mjx()

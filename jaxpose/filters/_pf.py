@@ -23,6 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_count
 from .._precision import full_precision
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_space
@@ -83,8 +84,7 @@ class ParticleFilter(NoisyModelFilter):
         skip_nonfinite: bool = False,
     ):
         super().__init__(model, Q, R, skip_nonfinite)
-        if not isinstance(num_particles, int) or num_particles < 1:
-            raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
+        num_particles = check_count(num_particles, "num_particles")
         if not 0.0 <= resample_threshold <= 1.0:
             raise ValueError(
                 f"resample_threshold: expected a fraction in [0, 1], got {resample_threshold}"

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_count
 from ..lie._base import as_float_array, runtime_check
 from ._knn import knn
 from ._util import Array, points_array
@@ -81,8 +82,7 @@ def voxel_filter(
             raise TypeError(f"{fn}(max_voxels): the number of voxels is data dependent; pass "
                             f"max_voxels (an int capacity) when calling under jit/vmap")
         max_voxels = int(count)
-    if not isinstance(max_voxels, int) or max_voxels < 1:
-        raise ValueError(f"{fn}(max_voxels): expected a positive int, got {max_voxels!r}")
+    max_voxels = check_count(max_voxels, f"{fn}(max_voxels)")
     sp = p[order]
     valid = jnp.arange(max_voxels) < count
     seg_c = jnp.where(seg < max_voxels, seg, max_voxels)  # overflow → dropped segment
@@ -142,8 +142,7 @@ def _neighbour_args(fn: str, points: Any, count_name: str, count: Any, pdim: Any
         pdim = d
     if not isinstance(pdim, int) or isinstance(pdim, bool) or not 1 <= pdim <= d:
         raise ValueError(f"{fn}(pdim): expected an int with 1 ≤ pdim ≤ D = {d}, got {pdim!r}")
-    if not isinstance(count, int) or isinstance(count, bool) or count < 1:
-        raise ValueError(f"{fn}({count_name}): expected a positive int, got {count!r}")
+    check_count(count, f"{fn}({count_name})")
     return p, pdim
 
 

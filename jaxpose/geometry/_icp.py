@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_count
 from .._precision import full_precision
 from ..lie import SE3
 from ..lie._base import as_float_array, check_last_dim
@@ -334,8 +335,7 @@ def estimate_normals(
     counts as a neighbour). Orientation is arbitrary unless ``viewpoint`` (…, 3) is given,
     then normals face it. ``k`` is clipped to N."""
     p = points_array(points, "estimate_normals(points)", 3, min_points=3)
-    if not isinstance(k, int) or k < 3:
-        raise ValueError(f"estimate_normals(k): expected an int ≥ 3, got {k!r}")
+    k = check_count(k, "estimate_normals(k)", minimum=3)
     k = min(k, p.shape[-2])
     idx = knn(p, p, k, method=method).indices  # (..., N, k)
     nb = jnp.take_along_axis(p[..., None, :, :], idx[..., None], axis=-2)  # (..., N, k, 3)

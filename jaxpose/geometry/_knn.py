@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_count
 from .._precision import full_precision
 from ..lie._base import runtime_check
 from ._kdtree import build_kdtree, query_kdtree
@@ -177,13 +178,12 @@ def knn(
         raise ValueError(f"knn(query, points): expected the same point dimension, got "
                          f"{q.shape[-1]} and {p.shape[-1]} (shapes {tuple(q.shape)} and "
                          f"{tuple(p.shape)})")
-    if not isinstance(k, int) or isinstance(k, bool) or k < 1:
-        raise ValueError(f"knn(k): expected a positive int, got {k!r}")
+    k = check_count(k, "knn(k)")
     m = p.shape[-2]
     if k > m:
         raise ValueError(f"knn(k): k = {k} exceeds the number of points M = {m}")
-    if tile is not None and (not isinstance(tile, int) or tile < 1):
-        raise ValueError(f"knn(tile): expected a positive int or None, got {tile!r}")
+    if tile is not None:
+        tile = check_count(tile, "knn(tile)")
     batch = batch_shape(q.shape[:-2], p.shape[:-2], names=("query", "points"))
     dtype = jnp.result_type(q.dtype, p.dtype)
     q, p = q.astype(dtype), p.astype(dtype)

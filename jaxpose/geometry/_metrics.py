@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_count
 from ..lie import SE3, Sim3
 from ..lie._base import as_float_array, runtime_check
 from ._registration import umeyama
@@ -293,9 +294,8 @@ def rpe(
         raise ValueError(f"{fn}(pair_by): expected 'frame' or 'distance', got {pair_by!r}")
     if pairs_from not in ("est", "ref"):
         raise ValueError(f"{fn}(pairs_from): expected 'est' or 'ref', got {pairs_from!r}")
-    if pair_by == "frame" and (not isinstance(delta, int) or isinstance(delta, bool)
-                               or delta < 1):
-        raise ValueError(f"{fn}(delta): expected a positive int frame count, got {delta!r}")
+    if pair_by == "frame":
+        delta = check_count(delta, f"{fn}(delta) (a frame count)")
     if pair_by == "distance":
         if not isinstance(delta, int | float) or isinstance(delta, bool) or \
                 not np.isfinite(delta) or delta <= 0:

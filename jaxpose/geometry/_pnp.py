@@ -49,6 +49,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_count
 from .._precision import full_precision
 from ..lie import SE3
 from ..lie._base import skew
@@ -396,8 +397,7 @@ def epnp(
                          f"{pw.shape[-2]} and {uv.shape[-2]}")
     if pw.shape[-2] < 4:
         raise ValueError(f"{fn}(points): EPnP needs at least 4 points, got {pw.shape[-2]}")
-    if not isinstance(refine_steps, int) or refine_steps < 1:
-        raise ValueError(f"{fn}(refine_steps): expected a positive int, got {refine_steps!r}")
+    refine_steps = check_count(refine_steps, f"{fn}(refine_steps)")
     batch = batch_shape(pw.shape[:-2], uv.shape[:-2], k.shape[:-2],
                         names=("points", "pixels", "intrinsics"))
     dtype = jnp.result_type(pw.dtype, uv.dtype, k.dtype)

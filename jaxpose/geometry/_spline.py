@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_count
 from .._precision import full_precision
 from ..lie import SE3
 from ..lie._base import as_float_array, runtime_check
@@ -106,8 +107,7 @@ def bspline_se3_fit(poses: SE3, iterations: int = 20) -> SE3:
     if len(poses.shape) < 1 or poses.shape[-1] < 2:
         raise ValueError(f"{fn}(poses): expected at least 2 poses along the last batch axis, "
                          f"got batch shape {poses.shape}")
-    if not isinstance(iterations, int) or iterations < 0:
-        raise ValueError(f"{fn}(iterations): expected an int ≥ 0, got {iterations!r}")
+    iterations = check_count(iterations, f"{fn}(iterations)", minimum=0)
     return SE3(_fit(poses.data, iterations))
 
 

@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_count
 from .._precision import full_precision
 from ..optim._stopping import check_tolerance
 from . import _linear as linear
@@ -216,14 +217,9 @@ def marginals(
     if method not in METHODS:
         raise ValueError(f"marginals(method={method!r}): expected one of {METHODS}")
     check_tolerance(cg_rtol, "marginals(cg_rtol)", positive=True)
-
-    def positive_int(value: Any) -> bool:
-        return isinstance(value, int) and not isinstance(value, bool) and value >= 1
-
-    if not positive_int(cg_max_iters):
-        raise ValueError(f"marginals(cg_max_iters={cg_max_iters!r}): expected an int >= 1")
-    if batch_size is not None and not positive_int(batch_size):
-        raise ValueError(f"marginals(batch_size={batch_size!r}): expected an int >= 1 or None")
+    cg_max_iters = check_count(cg_max_iters, "marginals(cg_max_iters)")
+    if batch_size is not None:
+        batch_size = check_count(batch_size, "marginals(batch_size)")
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"marginals(graph): expected a FactorGraph, got {type(graph).__name__}")
     if solution is None:

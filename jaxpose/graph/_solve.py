@@ -32,6 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_count
 from .._compile import loops_compile_whole
 from .._precision import full_precision
 from ..optim import _iterate
@@ -118,9 +119,7 @@ class GraphLinearSolver(eqx.Module):
             raise ValueError(
                 f"solve(linear_solver={self.method!r}): expected one of {LINEAR_SOLVERS}"
             )
-        if not (isinstance(self.dense_max, int) and self.dense_max >= 0):
-            raise ValueError(f"GraphLinearSolver(dense_max={self.dense_max!r}): expected an "
-                             "int >= 0")
+        check_count(self.dense_max, "GraphLinearSolver(dense_max)", minimum=0)
 
     def resolve(self, graph: FactorGraph) -> str:
         """The concrete method for ``graph`` (``"auto"`` decided by its size)."""
@@ -166,8 +165,7 @@ class PCG(eqx.Module):
             raise ValueError(f"PCG(rtol={self.rtol!r}): expected a float or 'inexact'")
         if not isinstance(self.rtol, str):
             check_tolerance(self.rtol, "PCG(rtol)", positive=True)
-        if not (isinstance(self.max_iters, int) and self.max_iters >= 1):
-            raise ValueError(f"PCG(max_iters={self.max_iters!r}): expected an int >= 1")
+        check_count(self.max_iters, "PCG(max_iters)")
 
 
 class _Hessian:

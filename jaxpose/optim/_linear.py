@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 
+from .._checks import check_count
 from ._colouring import BlockHessian, as_dense
 from ._sparse_hessian import SparseHessian
 from ._stopping import check_tolerance
@@ -133,9 +134,8 @@ class CG(LinearSolver):
         # as convergence
         check_tolerance(self.rtol, "CG(rtol)")
         check_tolerance(self.atol, "CG(atol)")
-        if self.max_steps is not None and (isinstance(self.max_steps, bool) or not isinstance(
-                self.max_steps, int) or self.max_steps < 1):
-            raise ValueError(f"CG(max_steps={self.max_steps!r}): expected an int >= 1 or None")
+        if self.max_steps is not None:
+            check_count(self.max_steps, "CG(max_steps)")
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         n = grad.shape[0]

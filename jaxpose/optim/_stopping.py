@@ -13,6 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_count
 from ..results import Results
 
 Array = jax.Array
@@ -49,10 +50,8 @@ class StopOnPlateau(eqx.Module):
     relative: bool = eqx.field(default=False, static=True)
 
     def __check_init__(self) -> None:
-        if not (isinstance(self.steps, int) and self.steps >= 1):
-            raise ValueError(f"StopOnPlateau(steps={self.steps!r}): expected an int >= 1")
-        if not (isinstance(self.patience, int) and self.patience >= 1):
-            raise ValueError(f"StopOnPlateau(patience={self.patience!r}): expected an int >= 1")
+        check_count(self.steps, "StopOnPlateau(steps)")
+        check_count(self.patience, "StopOnPlateau(patience)")
         check_tolerance(self.decreasing, "StopOnPlateau(decreasing)")
 
 
@@ -94,10 +93,8 @@ class Stopping(eqx.Module):
     plateau: StopOnPlateau | None = None
 
     def __check_init__(self) -> None:
-        if not (isinstance(self.max_steps, int) and self.max_steps >= 0):
-            raise ValueError(f"max_steps={self.max_steps!r}: expected an int >= 0")
-        if not (isinstance(self.max_rejects, int) and self.max_rejects >= 1):
-            raise ValueError(f"max_rejects={self.max_rejects!r}: expected an int >= 1")
+        check_count(self.max_steps, "Stopping(max_steps)", minimum=0)
+        check_count(self.max_rejects, "Stopping(max_rejects)")
         for name in ("cost_atol", "cost_rtol", "gtol", "xtol"):
             check_tolerance(getattr(self, name), name)
         if self.plateau is not None and not isinstance(self.plateau, StopOnPlateau):

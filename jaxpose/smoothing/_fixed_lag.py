@@ -78,6 +78,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jax.flatten_util import ravel_pytree
 
+from .._checks import check_count
 from .._forward_only import forward_mode_only
 from .._precision import full_precision
 from ..lie import manifold
@@ -275,12 +276,8 @@ class FixedLagSmoother(eqx.Module):
         for name, fn in (("unary", unary), ("loop", loop)):
             if fn is not None and not callable(fn):
                 raise TypeError(f"FixedLagSmoother({name}): expected a callable or None")
-        if not isinstance(window, int) or window < 2:
-            raise ValueError(f"FixedLagSmoother(window): expected an int >= 2, got {window!r}")
-        if not isinstance(max_loops, int) or max_loops < 0:
-            raise ValueError(
-                f"FixedLagSmoother(max_loops): expected an int >= 0, got {max_loops!r}"
-            )
+        window = check_count(window, "FixedLagSmoother(window)", minimum=2)
+        max_loops = check_count(max_loops, "FixedLagSmoother(max_loops)", minimum=0)
         if max_loops > 0 and (loop is None or loop_data is None):
             raise ValueError("FixedLagSmoother(max_loops > 0): needs loop and loop_data")
         if max_loops == 0 and (loop is not None or loop_data is not None):
@@ -288,10 +285,7 @@ class FixedLagSmoother(eqx.Module):
                 "FixedLagSmoother(loop, loop_data): loop factors need slots: set max_loops "
                 "(the most loop factors one update adds), else they would be ignored"
             )
-        if not isinstance(max_iterations, int) or max_iterations < 1:
-            raise ValueError(
-                f"FixedLagSmoother(max_iterations): expected an int >= 1, got {max_iterations!r}"
-            )
+        max_iterations = check_count(max_iterations, "FixedLagSmoother(max_iterations)")
         leaves = jax.tree.leaves(state)
         if not leaves or not all(
             jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) for a in leaves
@@ -328,11 +322,7 @@ class FixedLagSmoother(eqx.Module):
         self.tol = float(tol) if tol is not None else (1e-8 if eps < 1e-10 else 1e-4)
         self.exact_prior_jacobian = bool(exact_prior_jacobian)
         self.first_estimate = bool(first_estimate)
-        if not isinstance(relinearize_skip, int) or relinearize_skip < 1:
-            raise ValueError(
-                f"FixedLagSmoother(relinearize_skip): expected an int >= 1, got "
-                f"{relinearize_skip!r}"
-            )
+        relinearize_skip = check_count(relinearize_skip, "FixedLagSmoother(relinearize_skip)")
         if relinearize_skip != 1 and relinearize_threshold is None:
             raise ValueError(
                 "FixedLagSmoother(relinearize_skip): only used by incremental updates; set "

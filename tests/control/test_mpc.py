@@ -188,7 +188,7 @@ def test_mpc_bad_input():
         MPC(LTI(A, B), cost, 4)(np.ones(3))
     with pytest.raises(ValueError, match=r"u_init: expected shape \(\.\.\., 4, 1\)"):
         MPC(LTI(A, B), cost, 4, solver="ilqr")(np.ones(2), np.zeros((3, 1)))
-    with pytest.raises(ValueError, match="horizon: expected a positive int"):
+    with pytest.raises(ValueError, match="horizon: expected an int >= 1"):
         MPC(LTI(A, B), cost, 0)
     with pytest.raises(ValueError, match="gradient: expected one of"):
         MPC(LTI(A, B), cost, 4, gradient="fd")

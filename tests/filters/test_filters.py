@@ -205,7 +205,7 @@ def test_filter_bad_input():
         EKF(sys, d["Q"], d["R"]).run(d["x0"], d["P0"], d["ys"], d["us"][:4])
     with pytest.raises(ValueError, match=r"Q: expected shape \(3, 3\)"):
         EKF(sys, np.eye(2), d["R"]).predict(d["x0"], d["P0"], d["us"][0])
-    with pytest.raises(ValueError, match="num_particles: expected a positive int"):
+    with pytest.raises(ValueError, match="num_particles: expected an int >= 1"):
         ParticleFilter(sys, d["Q"], d["R"], num_particles=0)
     with pytest.raises(TypeError, match="model: expected a jaxpose.dynamics.System"):
         EKF(lambda x: x, d["Q"], d["R"])

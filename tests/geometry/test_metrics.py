@@ -209,7 +209,7 @@ def test_rpe_by_distance_bad_input():
         rpe(ref, ref, pair_by="time")
     with pytest.raises(ValueError, match=r"rpe\(delta\)"):
         rpe(ref, ref, pair_by="distance", delta=0.0)
-    with pytest.raises(ValueError, match=r"rpe\(delta\)"):
+    with pytest.raises(TypeError, match=r"rpe\(delta\) \(a frame count\): expected an int"):
         rpe(ref, ref, delta=1.5)  # frame pairing needs an int
     with pytest.raises(ValueError, match=r"rpe\(pairs_from\)"):
         rpe(ref, ref, pair_by="distance", pairs_from="gt")

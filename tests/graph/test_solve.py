@@ -266,13 +266,14 @@ def test_configuration_objects_check_their_fields():
     assert default_rtol(jnp.float64) == 1e-10
     with pytest.raises(ValueError, match=r"solve\(linear_solver='qr'\)"):
         solve(problem, linear_solver="qr")
-    with pytest.raises(ValueError, match=r"GraphLinearSolver\(dense_max=-1\)"):
+    with pytest.raises(ValueError,
+                       match=r"GraphLinearSolver\(dense_max\): expected an int >= 0, got -1"):
         GraphLinearSolver(dense_max=-1)
     with pytest.raises(ValueError, match=r"solve\(damping='lm'\)"):
         Damping("lm")
     with pytest.raises(ValueError, match=r"Damping\(min, max\)"):
         Damping("diagonal", min=1.0, max=0.5)
-    with pytest.raises(ValueError, match=r"PCG\(max_iters=0\)"):
+    with pytest.raises(ValueError, match=r"PCG\(max_iters\): expected an int >= 1, got 0"):
         PCG(max_iters=0)
     with pytest.raises(TypeError, match=r"solve\(linear_solver\): expected a string or "
                                         r"GraphLinearSolver, got int"):

@@ -182,7 +182,7 @@ def test_zero_budget_reports_max_steps_and_the_gradient_at_the_start():
     (lambda: jo.StopOnPlateau(steps=50, decreasing=float("nan")), r"decreasing\)=nan"),
     (lambda: jo.CG(rtol=float("nan")), r"CG\(rtol\)=nan"),
     (lambda: jo.CG(atol=-1.0), r"CG\(atol\)=-1.0"),
-    (lambda: jo.CG(max_steps=0), r"CG\(max_steps=0\): expected an int >= 1"),
+    (lambda: jo.CG(max_steps=0), r"CG\(max_steps\): expected an int >= 1, got 0"),
     (lambda: jo.SVD(rcond=float("nan")), r"SVD\(rcond\)=nan: expected None or a float in"),
     (lambda: jo.SVD(rcond=1.0), r"SVD\(rcond\)=1.0"),
     (lambda: jo.LevenbergMarquardt(accept_ratio=1.5), r"0 ≤ accept_ratio < 1"),
