@@ -151,7 +151,10 @@ def _radius_inliers(fn: str, p: Array, pdim: int, nbr: int, radius: Any) -> Arra
     r = as_float_array(radius, f"{fn}(radius)").astype(p.dtype)
     if r.ndim != 0:
         raise ValueError(f"{fn}(radius): expected a scalar, got shape {tuple(r.shape)}")
-    if not isinstance(r, jax.core.Tracer) and not bool(r >= 0):
+    if isinstance(r, jax.core.Tracer):
+        r = runtime_check(r, ~(r >= 0), f"{fn}(radius): expected a non-negative radius "
+                                         "(checked under jit)")
+    elif not bool(r >= 0):
         raise ValueError(f"{fn}(radius): expected a non-negative radius, got {float(r)}")
     n = p.shape[-2]
     if nbr + 1 > n:  # fewer points than nbr + 1: nobody has nbr neighbours

@@ -41,7 +41,7 @@ import numpy as np
 from .._checks import check_count
 from .._precision import full_precision
 from ..lie import SE3
-from ..lie._base import as_float_array, check_last_dim
+from ..lie._base import as_float_array, check_last_dim, runtime_check
 from ..optim._implicit import at_stationary_point
 from ..results import Results
 from ._kdtree import build_kdtree, query_kdtree
@@ -310,10 +310,13 @@ def icp(
     tgtf = flatten_batch(tgt.astype(dtype), batch, 2)
     nrmf = None if nrm is None else flatten_batch(nrm.astype(dtype), batch, 2)
     initf = flatten_batch(init_data, batch, 1)
+    gate = jnp.asarray(jnp.inf if max_distance is None else max_distance, dtype)
+    if isinstance(max_distance, jax.core.Tracer):  # a known one was checked above
+        gate = runtime_check(gate, ~jnp.all(gate > 0), f"{fn}(max_distance): expected a "
+                             "positive number or None (checked under jit)")
     out = _icp_batched(srcf, tgtf, nrmf, initf, jnp.asarray(max_iterations, jnp.int32),
-                       jnp.asarray(tolerance, dtype),
-                       jnp.asarray(jnp.inf if max_distance is None else max_distance, dtype),
-                       plane=plane, use_tree=use_tree, tile=tile)
+                       jnp.asarray(tolerance, dtype), gate, plane=plane, use_tree=use_tree,
+                       tile=tile)
     return jax.tree.map(lambda x: x.reshape(*batch, *x.shape[1:]), out)
 
 

@@ -153,3 +153,40 @@ def test_knn_refuses_a_nan_query_with_either_method(method):
     with pytest.raises(RuntimeError, match=r"knn\(query\): contains NaN or inf"):
         jax.block_until_ready(jax.jit(lambda a: knn(a, pts, method=method).indices)(q))
     assert int(knn(q[:1], pts, method=method).indices[0, 0]) == 0
+
+
+# Found by an audit (session 49): value checks that ran on known values only
+# ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad", [-0.2, float("nan")])
+def test_icp_max_distance_is_checked_under_jit_and_vmap(rng, bad):
+    """A traced max_distance skipped the check: −0.2 was squared into the gate and the
+    result (status converged) was that of +0.2; NaN gave status degenerate."""
+    from jaxpose.geometry import icp
+
+    src = rng.normal(size=(30, 3))
+    tgt = src + 0.05
+    with pytest.raises(ValueError, match=r"icp\(max_distance\): expected a positive number"):
+        icp(src, tgt, max_distance=bad)
+    with pytest.raises(Exception, match=r"icp\(max_distance\): expected a positive number"):
+        jax.block_until_ready(jax.jit(lambda md: icp(src, tgt, max_distance=md).fitness)(bad))
+    with pytest.raises(Exception, match=r"icp\(max_distance\): expected a positive number"):
+        jax.block_until_ready(jax.vmap(lambda md: icp(src, tgt, max_distance=md).fitness)(
+            jnp.array([0.2, bad])))
+    good = jax.jit(lambda md: icp(src, tgt, max_distance=md))(0.2)
+    np.testing.assert_allclose(good.transform.translation(), [0.05] * 3, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["nbr_filter", "knn_filter"])
+@pytest.mark.parametrize("bad", [-1.0, float("nan")])
+def test_radius_filter_radius_is_checked_under_jit(rng, name, bad):
+    """A traced negative or NaN radius removed every point (count 0) without an error."""
+    from jaxpose import geometry
+
+    pts = rng.normal(size=(50, 3))
+    fn = getattr(geometry, name)
+    with pytest.raises(ValueError, match=rf"{name}\(radius\): expected a non-negative radius"):
+        fn(pts, 3, bad)
+    with pytest.raises(Exception, match=rf"{name}\(radius\): expected a non-negative radius"):
+        jax.block_until_ready(jax.jit(lambda r: fn(pts, 3, r).count)(bad))
+    kept = jax.jit(lambda r: fn(pts, 3, r).count)(10.0)
+    assert int(kept) == 50
