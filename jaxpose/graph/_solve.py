@@ -397,10 +397,7 @@ def _run(
         lambda s: _iterate.trial(rule, path, s, stopping, verbose=verbose, label="graph.solve"),
         state,
     )
-    out = _iterate.check_initial_cost(
-        out, "solve: the cost is not finite at the initial variables (check measurements, "
-        "information matrices and initial values)")
-    return GraphSolution(
+    solution = GraphSolution(
         variables=out.params,
         cost=out.cost,
         initial_cost=out.initial_cost,
@@ -409,6 +406,9 @@ def _run(
         history=out.history[1:],
         linear_iterations=out.linear_iterations,
     )
+    return _iterate.check_initial_cost(
+        solution, out.initial_cost, "solve: the cost is not finite at the initial variables "
+        "(check measurements, information matrices and initial values)")
 
 
 def summary(sol: GraphSolution) -> dict[str, Any]:

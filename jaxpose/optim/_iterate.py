@@ -106,16 +106,12 @@ def start_status(finite: Array, grad_inf: Array, stopping: Stopping) -> Array:
     ).astype(jnp.int32)
 
 
-def check_initial_cost(state: SolverState, message: str) -> SolverState:
-    """``state`` after a loop whose first trial set the initial cost: ``message`` is raised
-    (``eqx.error_if``) where that cost is not finite, from the params, best params and
-    every cost, so a caller keeping any one of them alone still gets it (XLA drops a check
-    nothing uses)."""
-    def outputs(s: SolverState) -> tuple[Any, ...]:
-        return s.params, s.best_params, s.cost, s.best_cost, s.initial_cost
-
-    checked = eqx.error_if(outputs(state), ~jnp.isfinite(state.initial_cost), message)
-    return eqx.tree_at(outputs, state, checked)
+def check_initial_cost(solution: Any, initial_cost: Array, message: str) -> Any:
+    """``solution`` (a pytree) with ``message`` raised (``eqx.error_if``) where the
+    initial cost is not finite, attached to every array leaf, so a caller keeping any one
+    of them alone (the status, a step count) still gets it: XLA drops a check nothing
+    uses."""
+    return eqx.error_if(solution, ~jnp.isfinite(initial_cost), message)
 
 
 def init(rule: Rule, params: PyTree, system: Any, cost: Array, stopping: Stopping, *,

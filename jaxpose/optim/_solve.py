@@ -59,8 +59,8 @@ def _runner(
                 state = jax.lax.while_loop(cond, body, state)
         else:  # no step: the first trial only linearises (status MAX_STEPS, or CONVERGED
             state = body(state)  # by gtol), so grad_norm and cost are those at params
-        state = _iterate.check_initial_cost(state, INITIAL_NOT_FINITE)
-        return _to_solution(state, history)
+        return _iterate.check_initial_cost(_to_solution(state, history), state.initial_cost,
+                                           INITIAL_NOT_FINITE)
 
     return run
 

@@ -98,6 +98,11 @@ def test_vmap_solve_fixed_variables_and_nan_input():
                         compiler_options=FAST_COMPILE)
     with pytest.raises(Exception, match="cost is not finite at the initial variables"):
         jax.block_until_ready(cost_only(with_values(problem, poses=jnp.asarray(bad_poses))))
+    # or only the status (returned NON_FINITE with no error before session 49)
+    status_only = jax.jit(lambda p: graph_solve(p, linear_solver="dense").status,
+                          compiler_options=FAST_COMPILE)
+    with pytest.raises(Exception, match="cost is not finite at the initial variables"):
+        jax.block_until_ready(status_only(with_values(problem, poses=jnp.asarray(bad_poses))))
 
 
 @pytest.mark.slow

@@ -139,6 +139,18 @@ def test_nonfinite_jacobian_at_start_reports_status_not_exception():
     assert "RuntimeError" in jo.least_squares.__doc__ and "sqrt(x)" in jo.least_squares.__doc__
 
 
+@pytest.mark.parametrize("keep", ["status", "num_steps", "grad_norm", "params"])
+def test_nonfinite_residual_at_start_raises_under_jit_whatever_is_kept(keep):
+    """docs/least-squares.md: a NaN/Inf residual at the initial params raises, also under
+    jit. The check was attached to params and costs only, so a caller keeping the status
+    (as the vmap example does) got NON_FINITE and no error."""
+    def run(a):
+        return getattr(jo.least_squares(lambda p, a: p - a + jnp.nan, jnp.zeros(3), a), keep)
+
+    with pytest.raises(Exception, match="returned NaN/Inf at the initial params"):
+        jax.block_until_ready(jax.jit(run)(jnp.ones(3)))
+
+
 @pytest.mark.parametrize("max_steps", [3, 10])
 def test_all_nan_trials_end_non_finite_within_a_small_budget(max_steps):
     """Every trial NaN and max_steps < max_rejects: NON_FINITE (was MAX_STEPS)."""
