@@ -38,21 +38,26 @@ def quaternion_to_euler(q: Array) -> Array:
     Half-angle form of Bernardes & Viollet (PLoS ONE 2022, as scipy): pitch from an
     ``atan2`` of two norms (accurate up to ±π/2, unlike ``arcsin``), roll and yaw from
     ``(b, a)`` and ``(d, c)``, each well conditioned on one side of the lock, so the
-    angles rebuild R to rounding at and near gimbal lock. At exact lock (pitch = ±π/2)
-    only roll ∓ yaw is defined: yaw is set to 0 as scipy does. Not differentiable there
+    angles rebuild R to rounding at and near gimbal lock. At the lock (pitch within
+    rounding of ±π/2: √(a² + b²) ≤ ε·√(c² + d²) or the reverse) only roll ∓ yaw is
+    defined: yaw is set to 0 as scipy does. Not differentiable there
     (gradients are finite, not meaningful)."""
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     a, b, c, d = w - y, x + z, w + y, z - x
     n_ab, n_cd = a * a + b * b, c * c + d * d
-    up, down = n_ab == 0, n_cd == 0  # pitch = +π/2, −π/2 exactly
+    zero_ab, zero_cd = n_ab == 0, n_cd == 0
     # double where: no NaN from atan2(0, 0) or sqrt'(0) at the lock
-    n_ab = jnp.where(up, 0.0, jnp.sqrt(jnp.where(up, 1.0, n_ab)))
-    n_cd = jnp.where(down, 0.0, jnp.sqrt(jnp.where(down, 1.0, n_cd)))
-    half_sum = jnp.arctan2(b, jnp.where(up, 1.0, a))
-    half_diff = jnp.arctan2(d, jnp.where(down, 1.0, c))
+    n_ab = jnp.where(zero_ab, 0.0, jnp.sqrt(jnp.where(zero_ab, 1.0, n_ab)))
+    n_cd = jnp.where(zero_cd, 0.0, jnp.sqrt(jnp.where(zero_cd, 1.0, n_cd)))
+    pitch = 2.0 * jnp.arctan2(n_cd, n_ab) - 0.5 * jnp.pi
+    # the lock: pitch within rounding of ±π/2, where roll ± yaw is rounding noise (a
+    # rotation built from exact matrices at the lock rarely gives n_ab or n_cd exactly 0)
+    eps = jnp.finfo(pitch.dtype).eps
+    up, down = n_ab <= eps * n_cd, n_cd <= eps * n_ab
+    half_sum = jnp.arctan2(b, jnp.where(zero_ab, 1.0, a))
+    half_diff = jnp.arctan2(d, jnp.where(zero_cd, 1.0, c))
     half_sum = jnp.where(up, -half_diff, half_sum)
     half_diff = jnp.where(down, -half_sum, half_diff)
-    pitch = 2.0 * jnp.arctan2(n_cd, n_ab) - 0.5 * jnp.pi
     return jnp.stack([_wrap(half_sum - half_diff), pitch, _wrap(half_sum + half_diff)], -1)
 
 

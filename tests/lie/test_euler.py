@@ -70,6 +70,31 @@ def test_euler_at_exact_lock_sets_yaw_to_zero_like_scipy():
     assert np.all(np.isfinite(np.asarray(jac)))
 
 
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_euler_at_the_lock_of_a_rotation_built_from_matrices(sign):
+    """R = Rz(0.3)·Ry(±π/2)·Rx(0.5) from exact matrices: the pitch is ±π/2 to rounding
+    but the quaternion is not exactly at the lock (√(c² + d²) ≈ 1e-16, not 0), and
+    euler() returned roll −3.04, yaw 3.04 (pitch +π/2) and roll 0.4, yaw 0.4 (−π/2)
+    where the docs promise yaw = 0 as scipy gives (roll 0.2 and 0.8)."""
+    def axis(i, t):
+        c, s = np.cos(t), np.sin(t)
+        m = np.eye(3)
+        j, k = [(1, 2), (2, 0), (0, 1)][i]
+        m[j, j], m[j, k], m[k, j], m[k, k] = c, -s, s, c
+        return m
+
+    lock = np.array([[0.0, 0.0, sign], [0.0, 1.0, 0.0], [-sign, 0.0, 0.0]])
+    mat = axis(2, 0.3) @ lock @ axis(0, 0.5)
+    ours = np.asarray(SO3.from_matrix(jnp.asarray(mat)).euler())
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "Gimbal lock", UserWarning)
+        ref = Rotation.from_matrix(mat).as_euler("xyz")
+    np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(ours, [0.5 - sign * 0.3, sign * np.pi / 2, 0.0], atol=1e-15)
+    np.testing.assert_allclose(np.asarray(SO3.from_euler(jnp.asarray(ours)).matrix()), mat,
+                               rtol=0, atol=1e-15)
+
+
 def test_euler_matches_scipy_away_from_the_lock():
     rng = np.random.default_rng(4)
     n = 200
