@@ -450,7 +450,9 @@ class LieGroup(_Element):
         dtype: Any = None,
     ) -> G:
         """``Exp(σ·n)`` with n ~ N(0, I) in the tangent space (explicit PRNG ``key``); an
-        int ``shape`` ``n`` means ``(n,)``."""
+        int ``shape`` ``n`` means ``(n,)``. ``sigma``: one std for every tangent coordinate
+        or one per coordinate ``(tangent_dim,)`` (PyPose's ``randn_*`` use σ/√3 on each
+        rotation-vector axis)."""
         if not (isinstance(key, jax.Array) and (key.dtype == jnp.uint32 or
                                                  jnp.issubdtype(key.dtype, jax.dtypes.prng_key))):
             raise TypeError(f"{cls.__name__}.random(key): expected a jax.random key, got {key!r}")

@@ -36,7 +36,8 @@ def identity_like(x: T) -> T:
 def random_like(x: T, key: Any, sigma: Any = 1.0) -> T:
     """Random elements of ``x``'s type, batch shape and dtype (PyPose's ``randn_like``):
     ``Exp(σ·n)`` for a group, ``σ·n`` for an algebra, n ~ N(0, I) in the tangent space
-    (explicit PRNG ``key``)."""
+    (explicit PRNG ``key``); ``sigma`` one std or one per tangent coordinate, as in
+    ``SE3.random`` and the other groups' ``random``."""
     x = _lie(x, "random_like")
     if isinstance(x, LieGroup):
         return type(x).random(key, x.shape, sigma, x.dtype)
