@@ -80,12 +80,21 @@ def _broadcasts_to(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
         return False
 
 
+def _sqrt0(x: Array) -> Array:
+    """√x with a zero derivative (not inf) at x = 0; NaN and inf pass through."""
+    return jnp.where(x == 0, 0.0, jnp.sqrt(jnp.where(x == 0, 1.0, x)))
+
+
 def error_stats(errors: Any, valid: Any = None) -> ErrorStats:
     """Max, min, mean, median, RMSE, SSE and population std over the last axis of
-    ``errors`` (..., K) where ``valid`` (..., K) (default all)."""
+    ``errors`` (..., K) where ``valid`` (..., K) (default all); NaN where no entry is
+    valid, and NaN/inf errors propagate as in numpy (a NaN makes every statistic NaN)."""
     e = as_float_array(errors, "error_stats(errors)")
     if e.ndim < 1:
         raise ValueError("error_stats(errors): expected shape (..., K), got a scalar")
+    if e.shape[-1] == 0:
+        raise ValueError(f"error_stats(errors): expected at least one error along the last "
+                         f"axis, got shape {tuple(e.shape)}")
     if valid is not None and not _broadcasts_to(np.shape(valid), e.shape):
         raise ValueError(f"error_stats(valid): expected a shape that broadcasts to errors' "
                          f"{tuple(e.shape)}, got {np.shape(valid)}")
@@ -98,19 +107,19 @@ def error_stats(errors: Any, valid: Any = None) -> ErrorStats:
     mean = jnp.sum(z, -1) / nf
     sse = jnp.sum(z * z, -1)
     var = jnp.sum(jnp.where(v, jnp.square(e - mean[..., None]), 0.0), -1) / nf
-    std = jnp.where(var > 0, jnp.sqrt(jnp.where(var > 0, var, 1.0)), 0.0)
-    rmse_sq = sse / nf
-    rmse = jnp.where(rmse_sq > 0, jnp.sqrt(jnp.where(rmse_sq > 0, rmse_sq, 1.0)), 0.0)
+    std = _sqrt0(var)
+    rmse = _sqrt0(sse / nf)
+    # invalid entries sort last (+inf); a NaN error (sorted after them) makes the median
+    # NaN, as numpy's, rather than the middle of the others
     srt = jnp.sort(jnp.where(v, e, jnp.inf), -1)
     lo = jnp.take_along_axis(srt, jnp.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
     hi = jnp.take_along_axis(srt, jnp.maximum(n // 2, 0)[..., None], -1)[..., 0]
-    hi = jnp.where(n > 0, hi, lo)
+    median = jnp.where(jnp.any(v & jnp.isnan(e), -1), nan, 0.5 * (lo + hi))
     out = ErrorStats(
         max=jnp.max(jnp.where(v, e, -jnp.inf), -1),
         min=jnp.min(jnp.where(v, e, jnp.inf), -1),
         mean=mean,
-        median=0.5 * (jnp.where(jnp.isfinite(lo), lo, 0.0) + jnp.where(jnp.isfinite(hi), hi,
-                                                                      0.0)),
+        median=median,
         rmse=rmse,
         sse=sse,
         std=std,

@@ -35,6 +35,32 @@ def test_error_stats_hand_values():
     assert np.isnan(float(error_stats(e, valid=np.zeros(6, bool)).mean))
 
 
+@pytest.mark.parametrize("errors", [[1.0, 2.0, np.nan], [1.0, np.inf, np.inf],
+                                    [1.0, 2.0, np.inf, np.inf], [np.nan, 0.0, 0.0]])
+def test_error_stats_propagate_nan_and_inf_as_numpy(errors):
+    """A NaN error gave RMSE 0, std 0 and the median of the others; an inf median gave 0:
+    a broken trajectory (NaN pose) looked perfect in ape()/rpe()."""
+    e = np.asarray(errors)
+    got = error_stats(e)
+    with np.errstate(invalid="ignore"):
+        want = dict(max=e.max(), min=e.min(), mean=e.mean(), median=np.median(e),
+                    rmse=np.sqrt(np.mean(e * e)), sse=np.sum(e * e), std=e.std())
+    for name, value in want.items():
+        np.testing.assert_array_equal(float(getattr(got, name)), value, err_msg=name)
+    # a masked-out NaN plays no part
+    np.testing.assert_array_equal(float(error_stats(e, valid=np.isfinite(e)).median),
+                                  np.median(e[np.isfinite(e)]))
+    with pytest.raises(ValueError, match=r"error_stats\(errors\): expected at least one"):
+        error_stats(np.zeros((2, 0)))
+
+
+def test_ape_of_a_nan_pose_is_not_a_perfect_score():
+    ref = _poses(np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]))
+    est = np.asarray(ref.data).copy()
+    est[1, 0] = np.nan
+    assert np.isnan(float(ape(ref, SE3(jnp.asarray(est))).stats.rmse))
+
+
 def test_ape_hand_values():
     ref = _poses(np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]))
     # estimate: translations off by 0, 1, 2, 2 along y; last also yawed by 0.3 rad
