@@ -42,7 +42,11 @@ class Downsampled(NamedTuple):
 def _voxel_ids(p: Array, size: Array) -> tuple[Array, Array, Array]:
     """Segment id per point (sorted voxel order), the sort order and the voxel count."""
     vdim = size.shape[0]
-    cells = jnp.floor((p[:, :vdim] - jnp.min(p[:, :vdim], 0)) / size)
+    # a NaN point made the grid origin NaN (every finite point merged into one voxel with
+    # a NaN centroid); inf blamed the voxel size
+    x = runtime_check(p[:, :vdim], ~jnp.all(jnp.isfinite(p[:, :vdim])),
+                      "voxel_filter(points): the voxelised coordinates contain NaN or inf")
+    cells = jnp.floor((x - jnp.min(x, 0)) / size)
     cells = runtime_check(cells, jnp.any(cells >= np.iinfo(np.int32).max),
                           "voxel_filter(voxel): sizes too small for the extent of the points "
                           "(more than 2³¹ − 1 voxels along an axis)").astype(jnp.int32)

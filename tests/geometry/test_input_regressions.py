@@ -190,3 +190,21 @@ def test_radius_filter_radius_is_checked_under_jit(rng, name, bad):
         jax.block_until_ready(jax.jit(lambda r: fn(pts, 3, r).count)(bad))
     kept = jax.jit(lambda r: fn(pts, 3, r).count)(10.0)
     assert int(kept) == 50
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_voxel_filter_refuses_non_finite_coordinates(bad):
+    """One NaN point made the grid origin NaN: the finite points x = 0, 0.05, 0.5 came
+    back as one voxel with a NaN centroid (three voxels: 0.025, 0.5, 1). inf blamed the
+    voxel size. Extra columns (colours) are averaged, NaN or not."""
+    pts = np.array([[0.0, 0, 0], [0.05, 0, 0], [0.5, 0, 0], [1, 1, 1], [bad, 0, 0]])
+    message = r"voxel_filter\(points\): the voxelised coordinates contain NaN or inf"
+    with pytest.raises(ValueError, match=message):
+        voxel_filter(pts, np.full(3, 0.1))
+    with pytest.raises(Exception, match=message):
+        jax.block_until_ready(jax.jit(voxel_filter, static_argnums=2)(pts, np.full(3, 0.1), 8))
+    out = voxel_filter(pts[:4], np.full(3, 0.1))
+    np.testing.assert_allclose(np.asarray(out.points)[:, 0], [0.025, 0.5, 1.0])
+    colour = np.c_[pts[:4], [np.nan, 1.0, 2.0, 3.0]]
+    out = voxel_filter(colour, np.full(3, 0.1))
+    assert np.isnan(np.asarray(out.points)[0, 3]) and int(out.count) == 3
