@@ -43,8 +43,9 @@ def homo2cart(coordinates: Any) -> Array:
     """Divide by the last coordinate: (..., D+1) → (..., D).
 
     A last coordinate of (nearly) zero is replaced by ±tiny with its sign kept (0 counts
-    as positive), as in PyPose: no 0/0 NaN, but the result overflows to ±inf unless the
-    other coordinates are tiny too (a point on the camera plane projects to infinity)."""
+    as positive), as in PyPose: no 0/0 NaN, but a finite result of about x/tiny (4.5e307
+    for x = 1 in float64) that overflows to ±inf once |x| exceeds about 4 (a point on the
+    camera plane projects far out)."""
     x = as_float_array(coordinates, "homo2cart(coordinates)")
     if x.ndim == 0 or x.shape[-1] < 2:
         raise ValueError(f"homo2cart(coordinates): expected an array of shape (..., D+1) with "
@@ -188,7 +189,8 @@ def bal_project(points: Any, cameras: Any) -> Array:
     = ``[r(3) Rodrigues, t(3), f, k1, k2]`` → pixels (..., 2).
 
     As in the BAL format: ``P = R(r) X + t``, ``p = −P[:2] / P[2]`` (the camera looks
-    down −Z), ``p' = f · (1 + k1 |p|² + k2 |p|⁴) · p``. Batch axes broadcast."""
+    down −Z), ``p' = f · (1 + k1 |p|² + k2 |p|⁴) · p``; not finite for a point at depth 0
+    (as the BAL solver's residuals). Batch axes broadcast."""
     fn = "bal_project"
     x = as_float_array(points, f"{fn}(points)")
     check_last_dim(x, 3, f"{fn}(points)", "[x, y, z]")
@@ -202,7 +204,7 @@ def bal_project(points: Any, cameras: Any) -> Array:
 @full_precision
 def _bal(x: Array, c: Array) -> Array:
     pc = SO3.exp(c[..., :3]).act(x) + c[..., 3:6]
-    p = -homo2cart(pc)
+    p = -pc[..., :2] / pc[..., 2:]  # the model's division: not finite at depth 0
     r2 = jnp.sum(p * p, -1, keepdims=True)
     k1, k2, f = c[..., 7:8], c[..., 8:9], c[..., 6:7]
     return f * (1.0 + r2 * (k1 + k2 * r2)) * p

@@ -208,3 +208,15 @@ def test_voxel_filter_refuses_non_finite_coordinates(bad):
     colour = np.c_[pts[:4], [np.nan, 1.0, 2.0, 3.0]]
     out = voxel_filter(colour, np.full(3, 0.1))
     assert np.isnan(np.asarray(out.points)[0, 3]) and int(out.count) == 3
+
+
+def test_bal_project_is_not_finite_at_depth_zero():
+    """The BAL model divides by the depth: a point at the camera centre gave pixels
+    (−0, −0) and one at (1e-300, 0, 0) gave (−2.2e10, 0) (homo2cart's ±tiny), where the
+    BAL solver's residual and the NumPy model give NaN."""
+    from jaxpose.geometry import bal_project
+
+    cam = np.array([0.0, 0, 0, 0, 0, 0, 500.0, 0.0, 0.0])
+    for x in ([0.0, 0, 0], [1e-300, 0, 0], [1.0, 2.0, 0.0]):
+        assert not np.all(np.isfinite(np.asarray(bal_project(np.array(x), cam))))
+    np.testing.assert_allclose(bal_project(np.array([1.0, 2.0, -4.0]), cam), [125.0, 250.0])
