@@ -182,8 +182,9 @@ def rotvec_from_quat(q: np.ndarray) -> np.ndarray:
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices of unit (..., 4) ``[x, y, z, w]`` quaternions."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    """(..., 3, 3) rotation matrices of (..., 4) ``[x, y, z, w]`` quaternions, normalised
+    first (:func:`normalize`: a quaternion scaled by 1e-200 is one too)."""
+    q = normalize(q)
     x, y, z, w = np.moveaxis(q, -1, 0)
     return np.stack(
         [

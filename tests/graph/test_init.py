@@ -391,3 +391,26 @@ def test_block_least_squares_matches_the_dense_solution(monkeypatch, path):
     np.testing.assert_allclose(got[6], 0.0, atol=1e-12)
     want = _dense_block_lstsq(n, edges[~zero], bi[~zero], bj[~zero], c[~zero], anchors, x_anchor)
     np.testing.assert_allclose(got[:6], want[:6], rtol=1e-8, atol=1e-10)
+
+
+def test_host_cost_and_chordal_take_a_tiny_scaled_quaternion():
+    """A measurement quaternion scaled by 1e-200 (read_g2o normalises such; an in-memory
+    PoseGraph may hold one): the host NumPy rotation matrix divided by a norm that
+    underflowed to 0, so pose_graph_cost was NaN and chordal_initialization raised "SVD did
+    not converge" while the JAX cost was right."""
+    from jaxpose.io import PoseGraph
+
+    q = np.array([0.0, 0.0, np.sin(0.3), np.cos(0.3)])
+    poses = np.array([[0, 0, 0, 0, 0, 0, 1.0], [1, 0, 0, *q], [2, 1, 0, 0, 0, 0, 1.0]])
+
+    def graph(scale):
+        meas = np.array([[1, 0, 0, *(q * scale)], [1, 0.5, 0, 0, 0, 0, 1.0]])
+        return PoseGraph("SE3", np.arange(3), poses, np.array([[0, 1], [1, 2]]), meas,
+                         np.stack([np.eye(6)] * 2))
+
+    unit, tiny = graph(1.0), graph(1e-200)
+    want = pose_graph_cost(unit)
+    assert np.isfinite(want) and want > 0.1
+    assert pose_graph_cost(tiny) == pytest.approx(want, rel=1e-14)
+    np.testing.assert_allclose(chordal_initialization(tiny), chordal_initialization(unit),
+                               rtol=0, atol=1e-14)
