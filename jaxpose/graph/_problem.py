@@ -91,6 +91,9 @@ class FactorGraph(eqx.Module):
                         f"shape {arr.shape}"
                     )
                 variables[name] = arr
+            if count(variables[name]) == 0:
+                raise ValueError(f"FactorGraph(variables[{name!r}]): expected at least one "
+                                 "variable, got an empty batch (leave the type out)")
         for k, f in enumerate(factors):
             if not isinstance(f, Factor):
                 raise TypeError(

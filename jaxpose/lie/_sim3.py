@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import jax
 import jax.numpy as jnp
 
 from .. import _small_linalg as small_linalg
@@ -94,7 +95,12 @@ class Sim3(LieGroup):
     def _log(x: Array) -> Array:
         phi = quat.log(x[..., 3:7])
         sigma = jnp.log(x[..., 7])
-        rho = small_linalg.solve(w_matrix(phi, sigma), x[..., :3, None])[..., 0]
+        w = w_matrix(phi, sigma)
+        # W's entries grow as e^σ/σ: divided by the largest (a constant to autodiff, ρ does
+        # not depend on it), the 3×3 adjugate and determinant neither overflow (ρ = 0 from
+        # t/inf, float32 past σ ≈ 34) nor give inf/inf
+        m = jax.lax.stop_gradient(jnp.max(jnp.abs(w), axis=(-2, -1), keepdims=True))
+        rho = small_linalg.solve(w / m, x[..., :3, None] / m)[..., 0]
         return jnp.concatenate([rho, phi, sigma[..., None]], -1)
 
     @staticmethod

@@ -311,3 +311,15 @@ def test_optimize_bal_takes_a_graph_linear_solver_object():
     b = optimize_bal(prob, linear_solver="schur", fixed_cameras=[0, 1])[1]
     assert a.status_name == "converged"
     np.testing.assert_allclose(float(a.cost), float(b.cost), rtol=1e-12)
+
+
+def test_an_empty_variable_type_is_refused_by_name():
+    """An empty batch of variables raised a bare KeyError: 0 from the sparsity pattern (or,
+    unused, numpy's "need at least one array to stack" from marginals)."""
+    used = Factor(lambda x, z: x - z, [("x", np.zeros(0, int))], data=jnp.zeros((0, 2)))
+    with pytest.raises(ValueError, match=r"FactorGraph\(variables\['x'\]\): expected at least "
+                                         r"one variable, got an empty batch"):
+        FactorGraph([used], {"x": jnp.zeros((0, 2))})
+    f = Factor(lambda x, z: x - z, [("x", np.array([0, 1]))], data=jnp.ones((2, 2)))
+    with pytest.raises(ValueError, match=r"FactorGraph\(variables\['y'\]\)"):
+        FactorGraph([f], {"x": jnp.zeros((2, 2)), "y": SE3.identity((0,))})

@@ -876,3 +876,18 @@ def test_retract_linear_gives_exact_jacobians_and_their_derivatives(group):
     d_exact = fast_jit(jax.jacfwd(hess("retract")))(x.data, y.data)
     d_quad = fast_jit(jax.jacfwd(hess("retract_quadratic")))(x.data, y.data)
     np.testing.assert_allclose(d_quad, d_exact, atol=1e-11)
+
+
+@pytest.mark.parametrize("dtype, sigmas", [(jnp.float32, [34.0, 50.0, 80.0]),
+                                           (jnp.float64, [250.0, 400.0, 700.0])])
+def test_sim3_log_at_large_scale(dtype, sigmas):
+    """W·ρ = t was solved by a 3×3 adjugate over a determinant growing as (e^σ/σ)³: past
+    σ ≈ 34 (float32) / 250 (float64) the determinant overflowed and log returned ρ = 0,
+    then NaN, though t and s = e^σ are finite. The exact answer is the ρ exp was given."""
+    for sigma in sigmas:
+        xi = jnp.asarray([1.0, 2.0, 3.0, 0.1, 0.2, 0.3, sigma], dtype)
+        x = Sim3.exp(xi)
+        assert np.all(np.isfinite(np.asarray(x.data)))
+        out = np.asarray(x.log().data)
+        np.testing.assert_allclose(out, np.asarray(xi), rtol=2e-6 if dtype == jnp.float32
+                                   else 1e-12)
