@@ -66,8 +66,8 @@ class Stopping(eqx.Module):
       CONVERGED;
     * ``xtol``: a finite trial step with ``‖δ‖₂ ≤ xtol`` (no meaningful step left) →
       CONVERGED;
-    * always: a rejected finite trial whose *predicted* decrease is below the cost's
-      floating-point resolution (16·eps·cost) → CONVERGED (no measurable decrease is
+    * always: a rejected finite trial whose *predicted* decrease is positive and below the
+      cost's floating-point resolution (16·eps·cost) → CONVERGED (no measurable decrease is
       left); and a rejected finite trial once the cost is at rounding level,
       cost ≤ eps²·initial cost (the residual has shrunk by the dtype's precision, as in
       zero-residual problems: further "decreases" are rounding noise) → CONVERGED; and a
@@ -153,7 +153,10 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     conv = conv | (t.grad_inf <= stopping.gtol)
     conv = conv | (t.finite & (t.step_norm <= stopping.xtol))
     eps = jnp.finfo(t.last.dtype).eps
-    noise = (t.predicted <= 16 * eps * jnp.abs(t.last)) | (t.last <= eps * eps * t.initial)
+    # a predicted decrease that is not positive is the model's rounding (or an indefinite
+    # H), not a step too small to measure: the damping grows instead
+    small = (t.predicted > 0) & (t.predicted <= 16 * eps * jnp.abs(t.last))
+    noise = small | (t.last <= eps * eps * t.initial)
     conv = conv | (t.finite & ~t.accepted & noise)
     # a step that changes the cost not even by its last bit
     conv = conv | (t.finite & ~t.accepted & (t.trial_cost == t.last))

@@ -244,6 +244,28 @@ def test_rejected_trial_that_leaves_the_cost_unchanged_is_convergence():
     assert status(1.5e-28, 64) == jp.Results.DIVERGED
 
 
+@pytest.mark.parametrize("predicted", [-129.0, 0.0, float("nan")])
+def test_a_non_positive_predicted_decrease_is_not_convergence(predicted):
+    """manhattan.g2o in float32 from odometry: the float32 Hessian was indefinite and the
+    model's predicted decrease came out −129 (float64: +2870), which the "predicted
+    decrease below the cost's resolution" rule read as convergence: CONVERGED at cost
+    1897.7 against the optimum 1774.5 with ‖g‖∞ = 445. Such a rejection is an ordinary
+    one (the damping grows); a small positive prediction still stops."""
+    from jaxpose.optim._stopping import Trial, check
+
+    def status(pred):
+        f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        trial = Trial(step=jnp.int32(30), last=f32(1897.66), cost=f32(1897.66),
+                      accepted=jnp.bool_(False), finite=jnp.bool_(True), step_norm=f32(335),
+                      predicted=f32(pred), initial=f32(1.35e10), grad_inf=f32(445.0),
+                      rejects=jnp.int32(1), plateau_count=jnp.int32(0),
+                      trial_cost=f32(1900.0))
+        return int(check(jo.Stopping(gtol=0.0, xtol=0.0), trial)[1])
+
+    assert status(predicted) == jp.Results.RUNNING
+    assert status(1e-5) == jp.Results.CONVERGED  # below 16·eps·cost: unmeasurable
+
+
 def test_stop_on_plateau_semantics():
     solver = jo.LM()
     # every iteration decreases by less than 1e9: stop after exactly `patience` iterations
