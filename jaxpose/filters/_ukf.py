@@ -124,7 +124,12 @@ class UKF(KalmanFilter):
         Pxy = (wc[:, None] * offs).T @ ydev
         K, L = kalman_gain(Pxy, Pyy)
         r = tangent_space(ymean).minus(y, ymean)
-        return self._correct(ts, x, P, P - K @ Pyy @ K.T, K, L, r, y_ok)
+        # P − K·Pyy·Kᵀ as Σ Wc·eᵢeᵢᵀ + K·R·Kᵀ with eᵢ = sᵢ − K·yᵢ (equal, as K·Pyy = Pxy): a
+        # sum of outer products, the UKF's Joseph form. The difference of two matrices of
+        # P's size lost float32 accuracy in proportion to P/R (P 2e-3 off at P/R = 1e4)
+        e = offs - ydev @ K.T
+        Pk = (wc[:, None] * e).T @ e + K @ self.R @ K.T
+        return self._correct(ts, x, P, Pk, K, L, r, y_ok)
 
 
 def _mean(pts: Any, wm: Array) -> tuple[Any, Array]:
