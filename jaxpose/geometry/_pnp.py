@@ -27,7 +27,12 @@ Status (:class:`~jaxpose.Results`): CONVERGED; DEGENERATE when the world points 
 free) and the returned estimate is only one of many; NON_FINITE when the inputs or the
 estimate contain NaN/Inf; with ``refine=True``, the refinement's own status (MAX_STEPS,
 DIVERGED) when it stops short of the optimum (the refined estimate is still returned).
-Fewer than 4 points raises a ValueError (a shape known at trace time).
+Fewer than 4 points raises a ValueError (a shape known at trace time). CONVERGED means
+a converged refinement, a local optimum of the reprojection error: with the minimal
+N = 4 the null space is 4-dimensional, Lepetit's linearised β is only an approximation,
+and on 23 of 500 random noise-free 4-point problems the refinement converged to a wrong
+pose (mean reprojection error up to 37 px; none of 500 with N = 6). Check ``error``
+against the pixel noise, or use more points.
 
 Derivatives. EPnP's algebra is not differentiated (eigenvector derivatives are undefined
 for repeated eigenvalues, which planar targets always produce). Instead the returned pose
