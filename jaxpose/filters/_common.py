@@ -162,13 +162,18 @@ def relative_loglik(r: Array, L_inv: Array) -> tuple[Array, Array]:
     (``L_inv`` = L⁻¹), up to one constant shared by all N: ``−½(‖z_i‖² − min_j ‖z_j‖²)``
     with ``z = L⁻¹ r``. Scale-safe: the squares are formed from ``z / max|z|``, so an
     innovation of 1e200 gives the nearest rows 0 and the others ``-inf`` (instead of
-    ``inf − inf = NaN``). Also returns ``min ‖z‖²`` (``inf`` when it overflows)."""
+    ``inf − inf = NaN``). A row that is not finite (a particle whose observation is NaN)
+    gets ``-inf`` and plays no part in the others' (it made every row NaN). Also returns
+    ``min ‖z‖²`` over the finite rows (``inf`` when it overflows or none is finite)."""
     z = r @ L_inv.T
+    finite = jnp.all(jnp.isfinite(z), -1)
+    z = jnp.where(finite[:, None], z, 0.0)
     s = jnp.max(jnp.abs(z))
     s = jnp.where(jnp.isfinite(s) & (s > 0), s, 1.0)
-    q = jnp.sum(jnp.square(z / s), -1)
+    q = jnp.where(finite, jnp.sum(jnp.square(z / s), -1), jnp.inf)
     qmin = jnp.min(q)
-    return -0.5 * ((s * (q - qmin)) * s), (s * jnp.sqrt(qmin)) ** 2
+    ll = jnp.where(finite, -0.5 * ((s * (q - qmin)) * s), -jnp.inf)
+    return ll, (s * jnp.sqrt(qmin)) ** 2
 
 
 def innovation_ok(L: Array, r: Array) -> Array:

@@ -418,3 +418,34 @@ def test_noise_and_start_covariances_are_checked_under_jit(kind):
     # differentiating a jitted run through a learned, valid Q still works
     g = jax.grad(lambda s: jnp.sum(jitted(s * jnp.asarray(d["Q"]), d["R"], d["P0"])))(1.0)
     assert np.isfinite(float(g))
+
+
+@pytest.mark.parametrize("skip", [False, True])
+def test_particle_filter_one_nan_particle_observation_loses_only_that_particle(skip):
+    """h(x) = √x with one of 1000 particles negative: its NaN observation made every
+    log-likelihood NaN (max |z| and min ‖z‖² propagate NaN), so mean, covariance and ESS
+    were NaN for the rest of the run (skip_nonfinite: the measurement was skipped and the
+    999 good particles never reweighted). Reference: the same run with that particle's
+    observation replaced by a huge finite value (it then loses its weight the same way)."""
+    from jaxpose.dynamics import System
+
+    class Sqrt(System):
+        def state_transition(self, x, u, t=0):
+            return x
+
+        def observation(self, x, u, t=0):
+            return jnp.sqrt(x)
+
+    class Far(Sqrt):
+        def observation(self, x, u, t=0):
+            return jnp.where(x >= 0, jnp.sqrt(jnp.abs(x)), 1e6)
+
+    ys, us = jnp.full((3, 1), np.sqrt(3.0)), jnp.zeros((3, 1))
+    noise = 0.01 * jnp.eye(1)
+    run = [ParticleFilter(m(), noise, noise, num_particles=1000, skip_nonfinite=skip).run(
+        jax.random.PRNGKey(0), jnp.array([3.0]), jnp.eye(1), ys, us) for m in (Sqrt, Far)]
+    (got, got_ess), (want, want_ess) = run
+    np.testing.assert_array_equal(np.asarray(got.ok), True)
+    np.testing.assert_allclose(got.x, want.x, rtol=1e-12)
+    np.testing.assert_allclose(got_ess, want_ess, rtol=1e-12)
+    assert abs(float(got.x[-1, 0]) - 3.0) < 0.05
