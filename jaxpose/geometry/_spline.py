@@ -71,9 +71,17 @@ def bspline_se3(control: SE3, t: Any) -> SE3:
 def _bspline_eval(cdata: Array, tt: Array) -> Array:
     n = cdata.shape[-2]
     batch = tuple(np.broadcast_shapes(cdata.shape[:-2], tt.shape[:-1]))
-    data = jnp.broadcast_to(cdata, (*batch, n, 7))
     tt = jnp.broadcast_to(tt, (*batch, tt.shape[-1]))
-    s, u = _segment(tt, n - 3)
+    return _bspline_at(cdata, *_segment(tt, n - 3))
+
+
+def _bspline_at(cdata: Array, s: Array, u: Array) -> Array:
+    """The spline of controls (..., N, 7) in segments ``s`` (int) at local times ``u``
+    (..., M) in [0, 1) (extrapolating outside)."""
+    n = cdata.shape[-2]
+    batch = tuple(np.broadcast_shapes(cdata.shape[:-2], u.shape[:-1]))
+    data = jnp.broadcast_to(cdata, (*batch, n, 7))
+    s, u = jnp.broadcast_to(s, (*batch, s.shape[-1])), jnp.broadcast_to(u, (*batch, u.shape[-1]))
     # the four control poses of each evaluation: (..., M, 4, 7)
     idx = s[..., None] + jnp.arange(4)
     ctrl = jnp.take_along_axis(data[..., None, :, :], idx[..., None], axis=-2)
@@ -84,6 +92,9 @@ def _bspline_eval(cdata: Array, tt: Array) -> Array:
         omega = SE3(ctrl[..., j, :]).rminus(SE3(ctrl[..., j - 1, :]))
         out = out.compose(SE3.exp(w[..., j, None] * omega))
     return out.data
+
+
+_bspline_sampled = jax.jit(full_precision(_bspline_at))
 
 
 def _reflect(a: Array, b: Array) -> Array:
@@ -193,9 +204,13 @@ def _hermite(p: Array, tk: Array, tt: Array, m: Array | None, batch: tuple[int, 
         tk_sg.reshape(-1, n), jax.lax.stop_gradient(tt).reshape(-1, tt.shape[-1]))
     s = jnp.clip(s.reshape(tt.shape) - 1, 0, n - 2)
     take = lambda a, i: jnp.take_along_axis(a, i, axis=-1)
-    t0 = take(tk, s)
     h = take(dt, s)
-    u = (tt - t0) / h
+    return _hermite_at(p, m, s, (tt - take(tk, s)) / h, h)
+
+
+def _hermite_at(p: Array, m: Array, s: Array, u: Array, h: Array) -> Array:
+    """The cubic of knot interval ``s`` (int, (..., M)) at local time ``u`` ∈ [0, 1]
+    (extrapolating outside), interval lengths ``h``; points and tangents (..., N, D)."""
     u2, u3 = u * u, u * u * u
     h00 = 2 * u3 - 3 * u2 + 1
     h10 = u3 - 2 * u2 + u
@@ -206,20 +221,36 @@ def _hermite(p: Array, tk: Array, tt: Array, m: Array | None, batch: tuple[int, 
             + h01[..., None] * gather(p, s + 1) + (h11 * h)[..., None] * gather(m, s + 1))
 
 
-def _pypose_timeline(n: int, interval: float, fn: str) -> np.ndarray:
+def _pypose_segments(n: int, interval: float, fn: str) -> tuple[np.ndarray, np.ndarray]:
+    """PyPose's sample times 0, interval, …, n − 1 as (segment, local time) pairs, kept
+    apart so that float32 evaluations do not round the times (at t ≈ 2e4 float32's spacing
+    is 2e-3)."""
     if not 0 < interval < 1:
         raise ValueError(f"{fn}(interval): expected 0 < interval < 1, got {interval!r}")
     steps = np.arange(0, 1, interval)
-    line = (np.arange(n)[:, None] + steps).reshape(-1)
-    return line[: len(line) - (len(steps) - 1)]
+    seg = np.repeat(np.arange(n - 1, dtype=np.int32), len(steps))
+    u = np.tile(steps, n - 1)
+    # the last sample, t = n − 1: the end of the last segment
+    return np.append(seg, np.int32(n - 2)), np.append(u, 1.0)
 
 
 def chspline(points: Any, interval: float = 0.1) -> Array:
     """PyPose's ``chspline``: :func:`hermite` through points (..., N, D) at unit spacing,
     sampled every ``interval`` from 0 to N−1 inclusive."""
     p = points_array(points, "chspline(points)", None, min_points=2)
-    line = _pypose_timeline(p.shape[-2], interval, "chspline")
-    return hermite(p, jnp.asarray(line, p.dtype))
+    s, u = _pypose_segments(p.shape[-2], interval, "chspline")
+    return _chspline(p, jnp.asarray(s), jnp.asarray(u, p.dtype))
+
+
+@jax.jit
+def _chspline(p: Array, s: Array, u: Array) -> Array:
+    """:func:`hermite` at unit knots with the default tangents, at segments ``s`` and local
+    times ``u``."""
+    sec = p[..., 1:, :] - p[..., :-1, :]
+    mid = 0.5 * (sec[..., 1:, :] + sec[..., :-1, :])
+    m = jnp.concatenate([sec[..., :1, :], mid, sec[..., -1:, :]], -2)
+    s, u = (jnp.broadcast_to(a, (*p.shape[:-2], a.shape[-1])) for a in (s, u))
+    return _hermite_at(p, m, s, u, jnp.ones_like(u))
 
 
 def bspline(poses: SE3, interval: float = 0.1, extrapolate: bool = False) -> SE3:
@@ -240,10 +271,8 @@ def bspline(poses: SE3, interval: float = 0.1, extrapolate: bool = False) -> SE3
     elif len(poses.shape) < 1 or poses.shape[-1] < 4:
         raise ValueError(f"{fn}(poses): expected at least 4 poses (or extrapolate=True), "
                          f"got batch shape {poses.shape}")
-    n = data.shape[-2]
-    steps = np.arange(0, 1, interval)
-    line = np.concatenate([(np.arange(n - 3)[:, None] + steps).reshape(-1), [n - 3.0]])
-    return bspline_se3(SE3(data), jnp.asarray(line, data.dtype))
+    seg, u = _pypose_segments(data.shape[-2] - 2, interval, fn)
+    return SE3(_bspline_sampled(data, jnp.asarray(seg), jnp.asarray(u, data.dtype)))
 
 
 __all__ = ["bspline", "bspline_se3", "bspline_se3_fit", "chspline", "hermite"]

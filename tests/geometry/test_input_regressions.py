@@ -237,3 +237,25 @@ def test_umeyama_float32_far_from_the_origin():
     got = umeyama(src32, dst32)
     assert got.data.dtype == jnp.float32
     assert abs(float(got.scale()) / float(want.scale()) - 1) < 2e-5
+
+
+def test_pypose_splines_in_float32_on_long_inputs():
+    """chspline / bspline built their sample times i + k·interval in float64 and cast them
+    to float32 before splitting them into segment and fraction: at t ≈ 2e4 float32's
+    spacing is 2e-3, so N = 20 000 points were 3.6e-3 (chspline) and 2.2e-2 (bspline
+    translation) off the float64 result, against ~1e-5 from rounding the values."""
+    from jaxpose.geometry import bspline, chspline
+    from jaxpose.lie import SE3, se3
+
+    rng = np.random.default_rng(0)
+    n = 20_000
+    pts = np.cumsum(rng.normal(size=(n, 3)), 0)
+    want = np.asarray(chspline(pts, 0.1))
+    got = chspline(pts.astype(np.float32), 0.1)
+    assert got.dtype == jnp.float32 and got.shape == want.shape == (10 * (n - 1) + 1, 3)
+    assert np.abs(np.asarray(got, np.float64) - want).max() < 2e-4
+    tw = np.c_[np.cumsum(rng.normal(size=(n, 3)), 0), 0.1 * rng.normal(size=(n, 3))]
+    poses = se3(jnp.asarray(tw)).exp()
+    want = np.asarray(bspline(poses, 0.1).data)
+    got = np.asarray(bspline(SE3(poses.data.astype(jnp.float32)), 0.1).data, np.float64)
+    assert np.abs(got[:, :3] - want[:, :3]).max() < 2e-4
