@@ -194,9 +194,7 @@ def _hermite(p: Array, tk: Array, tt: Array, m: Array | None, batch: tuple[int, 
     tt = jnp.broadcast_to(tt, (*batch, tt.shape[-1]))
     dt = tk[..., 1:] - tk[..., :-1]  # (..., N−1)
     if m is None:
-        sec = (p[..., 1:, :] - p[..., :-1, :]) / dt[..., None]
-        mid = 0.5 * (sec[..., 1:, :] + sec[..., :-1, :])
-        m = jnp.concatenate([sec[..., :1, :], mid, sec[..., -1:, :]], -2)
+        m = _secant_tangents((p[..., 1:, :] - p[..., :-1, :]) / dt[..., None])
     else:
         m = jnp.broadcast_to(m, p.shape)
     tk_sg = jax.lax.stop_gradient(tk)
@@ -206,6 +204,13 @@ def _hermite(p: Array, tk: Array, tt: Array, m: Array | None, batch: tuple[int, 
     take = lambda a, i: jnp.take_along_axis(a, i, axis=-1)
     h = take(dt, s)
     return _hermite_at(p, m, s, (tt - take(tk, s)) / h, h)
+
+
+def _secant_tangents(sec: Array) -> Array:
+    """Knot tangents (..., N, D) from the N − 1 secants: the mean of the adjacent ones,
+    one-sided at the ends (:func:`hermite`'s default)."""
+    mid = 0.5 * (sec[..., 1:, :] + sec[..., :-1, :])
+    return jnp.concatenate([sec[..., :1, :], mid, sec[..., -1:, :]], -2)
 
 
 def _hermite_at(p: Array, m: Array, s: Array, u: Array, h: Array) -> Array:
@@ -246,9 +251,7 @@ def chspline(points: Any, interval: float = 0.1) -> Array:
 def _chspline(p: Array, s: Array, u: Array) -> Array:
     """:func:`hermite` at unit knots with the default tangents, at segments ``s`` and local
     times ``u``."""
-    sec = p[..., 1:, :] - p[..., :-1, :]
-    mid = 0.5 * (sec[..., 1:, :] + sec[..., :-1, :])
-    m = jnp.concatenate([sec[..., :1, :], mid, sec[..., -1:, :]], -2)
+    m = _secant_tangents(p[..., 1:, :] - p[..., :-1, :])
     s, u = (jnp.broadcast_to(a, (*p.shape[:-2], a.shape[-1])) for a in (s, u))
     return _hermite_at(p, m, s, u, jnp.ones_like(u))
 
