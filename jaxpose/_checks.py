@@ -7,8 +7,10 @@ their callers (``equinox.error_if``).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -33,6 +35,18 @@ def check_count(value: Any, name: str, minimum: int = 1) -> int:
     if value < minimum:
         raise ValueError(f"{name}: expected an int >= {minimum}, got {value!r}")
     return int(value)
+
+
+def _count_or_none(value: Any, name: str, minimum: int, optional: bool) -> int | None:
+    return None if (optional and value is None) else check_count(value, name, minimum)
+
+
+def count_field(name: str, minimum: int = 1, *, optional: bool = False, **kwargs: Any) -> Any:
+    """A static ``equinox`` field holding a count: :func:`check_count` converts it at
+    construction (a NumPy integer is stored as an int, not as an array-valued static
+    field), ``optional``: None passes. ``kwargs`` go to ``eqx.field`` (``default``)."""
+    convert = functools.partial(_count_or_none, name=name, minimum=minimum, optional=optional)
+    return eqx.field(static=True, converter=convert, **kwargs)
 
 
 def as_float_array(x: Any, name: str, what: str = "an array of numbers") -> Array:

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_count
+from .._checks import check_count, count_field
 from .._precision import full_precision
 from ..dynamics._checks import as_array
 from ..dynamics._system import LTI, LTV, System
@@ -253,18 +253,16 @@ class MPC(eqx.Module):
 
     system: System
     cost: Cost
-    horizon: int = eqx.field(static=True)
+    horizon: int = count_field("horizon")
     u_lower: Array | None = eqx.field(default=None, converter=_bound_field)
     u_upper: Array | None = eqx.field(default=None, converter=_bound_field)
     max_iter: int = eqx.field(static=True, default=50)
     tol: float | None = eqx.field(static=True, default=None)
     gradient: str = eqx.field(static=True, default="implicit")
     solver: str = eqx.field(static=True, default="auto")
-    box_iters: int = eqx.field(static=True, default=20)
+    box_iters: int = count_field("box_iters", default=20)
 
     def __check_init__(self) -> None:
-        check_count(self.horizon, "horizon")
-        check_count(self.box_iters, "box_iters")
         if self.gradient not in GRADIENTS:
             raise ValueError(f"gradient: expected one of {GRADIENTS}, got {self.gradient!r}")
         if self.solver not in SOLVERS:

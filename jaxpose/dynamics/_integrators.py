@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_count
+from .._checks import check_count, count_field
 from ._system import System
 
 Array = jax.Array
@@ -100,7 +100,7 @@ class Discretized(System):
     f: Deriv
     dt: Any
     method: str = eqx.field(static=True, default="rk4")
-    substeps: int = eqx.field(static=True, default=1)
+    substeps: int = count_field("substeps", default=1)
     observe: Callable[..., Array] | None = None
 
     def __check_init__(self) -> None:

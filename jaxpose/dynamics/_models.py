@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import count_field
 from ._checks import check_last
 from ._integrators import ContinuousSystem
 
@@ -54,7 +55,7 @@ class CartPole(ContinuousSystem):
     length: Any = 0.5
     gravity: Any = 9.81
     method: str = eqx.field(static=True, default="rk4")
-    substeps: int = eqx.field(static=True, default=1)
+    substeps: int = count_field("substeps", default=1)
 
     def __check_init__(self) -> None:
         _check_positive(self, "cart_mass", "length")  # a massless pole is a valid limit
@@ -83,7 +84,7 @@ class Pendulum(ContinuousSystem):
     damping: Any = 0.1
     gravity: Any = 9.81
     method: str = eqx.field(static=True, default="rk4")
-    substeps: int = eqx.field(static=True, default=1)
+    substeps: int = count_field("substeps", default=1)
 
     def __check_init__(self) -> None:
         _check_positive(self, "length", "mass")
@@ -112,7 +113,7 @@ class Bicycle(ContinuousSystem):
         default_factory=lambda: jnp.array([[0.0, 0.0], [20.0, 0.0], [0.0, 20.0], [20.0, 20.0]])
     )
     method: str = eqx.field(static=True, default="rk4")
-    substeps: int = eqx.field(static=True, default=1)
+    substeps: int = count_field("substeps", default=1)
 
     def __check_init__(self) -> None:
         _check_positive(self, "wheelbase")

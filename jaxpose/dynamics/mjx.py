@@ -34,7 +34,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import check_count
+from .._checks import count_field
 from ._system import System
 
 Array = jax.Array
@@ -67,13 +67,12 @@ class MJXSystem(System):
     data: Any
     params: Any = None
     bind: Callable[[Any, Any], Any] | None = eqx.field(static=True, default=None)
-    substeps: int = eqx.field(static=True, default=1)
+    substeps: int = count_field("substeps", default=1)
     observe: str = eqx.field(static=True, default="state")
 
     def __check_init__(self) -> None:
         if self.observe not in OBSERVE:
             raise ValueError(f"observe: expected one of {OBSERVE}, got {self.observe!r}")
-        check_count(self.substeps, "substeps")
         if self.params is not None and self.bind is None:
             raise ValueError("params: given without bind(model, params) to apply them")
         mjx = _mjx()

@@ -32,7 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import check_count
+from .._checks import count_field
 from .._compile import loops_compile_whole
 from .._precision import full_precision
 from ..optim import _iterate
@@ -112,14 +112,13 @@ class GraphLinearSolver(eqx.Module):
     tangent dimensions, else sparse)."""
 
     method: str = eqx.field(default="auto", static=True)
-    dense_max: int = eqx.field(default=600, static=True)
+    dense_max: int = count_field("GraphLinearSolver(dense_max)", minimum=0, default=600)
 
     def __check_init__(self) -> None:
         if self.method not in LINEAR_SOLVERS:
             raise ValueError(
                 f"solve(linear_solver={self.method!r}): expected one of {LINEAR_SOLVERS}"
             )
-        check_count(self.dense_max, "GraphLinearSolver(dense_max)", minimum=0)
 
     def resolve(self, graph: FactorGraph) -> str:
         """The concrete method for ``graph`` (``"auto"`` decided by its size)."""
@@ -158,14 +157,13 @@ class PCG(eqx.Module):
     (Eisenstat–Walker style); ``max_iters`` CG iterations per solve."""
 
     rtol: float | str = eqx.field(default=1e-8, static=True)
-    max_iters: int = eqx.field(default=2000, static=True)
+    max_iters: int = count_field("PCG(max_iters)", default=2000)
 
     def __check_init__(self) -> None:
         if isinstance(self.rtol, str) and self.rtol != "inexact":
             raise ValueError(f"PCG(rtol={self.rtol!r}): expected a float or 'inexact'")
         if not isinstance(self.rtol, str):
             check_tolerance(self.rtol, "PCG(rtol)", positive=True)
-        check_count(self.max_iters, "PCG(max_iters)")
 
 
 class _Hessian:

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 
-from .._checks import check_count
+from .._checks import count_field
 from ._colouring import BlockHessian, as_dense
 from ._sparse_hessian import SparseHessian
 from ._stopping import check_tolerance
@@ -127,15 +127,13 @@ class CG(LinearSolver):
 
     rtol: float = eqx.field(default=1e-10, static=True)
     atol: float = eqx.field(default=1e-12, static=True)
-    max_steps: int | None = eqx.field(default=None, static=True)
+    max_steps: int | None = count_field("CG(max_steps)", optional=True, default=None)
 
     def __check_init__(self) -> None:
         # a NaN tolerance or no step gives δ = 0, which the stopping rules would read
         # as convergence
         check_tolerance(self.rtol, "CG(rtol)")
         check_tolerance(self.atol, "CG(atol)")
-        if self.max_steps is not None:
-            check_count(self.max_steps, "CG(max_steps)")
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         n = grad.shape[0]

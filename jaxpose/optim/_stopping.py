@@ -13,7 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import check_count
+from .._checks import count_field
 from ..results import Results
 
 Array = jax.Array
@@ -44,14 +44,12 @@ class StopOnPlateau(eqx.Module):
     towards the patience (PyPose retries inside one step and stops on any rejection).
     """
 
-    steps: int = eqx.field(static=True)
-    patience: int = eqx.field(default=5, static=True)
+    steps: int = count_field("StopOnPlateau(steps)")
+    patience: int = count_field("StopOnPlateau(patience)", default=5)
     decreasing: float = 1e-3
     relative: bool = eqx.field(default=False, static=True)
 
     def __check_init__(self) -> None:
-        check_count(self.steps, "StopOnPlateau(steps)")
-        check_count(self.patience, "StopOnPlateau(patience)")
         check_tolerance(self.decreasing, "StopOnPlateau(decreasing)")
 
 
@@ -84,17 +82,15 @@ class Stopping(eqx.Module):
     * ``plateau``: optional :class:`StopOnPlateau`.
     """
 
-    max_steps: int = eqx.field(default=100, static=True)
+    max_steps: int = count_field("Stopping(max_steps)", minimum=0, default=100)
     cost_atol: float = 0.0
     cost_rtol: float = 1e-10
     gtol: float = 1e-10
     xtol: float = 1e-10
-    max_rejects: int = eqx.field(default=64, static=True)
+    max_rejects: int = count_field("Stopping(max_rejects)", default=64)
     plateau: StopOnPlateau | None = None
 
     def __check_init__(self) -> None:
-        check_count(self.max_steps, "Stopping(max_steps)", minimum=0)
-        check_count(self.max_rejects, "Stopping(max_rejects)")
         for name in ("cost_atol", "cost_rtol", "gtol", "xtol"):
             check_tolerance(getattr(self, name), name)
         if self.plateau is not None and not isinstance(self.plateau, StopOnPlateau):
