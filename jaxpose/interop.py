@@ -32,6 +32,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import ml_dtypes
 import numpy as np
 
 from .lie import (
@@ -155,24 +156,32 @@ def to_torch(x: Any) -> Any:
 def from_torch(t: Any, dtype: Any = None) -> jax.Array:
     """A ``torch.Tensor`` (a ``LieTensor`` too: its raw data) → a JAX array of the same
     shape; detached from torch's autograd. ``dtype`` casts. With JAX's x64 mode off,
-    float64 becomes float32 (JAX's rule, silently) and int64 int32, where values beyond
-    int32's range raise instead of wrapping around."""
+    float64 becomes float32 (JAX's rule, silently) and int64 int32. Integers beyond the
+    range of the integer dtype they end in raise instead of wrapping around."""
     torch = _torch()
     if not isinstance(t, torch.Tensor):
         raise TypeError(f"from_torch(t): expected a torch.Tensor, got {type(t).__name__}")
     raw = t.detach()
     if hasattr(raw, "tensor"):  # LieTensor -> plain tensor
         raw = raw.tensor()
-    raw = raw.cpu().contiguous().numpy()
-    if dtype is None and raw.dtype.kind in "iu" and raw.dtype.itemsize == 8 and raw.size \
-            and not jax.config.jax_enable_x64:
-        info = np.iinfo(np.int32 if raw.dtype.kind == "i" else np.uint32)
-        if raw.min() < info.min or raw.max() > info.max:  # JAX would wrap them silently
-            raise ValueError(
-                f"from_torch(t): {raw.dtype} values beyond {np.dtype(info.dtype).name}'s range "
-                f"with JAX's x64 mode off, where they would wrap around (2**40 → 0); enable "
-                f'it (jax.config.update("jax_enable_x64", True)) or pass dtype=')
-    return jnp.asarray(raw if dtype is None else raw.astype(dtype))
+    # lazy conjugate / negative views cannot be read by .numpy(); bfloat16 has no NumPy
+    # dtype in torch (its bits are read as ml_dtypes' bfloat16, JAX's)
+    raw = raw.resolve_conj().resolve_neg().cpu().contiguous()
+    if raw.dtype == torch.bfloat16:
+        arr = raw.view(torch.int16).numpy().view(ml_dtypes.bfloat16)
+    else:
+        arr = raw.numpy()
+    target = jax.dtypes.canonicalize_dtype(arr.dtype if dtype is None else dtype)
+    if arr.dtype.kind in "iu" and target.kind in "iu" and arr.size:
+        info = np.iinfo(target)
+        if arr.min() < info.min or arr.max() > info.max:  # the cast would wrap them silently
+            why = (" (JAX's x64 mode is off: enable it with "
+                   'jax.config.update("jax_enable_x64", True) or pass a float dtype=)'
+                   if np.dtype(arr.dtype if dtype is None else dtype) != target else
+                   " (pass a wider or a float dtype=)")
+            raise ValueError(f"from_torch(t): {arr.dtype} values beyond {target.name}'s range, "
+                             f"where they would wrap around (2**40 → 0){why}")
+    return jnp.asarray(arr.astype(target))
 
 
 _PP_TYPES = {

@@ -162,5 +162,24 @@ def test_from_torch_refuses_integers_that_would_wrap_without_x64():
         assert small.dtype == jnp.int32 and small.tolist() == [2**30, -5]
         np.testing.assert_array_equal(interop.from_torch(torch.tensor([2**40]),
                                                          dtype=jnp.float32), [2.0**40])
+        # an explicit integer dtype that JAX narrows (int64 → int32) wrapped silently: 0
+        with pytest.raises(ValueError, match=r"int64 values beyond int32's range.*x64"):
+            interop.from_torch(torch.tensor([2**40, 5]), dtype=np.int64)
     finally:
         jax.config.update("jax_enable_x64", before)
+    with pytest.raises(ValueError, match=r"beyond int32's range.*wider or a float dtype"):
+        interop.from_torch(torch.tensor([2**40, 5]), dtype=np.int32)
+
+
+def test_from_torch_reads_bfloat16_and_lazy_views():
+    """bfloat16 (which to_torch produces) raised "unsupported ScalarType BFloat16"; a lazy
+    conjugate or negative view raised torch's "Can't call numpy()"."""
+    torch = pytest.importorskip("torch")
+    x = jnp.asarray([1.5, -2.25, 3e3], jnp.bfloat16)
+    back = interop.from_torch(interop.to_torch(x))
+    assert back.dtype == jnp.bfloat16
+    np.testing.assert_array_equal(np.asarray(back, np.float32), np.asarray(x, np.float32))
+    z = torch.tensor([1 + 2j, 3 - 1j])
+    np.testing.assert_array_equal(interop.from_torch(z.conj()), [1 - 2j, 3 + 1j])
+    np.testing.assert_array_equal(interop.from_torch(torch.tensor([1.0, 2.0])._neg_view()),
+                                  [-1.0, -2.0])
