@@ -789,7 +789,8 @@ def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
             e.g. the optimised poses.
 
     SE2 angles are written as ``atan2(sin, cos)``; information matrices as their upper
-    triangle. Vertices come first, then ``FIX`` lines, then edges.
+    triangle. Vertices come first, then edges, then ``FIX`` lines (GTSAM's 2-D reader
+    stops at the first line it does not know).
 
     Raises:
         ValueError: before the file is opened, for anything :func:`read_g2o` would reject:
@@ -820,10 +821,12 @@ def write_g2o(path: PathLike, graph: PoseGraph, poses: Any = None) -> None:
     vtag, etag = _VERTEX_TAG[graph.kind], _EDGE_TAG[graph.kind]
     ids = graph.vertex_ids.tolist()
     out = [f"{vtag} {i} {_fmt(p)}" for i, p in zip(ids, poses.tolist())]
-    out += [f"FIX {ids[k]}" for k in graph.fixed.tolist()]
     ends = graph.vertex_ids[graph.edges].tolist()
     out += [
         f"{etag} {i} {j} {_fmt(z)} {_fmt(w)}"
         for (i, j), z, w in zip(ends, meas.tolist(), upper.tolist())
     ]
+    # last: GTSAM's 2-D reader stops at the first line it does not know (a FIX line between
+    # vertices and edges made it read a graph without edges)
+    out += [f"FIX {ids[k]}" for k in graph.fixed.tolist()]
     Path(path).write_text("\n".join(out) + "\n", encoding="utf-8")

@@ -212,6 +212,24 @@ def test_fix_lines(tmp_path):
     np.testing.assert_array_equal(g.fixed, [1])
 
 
+@pytest.mark.parametrize("kind", ["SE2", "SE3"])
+def test_fix_lines_are_written_after_the_edges(tmp_path, kind):
+    """GTSAM's 2-D readG2o stops at the first line it does not know: with FIX lines
+    between the vertices and the edges it read an SE2 graph of 35 edges as none."""
+    graph, _ = synthetic_pose_graph(kind, 20, seed=0)
+    assert graph.fixed.size
+    path = tmp_path / "fixed.g2o"
+    write_g2o(path, graph)
+    tags = [line.split()[0] for line in path.read_text().splitlines()]
+    first_fix = tags.index("FIX")
+    assert all(t == "FIX" for t in tags[first_fix:]) and tags[first_fix - 1].startswith("EDGE")
+    back = read_g2o(path)
+    np.testing.assert_array_equal(back.fixed, graph.fixed)
+    gtsam = pytest.importorskip("gtsam")
+    factors, values = gtsam.readG2o(str(path), kind == "SE3")
+    assert values.size() == 20 and factors.size() == graph.n_edges
+
+
 def test_unknown_tags_warn_and_are_skipped(tmp_path):
     lines = [V2(0), V2(1), "VERTEX_XY 2 1 1", "EDGE_SE2_XY 0 2 1 1 1 0 1", E2(0, 1), "PARAMS x"]
     with pytest.warns(UserWarning, match=r"VERTEX_XY \(1x, first on line 3\)"):
