@@ -264,15 +264,19 @@ class Dogleg(Strategy):
         gn_ok = jnp.all(jnp.isfinite(gn))
         gn = jnp.where(gn_ok, gn, 0.0)
         gn_norm = jnp.linalg.norm(gn)
-        gg = g @ g
-        ghg = g @ (h @ g)
-        g_norm = jnp.sqrt(gg)
-        curved = ghg > 0
-        alpha = jnp.where(curved, gg / jnp.where(curved, ghg, 1.0), 0.0)
-        sd = -alpha * g
-        sd_norm = alpha * g_norm
-        g_safe = jnp.where(g_norm > 0, g_norm, 1.0)
-        boundary_sd = -(radius / g_safe) * g
+        # Cauchy point along the unit direction u = g/‖g‖: ‖g‖²/gᵀHg = ‖g‖/uᵀHu, whose
+        # two factors do not overflow for large residuals (gᵀg did: inf/inf, a NaN step);
+        # ‖g‖ = m·‖g/m‖ with m = max |gᵢ|
+        m = jnp.max(jnp.abs(g), initial=0.0)
+        gs = g / jnp.where(m > 0, m, 1.0)
+        gs_norm = jnp.linalg.norm(gs)
+        u = gs / jnp.where(gs_norm > 0, gs_norm, 1.0)
+        g_norm = m * gs_norm
+        uhu = u @ (h @ u)
+        curved = uhu > 0
+        sd_norm = jnp.where(curved, g_norm / jnp.where(curved, uhu, 1.0), 0.0)
+        sd = -sd_norm * u
+        boundary_sd = -radius * u
         # segment sd → gn intersecting ‖δ‖ = Δ: ‖sd + τ d‖² = Δ², τ ∈ [0, 1]
         d = gn - sd
         a = d @ d

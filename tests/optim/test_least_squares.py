@@ -266,6 +266,23 @@ def test_a_non_positive_predicted_decrease_is_not_convergence(predicted):
     assert status(1e-5) == jp.Results.CONVERGED  # below 16·eps·cost: unmeasurable
 
 
+@pytest.mark.parametrize("scale", [1e100, 1e150])
+def test_dogleg_with_large_residuals(scale):
+    """Residuals ×1e100 (cost 1.2e201, all finite): gᵀg and gᵀHg overflowed, the Cauchy
+    step was inf/inf = NaN and every trial non-finite: NON_FINITE after 21 trials at the
+    start. The step is now formed along g/‖g‖; the optimum is the unscaled one."""
+    def res(p, s):
+        x, y = p[0], p[1]
+        return s * jnp.stack([10 * (y - x**2), 1 - x, 0.5 * jnp.sin(3 * x) + 0.1])
+
+    solver = jo.LM(strategy=jo.Dogleg())
+    want = jo.least_squares(res, jnp.array([-1.2, 1.0]), 1.0, solver=solver, max_steps=500)
+    got = jo.least_squares(res, jnp.array([-1.2, 1.0]), scale, solver=solver, max_steps=500)
+    assert int(got.status) == jp.Results.CONVERGED
+    np.testing.assert_allclose(got.params, want.params, rtol=1e-9)
+    assert float(got.cost) / scale**2 == pytest.approx(4.491639081708e-3, rel=1e-9)
+
+
 def test_stop_on_plateau_semantics():
     solver = jo.LM()
     # every iteration decreases by less than 1e9: stop after exactly `patience` iterations
