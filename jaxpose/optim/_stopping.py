@@ -66,9 +66,10 @@ class Stopping(eqx.Module):
       CONVERGED;
     * always: a rejected finite trial whose *predicted* decrease is positive and below the
       cost's floating-point resolution (16·eps·cost) → CONVERGED (no measurable decrease is
-      left); and a rejected finite trial once the cost is at rounding level,
-      cost ≤ eps²·initial cost (the residual has shrunk by the dtype's precision, as in
-      zero-residual problems: further "decreases" are rounding noise) → CONVERGED; and a
+      left); and the third consecutive rejected finite trial (or ``max_rejects``-th, if
+      fewer) once the cost is at rounding level, cost ≤ eps²·initial cost (the residual
+      has shrunk by the dtype's precision, as in zero-residual problems: further
+      "decreases" are rounding noise) → CONVERGED; and a
       rejected finite trial whose cost equals the current one exactly (the step is below
       the variables' floating-point resolution, or the cost is flat along it: a larger
       damping cannot do better) → CONVERGED;
@@ -139,6 +140,11 @@ def plateau_count(stopping: Stopping, last: Array, cost: Array, count: Array) ->
     return jnp.where(dec < stopping.plateau.decreasing, count + 1, 0)
 
 
+_ROUNDING_REJECTS = 3
+"""Consecutive rejected trials after which a cost at rounding level (≤ ε²·initial) counts
+as converged (:func:`check`)."""
+
+
 def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     """(done, status) after one iteration; precedence NON_FINITE > CONVERGED > DIVERGED
     > MAX_STEPS."""
@@ -152,7 +158,12 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     # a predicted decrease that is not positive is the model's rounding (or an indefinite
     # H), not a step too small to measure: the damping grows instead
     small = (t.predicted > 0) & (t.predicted <= 16 * eps * jnp.abs(t.last))
-    noise = small | (t.last <= eps * eps * t.initial)
+    # the cost at the dtype's precision of where it started (zero-residual problems), once
+    # trials keep failing: a first rejection there can be an ordinary one after a stiff
+    # part was solved exactly (cost 5e33 → 12 in one step; the rule stopped at ‖g‖ = 108)
+    rounding = (t.last <= eps * eps * t.initial) & (
+        t.rejects >= min(_ROUNDING_REJECTS, stopping.max_rejects))
+    noise = small | rounding
     conv = conv | (t.finite & ~t.accepted & noise)
     # a step that changes the cost not even by its last bit
     conv = conv | (t.finite & ~t.accepted & (t.trial_cost == t.last))

@@ -283,6 +283,23 @@ def test_dogleg_with_large_residuals(scale):
     assert float(got.cost) / scale**2 == pytest.approx(4.491639081708e-3, rel=1e-9)
 
 
+@pytest.mark.parametrize("strategy", [jo.Dogleg(), jo.LambdaFactor()], ids=["dogleg", "lambda"])
+def test_rounding_level_rule_after_a_stiff_block(strategy):
+    """A stiff block 1e17·(a − 1) solved exactly by the first step: the cost fell from
+    5e33 to 12.15, below ε²·initial, and the next (ordinary) rejection was read as
+    "rounding level": CONVERGED at ‖g‖∞ = 108 where the optimum has cost 4.49e-3. The
+    rule now waits for three consecutive rejections."""
+    def res(p, s):
+        a, x, y = p[0], p[1], p[2]
+        return jnp.stack([s * (a - 1.0), 10 * (y - x**2), 1 - x, 0.5 * jnp.sin(3 * x) + 0.1])
+
+    sol = jo.least_squares(res, jnp.array([0.0, -1.2, 1.0]), 1e17,
+                           solver=jo.LM(strategy=strategy), max_steps=500)
+    assert int(sol.status) == jp.Results.CONVERGED
+    assert float(sol.cost) == pytest.approx(4.491639081708e-3, rel=1e-9)
+    np.testing.assert_allclose(sol.params, [1.0, 1.0787527, 1.1637074], atol=1e-6)
+
+
 def test_stop_on_plateau_semantics():
     solver = jo.LM()
     # every iteration decreases by less than 1e9: stop after exactly `patience` iterations
