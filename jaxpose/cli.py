@@ -398,9 +398,9 @@ def pgo_command(args: argparse.Namespace) -> int:
 
         ext = os.path.splitext(args.plot)[1].lower().lstrip(".")
         formats = FigureCanvasBase.get_supported_filetypes()
-        if ext and ext not in formats:
+        if ext not in formats:  # none: matplotlib would write NAME.png, not NAME
             raise CLIError(f"--plot {args.plot}: expected one of the extensions "
-                           f"{sorted(formats)}, got {ext!r}")
+                           f"{sorted(formats)}, got {ext or 'none'!r}")
     kernel = _kernel(args.kernel, args.kernel_delta)
     if args.robust == "gnc" and kernel is not None:
         raise CLIError("--robust gnc: GNC supplies its own robust loss; drop --kernel")

@@ -63,7 +63,8 @@ def _lookup(cls: type[Results], status: Any, field: Any) -> str | np.ndarray:
         raise TypeError("status: expected integer status codes, got a bool array (a mask "
                         "such as status == Results.CONVERGED is not a status)")
     if codes.dtype.kind not in "iu" and not (
-            codes.dtype.kind == "f" and np.all(codes == np.round(codes))):
+            codes.dtype.kind == "f" and np.all(np.isfinite(codes))
+            and np.all(codes == np.round(codes))):
         raise TypeError(f"status: expected integer status codes, got dtype {codes.dtype}")
     known = {int(m): field(m) for m in cls}
     flat = [int(c) for c in codes.reshape(-1)]

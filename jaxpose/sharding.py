@@ -41,6 +41,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from ._checks import check_count
+
 __all__ = [
     "batch_mesh",
     "batch_sharding",
@@ -127,12 +129,11 @@ def pad_batch(tree: PyTree, multiple: int) -> tuple[PyTree, int]:
     """Pad the leading axis of every array in ``tree`` to a multiple of ``multiple`` by
     repeating the last element; returns ``(padded, n)`` with ``n`` the original size
     (results of the real elements: ``jax.tree.map(lambda x: x[:n], out)``)."""
-    if int(multiple) < 1:
-        raise ValueError(f"pad_batch(multiple): expected a positive integer, got {multiple}")
+    multiple = check_count(multiple, "pad_batch(multiple)")
     leaves, treedef, n = _leaves_with_batch(tree, "pad_batch(tree)")
     if n == 0:
         raise ValueError("pad_batch(tree): the batch is empty")
-    extra = -n % int(multiple)
+    extra = -n % multiple
     if extra == 0:
         return tree, n
     padded = [

@@ -111,7 +111,9 @@ def test_output_paths_are_checked_before_solving(tmp_path, command, file):
     assert not (tmp_path / "missing").exists()
     if command == "pgo":
         for argv, fragment in [(["--plot", tmp_path / "no" / "p.png"], "does not exist"),
-                               (["--plot", tmp_path / "p.xyz"], "expected one of the ext")]:
+                               (["--plot", tmp_path / "p.xyz"], "expected one of the ext"),
+                               # matplotlib would write p.png and the CLI report p
+                               (["--plot", tmp_path / "p"], "got 'none'")]:
             status, _, err = run([command, f, *argv])
             assert status == 1 and fragment in one_line(err, prog)
     with pytest.raises(SolverReached):  # a good --out reaches the solver

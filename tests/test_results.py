@@ -42,6 +42,9 @@ def test_bad_status_raises_naming_the_argument():
         Results.name_of(np.array([0, 7]))
     with pytest.raises(TypeError, match="status: expected integer"):
         Results.name_of(np.array([0.5]))
+    for bad in (float("inf"), float("nan")):  # inf was a raw OverflowError from int()
+        with pytest.raises(TypeError, match="status: expected integer"):
+            Results.name_of(bad)
     with pytest.raises(TypeError, match="status: expected a concrete"):
         jax.jit(lambda s: Results.name_of(s))(jnp.int32(0))
 

@@ -188,6 +188,8 @@ def test_single_device_equals_vmap_and_bad_input():
         pad_batch({"x": x, "s": jnp.float32(1.0)}, 2)
     with pytest.raises(ValueError, match=r"pad_batch\(multiple\)"):
         pad_batch(x, 0)
+    with pytest.raises(TypeError, match=r"pad_batch\(multiple\): expected an int"):
+        pad_batch(x, 2.5)  # was padded to a multiple of 2
     with pytest.raises(ValueError, match=r"in_axes\): entries must be 0 or None"):
         shard_vmap(fn, mesh, in_axes=(1, None))(x, 2.0)
     with pytest.raises(ValueError, match=r"method"):
