@@ -50,6 +50,14 @@ def first_bad_char(s: str) -> int:
     return -1  # pragma: no cover - the fast path above covers it
 
 
+def _is_number(tok: str) -> bool:
+    try:
+        float(tok)
+    except ValueError:
+        return False
+    return True
+
+
 def describe_bad_char(s: str, k: int) -> tuple[int, str]:
     """``(field, text)`` for the bad character ``s[k]``: the 0-based index of the
     whitespace-separated token holding it, and a phrase ``"found ..."`` for the message."""
@@ -64,8 +72,10 @@ def describe_bad_char(s: str, k: int) -> tuple[int, str]:
     tok = s[lo:hi]
     if ch == "\ufffd":
         why = "bytes that are not valid UTF-8"
-    elif ch == "_":
+    elif ch == "_" and _is_number(tok.replace("_", "")):
         why = "'_' digit separators are not part of the format"
+    elif ch == "_":  # a word such as VERTEX_SE2 (a g2o file given as BAL)
+        why = "not a number"
     elif ch == "\ufeff":
         why = "a byte-order mark U+FEFF inside the file"
     else:

@@ -140,6 +140,11 @@ BAD = {
     "truncated points": (bal_lines(pts=PT + ["0.1"]), 16, "expected 6 point coordinates"),
     "truncated observations": (["1 2 3", "0 0 1 2", "0 1 3 4"], 3, "expected 12 observations"),
     "extra values": (bal_lines() + ["7"], 19, "found more: '7'"),
+    # a digit separator, and a g2o file given as BAL (was blamed on digit separators)
+    "digit separator": (bal_lines(obs=("0 0 1_0 2", "0 1 3 4")), 2,
+                        r"found '1_0' \('_' digit separators are not part of the format\)"),
+    "g2o tag": (["VERTEX_SE2 0 0 0 0", "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1"], 1,
+                r"found 'VERTEX_SE2' \(not a number\)"),
 }
 
 
