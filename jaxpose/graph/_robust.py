@@ -26,7 +26,9 @@ GNC minimises a sequence of surrogates ``ρ_μ`` by alternating (Black–Rangara
    convex for small μ), GM ``μ ← max(1, μ/mu_step)`` (from ``μ₀ = 2 s_max/c̄²``).
 
 It stops (GTSAM's rules) when the weights are binary within ``weights_tol`` (TLS), when
-μ reaches 1 (GM), when the weighted cost changes by less than ``cost_rtol`` relative, or
+μ reaches 1 (GM), when the weighted cost changes by less than ``cost_rtol`` relative (GM;
+TLS only with binary weights: unlike GTSAM, a plateau with a fractional weight goes on,
+as one factor's weight can move a large graph's cost by less than ``cost_rtol``), or
 after ``max_iterations`` outer iterations. Known inliers (e.g. the odometry edges of a
 pose graph) keep weight 1, known outliers weight 0. Defaults follow GTSAM's
 ``GncParams`` (mu_step 1.4, cost_rtol 1e-5, weights_tol 1e-4, 100 iterations); unlike
@@ -550,6 +552,10 @@ def _run(
         cost_conv = jnp.abs(cost_new - prev) / jnp.maximum(prev, 1e-7) < config["cost_rtol"]
         if surrogate == "tls":
             weights_conv = jnp.all(jnp.abs(w - jnp.round(w)) <= config["weights_tol"])
+            # a cost plateau stops TLS only with binary weights (then weights_conv holds):
+            # in a large graph one factor's fractional weight moved the total by less
+            # than cost_rtol, and CONVERGED came with w = 0.42 at s = 1.01·c̄²
+            cost_conv = cost_conv & weights_conv
             mu_conv = jnp.asarray(False)
             mu_next = mu * config["mu_step"]
         else:
@@ -668,7 +674,8 @@ def gnc(
         known_inliers, known_outliers: factors whose weight stays 1 / 0: indices or a
             boolean mask (one-group graph), or one such (or None) per factor group.
         mu_step: factor of the μ update (> 1). max_iterations: outer iterations.
-        cost_rtol: stop when the weighted cost changes by less than this, relatively.
+        cost_rtol: stop when the weighted cost changes by less than this, relatively
+            (TLS: once the weights are also binary).
         weights_tol: (TLS) stop when every weight is within this of 0 or 1.
         warm_start: start each inner solve from the previous estimate (False: from the
             initial values, as GTSAM).
