@@ -69,10 +69,7 @@ def bspline_se3(control: SE3, t: Any) -> SE3:
 @jax.jit
 @full_precision
 def _bspline_eval(cdata: Array, tt: Array) -> Array:
-    n = cdata.shape[-2]
-    batch = tuple(np.broadcast_shapes(cdata.shape[:-2], tt.shape[:-1]))
-    tt = jnp.broadcast_to(tt, (*batch, tt.shape[-1]))
-    return _bspline_at(cdata, *_segment(tt, n - 3))
+    return _bspline_at(cdata, *_segment(tt, cdata.shape[-2] - 3))
 
 
 def _bspline_at(cdata: Array, s: Array, u: Array) -> Array:
