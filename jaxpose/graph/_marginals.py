@@ -47,7 +47,14 @@ from .._precision import full_precision
 from ..optim._stopping import check_tolerance
 from . import _linear as linear
 from . import _selinv as selinv
-from ._problem import FactorGraph, check_variables, csr_values, hessian_vector, linearize
+from ._problem import (
+    FactorGraph,
+    check_variables,
+    csr_values,
+    hessian_vector,
+    linearize,
+    normal_dtype,
+)
 from ._solve import (
     GraphLinearSolver,
     GraphSolution,
@@ -344,7 +351,9 @@ def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan, caller: str = "ma
     st = graph.structure
     type_of = {n: k for k, n in enumerate(st.names)}
     flat_i, flat_j = plan.flat_i, plan.flat_j
-    dtype = lin.cost.dtype
+    # the factorised methods invert H in normal_dtype (float64 for a float32 problem when
+    # x64 is on); CG works in the problem's dtype; the entries come back in it
+    dtype = lin.cost.dtype if plan.method == "pcg" else normal_dtype(lin.cost.dtype)
     free = jnp.concatenate(
         [jnp.repeat(f, d) for f, d in zip(st.free, st.dims, strict=True)]).astype(dtype)
     if plan.method == "schur":
@@ -365,7 +374,7 @@ def inverse_entries(graph: FactorGraph, lin: Any, plan: _Plan, caller: str = "ma
                                        plan.method, caller, instead)
             else:
                 vals = _dense_entries(data, st.csr_indices, st.csr_indptr, flat_i, flat_j)
-    vals = vals * free_l[flat_i] * free_l[flat_j]
+    vals = (vals * free_l[flat_i] * free_l[flat_j]).astype(lin.cost.dtype)
     out, start = [], 0
     for shape in plan.shapes:
         size = int(np.prod(shape))
@@ -378,7 +387,8 @@ def _reduced(graph: FactorGraph, lin: Any, free: Array) -> Any:
     from ._problem import jtj_blocks
     from ._schur import reduced_system, schur_parts
 
-    return reduced_system(graph, schur_parts(graph, jtj_blocks(lin), free.dtype), 1.0 - free)
+    return reduced_system(graph, schur_parts(graph, jtj_blocks(lin, free.dtype), free.dtype),
+                          1.0 - free)
 
 
 def _dense_entries(data: Array, indices: Array, indptr: Array, i: np.ndarray,

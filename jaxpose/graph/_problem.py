@@ -395,28 +395,44 @@ def group_blocks(graph: FactorGraph, k: int, pair_block: Any,
                 strict=True)]
 
 
-def jtj_blocks(lin: GraphLinearization) -> Any:
+def normal_dtype(dtype: Any) -> Any:
+    """The dtype H = J̃ᵀJ̃ is formed and factorised in for a problem of ``dtype``: float64
+    whenever JAX has it (x64 enabled), else ``dtype``.
+
+    A float32 JᵀJ is indefinite once H's condition number passes 1/eps ≈ 1e7 (long
+    pose-graph chains such as manhattan or parking-garage, BA's reduced camera systems),
+    so LM's damped Cholesky fails and its steps stall under heavy damping. The same
+    float32 Jacobian's product formed in float64 stays positive semi-definite to that
+    condition. Residuals, Jacobians, the gradient and the step stay in ``dtype``."""
+    return jnp.promote_types(dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
+
+
+def jtj_blocks(lin: GraphLinearization, dtype: Any = None) -> Any:
     """The Gauss–Newton blocks ``block(k, s, t)`` = J_sᵀJ_t (m, d_s, d_t) of factor group
-    k's slots s and t; a block (t, s) asked for after (s, t) is its transpose."""
+    k's slots s and t, formed in ``dtype`` (default: the Jacobians'); a block (t, s)
+    asked for after (s, t) is its transpose."""
     cache: dict[tuple[int, int, int], Array] = {}
 
     def jtj(k: int, s: int, t: int) -> Array:
         if (k, t, s) in cache:
             return cache[k, t, s].mT
         jac = lin.jacobians[k]
-        cache[k, s, t] = small_matmul(jac[s].mT, jac[t])
+        a, b = (jac[s], jac[t]) if dtype is None else (jac[s].astype(dtype), jac[t].astype(dtype))
+        cache[k, s, t] = small_matmul(a.mT, b)
         return cache[k, s, t]
 
     return jtj
 
 
 def hessian_blocks(graph: FactorGraph, lin: GraphLinearization) -> list[Array]:
-    """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``."""
-    return assemble_blocks(graph, jtj_blocks(lin), lin.cost.dtype)
+    """H = J̃ᵀJ̃ as class arrays of ``graph.structure.pattern``, in
+    :func:`normal_dtype`."""
+    dtype = normal_dtype(lin.cost.dtype)
+    return assemble_blocks(graph, jtj_blocks(lin, dtype), dtype)
 
 
 def csr_values(graph: FactorGraph, lin: GraphLinearization) -> Array:
-    """Values of H in the precomputed CSR pattern (nnz,)."""
+    """Values of H in the precomputed CSR pattern (nnz,), in :func:`normal_dtype`."""
     return graph.structure.pattern.csr(hessian_blocks(graph, lin))
 
 

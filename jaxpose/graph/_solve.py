@@ -55,6 +55,7 @@ from ._problem import (
     hessian_vector,
     jtj_blocks,
     linearize,
+    normal_dtype,
     residual_cost,
     retract_all,
     split,
@@ -194,8 +195,7 @@ class _SparseLinear:
         self.iterations = jnp.asarray(0, jnp.int32)
 
     def solve(self, jac: Any, res: Any, hess: Any, grad: Array, diag_add: Array) -> Array:
-        path, lin = self.path, self.lin
-        graph, st = path.graph, path.graph.structure
+        path, lin, graph = self.path, self.lin, self.path.graph
         add = diag_add + (1.0 - path.free)
         if path.method == "pcg":
             x, its = linear.solve_pcg(
@@ -205,9 +205,17 @@ class _SparseLinear:
             )
             self.iterations = self.iterations + jnp.asarray(its, jnp.int32)
             return x
+        # the factorised paths work in normal_dtype (float64 for float32 problems when
+        # x64 is on: a float32 JᵀJ of a long chain is indefinite); the step is cast back
+        dtype = normal_dtype(grad.dtype)
+        return self._factorised(grad.astype(dtype), add.astype(dtype)).astype(grad.dtype)
+
+    def _factorised(self, grad: Array, add: Array) -> Array:
+        path, lin = self.path, self.lin
+        graph, st = path.graph, path.graph.structure
         if path.method == "schur":
-            return schur_step(graph, schur_parts(graph, jtj_blocks(lin), grad.dtype), grad, add,
-                              reduced_solver(graph, path.dense_max))
+            return schur_step(graph, schur_parts(graph, jtj_blocks(lin, grad.dtype), grad.dtype),
+                              grad, add, reduced_solver(graph, path.dense_max))
         data = csr_values(graph, lin).at[st.diag_pos].add(add)
         if path.method == "dense":
             cholesky = linear.cholesky_solve_loops if path.dense_loops else linear.cholesky_solve

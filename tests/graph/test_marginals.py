@@ -178,6 +178,28 @@ def test_jit_vmap_and_float32():
         np.testing.assert_allclose(c, ref, rtol=2e-3, atol=2e-3 * np.abs(ref).max())
 
 
+def test_float32_marginals_of_a_stiff_graph_are_factorised_in_float64():
+    """Every other edge 1e8 times stiffer: H's condition passes float32's 1e7, and a float32
+    JᵀJ is indefinite, so the covariances were NaN, silently (dense and sparse). H is
+    formed in float64 (x64 on), the covariances come back in float32."""
+    import dataclasses
+
+    from jaxpose import synthetic_pose_graph
+
+    pg, _ = synthetic_pose_graph("SE2", n_poses=30, shape="circle", seed=1, noise=(0.05, 0.05))
+    info = pg.information.copy()
+    info[::2] *= 1e8
+    pg = dataclasses.replace(pg, information=info)
+    g64 = pgo.pose_graph_problem(pg)
+    ref = np.asarray(marginals(g64, None, "pose", method="dense").covariances["pose"])
+    g32 = pgo.pose_graph_problem(pg, dtype=jnp.float32)
+    c32 = jax.jit(lambda g: [marginals(g, None, "pose", method=k).covariances["pose"]
+                             for k in ("dense", "sparse")], compiler_options=FAST_COMPILE)(g32)
+    for c in c32:
+        assert c.dtype == jnp.float32
+        np.testing.assert_allclose(c, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
+
+
 def test_gradient_through_dense_marginals():
     """d trace(Σ_5) / d(scale of the positions) vs central finite differences."""
     graph = _small_se2()
