@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_count
+from .._stamps import shifted
 from ..lie import SE3, Sim3
 from ..lie._base import as_float_array, runtime_check
 from ._registration import umeyama
@@ -143,7 +144,10 @@ def associate(
     longer one (``est_stamps + offset`` against ``ref_stamps``).
 
     Returns (ref_idx (K,), est_idx (K,), valid (K,)), K = the shorter length; a pair is
-    valid when the stamps differ by less than ``max_diff``. Stamps must be ascending."""
+    valid when the stamps differ by less than ``max_diff``. Stamps must be ascending.
+    Host stamps (NumPy, lists) are shifted to a common origin before they become JAX
+    arrays, so epoch seconds or nanoseconds keep their differences in float32."""
+    ref_stamps, est_stamps = shifted(ref_stamps, est_stamps)
     r = as_float_array(ref_stamps, "associate(ref_stamps)")
     e = as_float_array(est_stamps, "associate(est_stamps)")
     if r.ndim != 1 or e.ndim != 1 or r.shape[0] == 0 or e.shape[0] == 0:
@@ -258,6 +262,8 @@ def ape(
     fn = "ape"
     _check_options(fn, etype, align)
     _check_trajectories(ref, est, ref_stamps, est_stamps, fn)
+    if ref_stamps is not None:  # epoch seconds keep their differences in float32
+        ref_stamps, est_stamps = shifted(ref_stamps, est_stamps)
     return _ape(ref.data, est.data, ref_stamps, est_stamps, max_diff, offset, etype=etype,
                 align=align)
 
@@ -314,6 +320,8 @@ def rpe(
             raise ValueError(f"{fn}(rtol): expected a non-negative finite number, got "
                              f"{rtol!r}")
     _check_trajectories(ref, est, ref_stamps, est_stamps, fn)
+    if ref_stamps is not None:  # epoch seconds keep their differences in float32
+        ref_stamps, est_stamps = shifted(ref_stamps, est_stamps)
     if pair_by == "distance":
         return _rpe_distance(ref.data, est.data, ref_stamps, est_stamps, max_diff, offset,
                              float(delta), float(rtol), etype=etype, align=align,

@@ -30,6 +30,7 @@ import numpy as np
 
 from .._checks import check_count
 from .._precision import full_precision
+from .._stamps import shifted
 from ..lie import SE3
 from ..lie._base import as_float_array, runtime_check
 from ._util import Array, batch_shape, check_group, points_array
@@ -156,8 +157,11 @@ def hermite(points: Any, t: Any, times: Any = None, tangents: Any = None) -> Arr
 
     ``tangents`` (..., N, D) are dp/dt at the knots; default: the mean of the adjacent
     secants (one-sided at the ends). Outside [t₀, t_{N−1}] the end cubics extrapolate.
-    Returns (..., M, D)."""
+    Returns (..., M, D). Host ``times`` and ``t`` (NumPy, lists) are shifted to a
+    common origin first, so epoch seconds keep their differences in float32."""
     fn = "hermite"
+    if times is not None:
+        times, t = shifted(times, t)
     p = points_array(points, f"{fn}(points)", None, min_points=2)
     n = p.shape[-2]
     dtype = p.dtype

@@ -265,3 +265,28 @@ def test_rpe_by_distance_matches_pypose(rng):
                    all_pairs=all_pairs)
         assert float(ours.stats.mean) == pytest.approx(float(theirs["Mean"]), rel=1e-10)
         assert float(ours.stats.rmse) == pytest.approx(float(theirs["RMSE"]), rel=1e-10)
+
+
+def test_epoch_second_stamps_keep_their_differences_without_x64():
+    """TUM-style epoch seconds (1.6e9, float32 spacing 128 s) with x64 off, JAX's default:
+    every stamp collapsed onto one float32 value, associate paired everything with pose 0
+    and called it valid, and ape of a trajectory against itself (2 ms late) had RMSE 5.34.
+    Host stamps are now shifted to a common origin first (numpy float64 reference)."""
+    ref = 1.6e9 + np.arange(10) / 30.0
+    late = ref + 0.002
+    with jax.enable_x64(False):
+        poses = SE3.exp(np.c_[np.arange(10.0), np.zeros((10, 5))].astype(np.float32))
+        ri, ei, ok = associate(ref, late, max_diff=0.001)
+        res = ape(poses, poses, ref, late, max_diff=0.01)
+        ri_ns, _, ok_ns = associate(
+            (1_600_000_000 * 10**9 + np.arange(10) * 33_333_333).astype(np.int64),
+            (1_600_000_000 * 10**9 + np.arange(10) * 33_333_333 + 2_000_000).astype(np.int64),
+            max_diff=1_000_000)
+    j = np.abs(late[:, None] - ref[None, :]).argmin(1)
+    np.testing.assert_array_equal(ri, j)
+    np.testing.assert_array_equal(ei, np.arange(10))
+    assert not np.any(ok)  # 2 ms > 1 ms
+    np.testing.assert_array_equal(res.pairs, np.stack([np.arange(10)] * 2, -1))
+    assert float(res.stats.rmse) == 0.0
+    np.testing.assert_array_equal(ri_ns, np.arange(10))  # nanoseconds: 2 ms > 1 ms too
+    assert not np.any(ok_ns)

@@ -119,3 +119,16 @@ def test_bad_input(rng):
         hermite(np.zeros((1, 2)), 0.5)
     with pytest.raises(ValueError, match=r"chspline\(interval\)"):
         chspline(np.zeros((5, 2)), 1.5)
+
+
+def test_hermite_with_epoch_second_knot_times_in_float32():
+    """Knot times in epoch seconds (1.6e9; float32 spacing 128 s) with float32 points (the
+    spline's dtype): t rounded to the 128 s grid gave [0.5, 1.5] for [0.5003, 1.4999]
+    (and the same with x64 off). Host times are shifted to a common origin first."""
+    pts = np.array([[0.0], [1.0], [2.0]], np.float32)  # linear in t: p = (t − t0) / 1000
+    t0 = 1.6e9
+    times, t = t0 + np.array([0.0, 1000.0, 2000.0]), t0 + np.array([500.3, 1499.9])
+    want = (t - t0)[:, None] / 1000.0
+    np.testing.assert_allclose(hermite(pts, t, times=times), want, rtol=1e-6)
+    with jax.enable_x64(False):
+        np.testing.assert_allclose(hermite(pts, t, times=times), want, rtol=1e-6)
