@@ -85,6 +85,8 @@ class FactorGraph(eqx.Module):
                     )
             else:
                 arr = jnp.asarray(value)
+                if not jnp.issubdtype(arr.dtype, jnp.inexact):  # integer starts, as optim
+                    arr = arr.astype(jnp.result_type(float))
                 if arr.ndim != 2:
                     raise ValueError(
                         f"FactorGraph(variables[{name!r}]): expected an array (n, d), got "

@@ -210,7 +210,7 @@ def fuse_imu_gps(
     pose0 = init.pose()
     factors = [
         imu_factor(pre, win, win + 1, grav),
-        gps_factor(z, np.searchsorted(keyframes, gi), sigma=gps_sigma),
+        gps_factor(z.astype(dtype), np.searchsorted(keyframes, gi), sigma=gps_sigma),
         bias_walk_factor(win, win + 1, np.asarray(pre.dt), gyro_walk, acc_walk),
         pose_prior_factor(SE3(pose0.data[None]), [0], rot_sigma=s_rot, pos_sigma=s_pos),
         Factor(vector_prior_residual, [("vel", np.zeros(1, np.int64))],

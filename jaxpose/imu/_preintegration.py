@@ -264,7 +264,19 @@ def preintegrate(
     Shapes, types and options are checked here (Python exceptions naming the argument);
     the computation runs as one compiled function (cached per shape and options).
     """
-    fn = "preintegrate"
+    return _checked_preintegrate(
+        "preintegrate", gyro, acc, dt, gyro_bias=gyro_bias, acc_bias=acc_bias,
+        gyro_noise=gyro_noise, acc_noise=acc_noise, integration_noise=integration_noise,
+        bias_jacobians=bias_jacobians, prefix=prefix, scheme=scheme, check=check)
+
+
+def _checked_preintegrate(
+    fn: str, gyro: Any, acc: Any, dt: Any, *, gyro_bias: Any = None, acc_bias: Any = None,
+    gyro_noise: Any = None, acc_noise: Any = None, integration_noise: Any = 0.0,
+    bias_jacobians: bool = True, prefix: bool = False, scheme: str = "manifold",
+    check: bool = True,
+) -> Preintegrated:
+    """:func:`preintegrate`, its errors naming ``fn`` (the public function called)."""
     if scheme not in SCHEMES:
         raise ValueError(f"{fn}(scheme={scheme!r}): expected one of {SCHEMES}")
     g, a, d, batch, dtype = check_samples(gyro, acc, dt, fn)
@@ -276,7 +288,7 @@ def preintegrate(
     # here (eqx.error_if inside jax.jit would surface as a JaxRuntimeError dump)
     inputs = (g, a, d, bg, ba, gs, as_, iv)
     eager = bool(check) and not any(isinstance(x, jax.core.Tracer) for x in inputs)
-    out, flags = _preintegrate(*inputs, batch=batch, dtype=jnp.dtype(dtype),
+    out, flags = _preintegrate(*inputs, fn=fn, batch=batch, dtype=jnp.dtype(dtype),
                                bias_jacobians=bool(bias_jacobians), prefix=bool(prefix),
                                scheme=scheme, check=bool(check), eager=eager)
     if eager:
@@ -284,16 +296,16 @@ def preintegrate(
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("batch", "dtype", "bias_jacobians", "prefix",
-                                             "scheme", "check", "eager"))
+@functools.partial(jax.jit, static_argnames=("fn", "batch", "dtype", "bias_jacobians",
+                                             "prefix", "scheme", "check", "eager"))
 def _preintegrate(
     g: Array, a: Array, d: Array, bg: Array | None, ba: Array | None, gs: Array | None,
-    as_: Array | None, iv: Array, *, batch: tuple[int, ...], dtype: Any,
+    as_: Array | None, iv: Array, *, fn: str, batch: tuple[int, ...], dtype: Any,
     bias_jacobians: bool, prefix: bool, scheme: str, check: bool, eager: bool,
 ) -> tuple[Preintegrated, dict[str, Array]]:
     """The preintegration and ``check``'s flags: with ``eager`` the failed checks are
-    returned as ``{name: bool}`` (see ``_checks.raise_flagged``), else ``eqx.error_if``."""
-    fn = "preintegrate"
+    returned as ``{name: bool}`` (see ``_checks.raise_flagged``), else ``eqx.error_if``;
+    messages name ``fn``."""
     flags: dict[str, Array] | None = {} if eager else None
     g, a, d = broadcast_samples(g, a, d, batch, dtype)
     zero = jnp.zeros(3, dtype)
@@ -382,8 +394,9 @@ def dead_reckon(
     ``init`` (default: identity rotation, zero velocity and position) is the state before
     the first sample; the states come from the cumulative deltas (``associative_scan``)
     and :func:`predict`, so they equal sequential strapdown integration to rounding."""
-    pre = preintegrate(gyro, acc, dt, gyro_bias=gyro_bias, acc_bias=acc_bias,
-                       bias_jacobians=False, prefix=True, scheme=scheme, check=check)
+    pre = _checked_preintegrate("dead_reckon", gyro, acc, dt, gyro_bias=gyro_bias,
+                                acc_bias=acc_bias, bias_jacobians=False, prefix=True,
+                                scheme=scheme, check=check)
     if init is None:
         init = NavState.identity(dtype=pre.vel.dtype)
     if not isinstance(init, NavState):

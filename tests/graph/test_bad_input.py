@@ -323,3 +323,15 @@ def test_an_empty_variable_type_is_refused_by_name():
     f = Factor(lambda x, z: x - z, [("x", np.array([0, 1]))], data=jnp.ones((2, 2)))
     with pytest.raises(ValueError, match=r"FactorGraph\(variables\['y'\]\)"):
         FactorGraph([f], {"x": jnp.zeros((2, 2)), "y": SE3.identity((0,))})
+
+
+def test_integer_starting_values_are_promoted_like_least_squares():
+    """An integer start for an array variable ended in a raw while_loop carry TypeError
+    (int vs float); optim.least_squares already promotes integers to the default float."""
+    z = np.array([[0.4, 1.6], [2.5, -0.7]])
+    f = Factor(lambda x, d: x - d, [("pt", np.array([0, 1]))], data=z)
+    graph = FactorGraph([f], {"pt": np.zeros((2, 2), int)})
+    assert graph.variables["pt"].dtype == jnp.result_type(float)
+    sol = solve(graph)
+    assert sol.status_name == "converged"
+    np.testing.assert_allclose(sol.variables["pt"], z, atol=1e-12)

@@ -113,6 +113,10 @@ def test_predict_integrate_and_module_errors():
         pre.corrected(np.zeros(4))
     with pytest.raises(TypeError, match=r"dead_reckon\(init\): expected NavState"):
         dead_reckon(G, A, DT, [0.0, 0.0, -9.81], init=SE3.identity())
+    with pytest.raises(ValueError, match=r"dead_reckon\(gyro, acc\): expected at least one"):
+        dead_reckon(G[:0], A[:0], DT, [0.0, 0.0, -9.81])
+    with pytest.raises(ValueError, match=r"dead_reckon: gyro has 5 samples but acc has 4"):
+        dead_reckon(G[:5], A[:4], 0.01, [0.0, 0.0, -9.81])
     with pytest.raises(TypeError, match=r"NavState\(rot\): expected SO3"):
         NavState(np.zeros(4), np.zeros(3), np.zeros(3))
     with pytest.raises(ValueError, match=r"NavState\(vel\): expected shape"):
@@ -268,7 +272,10 @@ def test_eager_value_errors_are_one_line_invalid_value_errors(bad, match):
     assert "\n" not in str(info.value) and "Callback" not in str(info.value)
     assert str(info.value).startswith("preintegrate")
     if bad != "overflow":  # (dead_reckon has no covariance to overflow)
-        with pytest.raises(InvalidValueError, match=match):  # through dead_reckon too
+        # through dead_reckon too, naming it (the messages named preintegrate, which the
+        # user never called)
+        with pytest.raises(InvalidValueError, match=match.replace("preintegrate",
+                                                                   "dead_reckon")):
             dead_reckon(g, a, d, [0.0, 0.0, -9.81], **kw)
     # under the user's jax.jit the message still appears in the exception text
     with pytest.raises(Exception, match=match):
