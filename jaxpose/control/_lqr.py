@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
 from .._checks import check_count
+from .._dtypes import keep_dtypes
 from .._precision import full_precision
 from ..dynamics._checks import as_array, start_step, window_message
 from ..dynamics._system import LTI, LTV, System
@@ -148,7 +149,7 @@ def policy_rollout(F: Array, f: Array, K: Array, k: Array, x0: Array) -> tuple[A
     def step(x: Array, inp: tuple[Array, ...]):
         Ft, ft, Kt, kt = inp
         u = Kt @ x + kt
-        x_next = Ft @ jnp.concatenate([x, u]) + ft
+        x_next = keep_dtypes(Ft @ jnp.concatenate([x, u]) + ft, x)  # x0's dtype
         return x_next, (x_next, u)
 
     _, (xs, us) = jax.lax.scan(step, x0, (F, f, K, k))

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_count
+from .._dtypes import keep_dtypes
 from ._checks import as_array, check_last, start_step, step_index, step_window
 
 Array = jax.Array
@@ -311,6 +312,7 @@ def _rollout_one(system: System, x0: Any, us: Array, t0: Any) -> tuple[Any, Arra
     def step(x: Any, ut: tuple[Array, Array]) -> tuple[Any, tuple[Any, Array]]:
         u, t = ut
         x_next, y = system(x, u, t)
+        x_next = keep_dtypes(x_next, x)  # float64 model data: the state keeps x0's dtype
         return x_next, (x_next, y)
 
     _, (xs, ys) = jax.lax.scan(step, x0, (us, ts))

@@ -11,6 +11,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._dtypes import keep_dtypes
 from .._precision import full_precision
 from ..dynamics._system import System
 from ..dynamics._tangent import TangentSpace, tangent_space
@@ -96,7 +97,9 @@ class KalmanFilter(NoisyModelFilter):
         def body(carry: tuple[Any, Array], inp: tuple[Any, Array, Array]):
             x, P = carry
             y, u, t = inp
-            x, P, used = self._step(x, P, y, u, t)
+            new_x, new_P, used = self._step(x, P, y, u, t)
+            # float64 model/noise data: the estimate keeps the dtypes of (x0, P0)
+            x, P = keep_dtypes((new_x, new_P), (x, P))
             return (x, P), (x, P, used & finite_tree(x, P))
 
         _, (xs, Ps, ok) = jax.lax.scan(body, (x0, P0), (ys, us, ts))

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import check_count
+from .._dtypes import keep_dtypes
 from .._precision import full_precision
 from ..dynamics._system import System
 from ..dynamics._tangent import tangent_space
@@ -99,9 +100,10 @@ class ParticleFilter(NoisyModelFilter):
         P0 = check_cov(P0, ts.dim, "P0", once=True)
         N = self.num_particles
         L = psd_cholesky(P0)  # P0 = 0 → all particles at x0
-        d = jax.random.normal(key, (N, ts.dim), P0.dtype) @ L.T
+        dtype = jax.tree.leaves(x0)[0].dtype  # the particles keep x0's dtype
+        d = jax.random.normal(key, (N, ts.dim), dtype) @ L.T.astype(dtype)
         parts = jax.vmap(lambda e: ts.plus(x0, e))(d)
-        return ParticleState(parts, jnp.full((N,), -jnp.log(N), P0.dtype))
+        return ParticleState(parts, jnp.full((N,), -jnp.log(N), dtype))
 
     @full_precision
     def estimate(self, state: ParticleState) -> tuple[Any, Array]:
@@ -206,7 +208,10 @@ class ParticleFilter(NoisyModelFilter):
 
         def body(s: ParticleState, inp: tuple[Array, Any, Array, Array]):
             k, y, u, t = inp
-            s, (mean, cov, ess), used = self._step(k, s, y, u, t, *factors)
+            new, (mean, cov, ess), used = self._step(k, s, y, u, t, *factors)
+            s = keep_dtypes(new, s)  # float64 model/noise data: particles keep x0's dtype
+            mean = keep_dtypes(mean, s.particles)
+            cov = cov.astype(s.log_weights.dtype)  # (x0's dtype)
             return s, (mean, cov, ess, used & finite_tree(mean, cov))
 
         _, (means, covs, ess, ok) = jax.lax.scan(body, state, (keys, ys, us, ts))

@@ -204,7 +204,7 @@ class GraphLinearization(eqx.Module):
 def _rho(kernel: Any, r: Array) -> Array:
     """ρ(s) per row, s = |r|² (s itself when kernel is None)."""
     s = jnp.sum(r * r, -1)
-    return s if kernel is None else kernel(s)
+    return s if kernel is None else kernel._in_dtype(s.dtype)(s)
 
 
 def factor_residuals(factor: Factor, variables: Variables) -> Array:
@@ -281,7 +281,8 @@ def linearize(graph: FactorGraph, variables: Variables) -> GraphLinearization:
         rho = _rho(f.kernel, r)
         if f.kernel is not None:
             sizes = [j.shape[-1] for j in jac]
-            r, jcat = f.corrector(f.kernel, r, jnp.concatenate(jac, axis=-1))
+            r, jcat = f.corrector(f.kernel._in_dtype(r.dtype), r,
+                                  jnp.concatenate(jac, axis=-1))
             jac = tuple(jnp.split(jcat, np.cumsum(sizes)[:-1].tolist(), axis=-1))
         jac = tuple(
             j * st.free[type_of[slot]][idx][:, None, None].astype(j.dtype)
@@ -451,10 +452,17 @@ def retract_all(graph: FactorGraph, variables: Variables, step: Array,
     """Apply a flat tangent step to every variable type (fixed ones have zero steps);
     ``method`` as in :func:`_retract`."""
     blocks = split(graph, step)
+    # each variable keeps its dtype (float64 data promote the step of float32 variables)
     return {
         name: _retract(
-            variables[name], blocks[k] * graph.structure.free[k][:, None].astype(blocks[k].dtype),
+            variables[name],
+            (blocks[k] * graph.structure.free[k][:, None]).astype(_dtype(variables[name])),
             method,
         )
         for k, name in enumerate(graph.structure.names)
     }
+
+
+def _dtype(value: Any) -> Any:
+    """The float dtype of a variable batch (a group's data or an array)."""
+    return value.data.dtype if isinstance(value, LieGroup) else value.dtype

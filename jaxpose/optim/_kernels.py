@@ -84,6 +84,19 @@ class Kernel(eqx.Module):
                 out = eqx.tree_at(lambda k, key=key: getattr(k, key), out, val)
         return out
 
+    def _in_dtype(self, dtype: Any) -> Kernel:
+        """This kernel with its array parameters (NumPy or JAX; Python floats are weakly
+        typed already) cast to ``dtype``, the residuals' dtype, as information matrices
+        are: a float64 ``np.sqrt(chi2_quantile(...))`` must not turn a float32 problem's
+        cost into float64 (a solver-loop carry type error)."""
+        def cast(v: Any) -> Any:
+            if isinstance(v, (np.ndarray, np.generic, jax.Array)) and jnp.issubdtype(
+                    jnp.result_type(v), jnp.floating):
+                return jnp.asarray(v, dtype)
+            return v
+
+        return jax.tree.map(cast, self)
+
     @abc.abstractmethod
     def __call__(self, s: Array) -> Array:
         """ρ(s), elementwise on s = rᵀWr ≥ 0 of any shape."""

@@ -265,6 +265,7 @@ class Problem(eqx.Module):
             if k is None:
                 cost = cost + 0.5 * jnp.sum(s)
             else:
+                k = k._in_dtype(s.dtype)
                 cost = cost + 0.5 * jnp.sum(k(s))
                 if jb is not None:
                     e, jb = corrector(k, e, jb)

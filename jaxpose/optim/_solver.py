@@ -207,8 +207,10 @@ class _DensePath(eqx.Module):
         return rule._propose(sstate, normal, self.solver.linear_solver), jnp.zeros((), jnp.int32)
 
     def retract(self, params: PyTree, delta: Array) -> PyTree:
-        _, unravel = manifold.flat_tangent(params)
-        return manifold.retract(params, unravel(delta))
+        # the estimate keeps its dtype: float64 data promote the residual, the Jacobian
+        # and so δ, but float32 params stay float32 (the loop's carry)
+        zero, unravel = manifold.flat_tangent(params)
+        return manifold.retract(params, unravel(delta.astype(zero.dtype)))
 
 
 class GaussNewton(AbstractSolver):
