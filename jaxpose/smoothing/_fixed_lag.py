@@ -696,7 +696,7 @@ class FixedLagSmoother(eqx.Module):
         k, d = self.window, self.tangent_dim
 
         def body(c):
-            x, it, _, _, _ = c
+            x, it, _, lin_prev, cache_prev = c
             y = _where(self.frozen, self.prior_point, x)
             if self.chain:
                 hp, gp, _ = self._prior_terms(_take(y, 0), _take(self.prior_point, 0))
@@ -708,7 +708,14 @@ class FixedLagSmoother(eqx.Module):
                 step = -jsl.cho_solve(jsl.cho_factor(self._regularised(h)), g)
             ok = jnp.all(jnp.isfinite(step))
             step = jnp.where(ok, step, 0.0).reshape(k, d)
-            x_new = _where(ok, jax.vmap(self._plus)(y, step), x)
+            # a step that is not finite (the factors are not finite at y: a previous step
+            # left their domain) goes back to the last point of this update whose
+            # linearisation was finite, and keeps that linearisation: a non-finite one
+            # would become the next prior at marginalisation, for every later update
+            back = ~ok & (it > 0)
+            x_new = _where(ok, jax.vmap(self._plus)(y, step), _where(back, lin_prev, x))
+            y = _where(back, lin_prev, y)
+            cache = jax.tree.map(lambda a, b: jnp.where(back, a, b), cache_prev, cache)
             change = jax.vmap(self._minus)(x_new, x)
             small = jnp.max(jnp.abs(change)) < self.tol
             status = jnp.where(~ok, Results.NON_FINITE, jnp.where(
@@ -771,18 +778,29 @@ class FixedLagSmoother(eqx.Module):
         moving = self.valid & ~self.frozen
 
         def body(c):
-            s, lo, passes, _ = c
-            s, delta = s._reeliminate(lo)._step_from_cache(passes)
+            s_in, lo, passes, _, lin_in = c
+            s, delta = s_in._reeliminate(lo)._step_from_cache(passes)
             largest = jnp.max(jnp.abs(delta), axis=1)  # +inf where the step is not finite
             check = (self.phase == 0) | ~jnp.isfinite(largest)
-            exceed = moving & check & ~(largest <= self.relinearize_threshold) & (passes == 0)
-            status = jnp.where(jnp.all(jnp.isfinite(largest)), Results.CONVERGED,
-                               Results.NON_FINITE).astype(jnp.int32)
+            finite = jnp.all(jnp.isfinite(largest))
+            # a relinearisation that is not finite (the previous step left the factors'
+            # domain) goes back to the previous pass: its linearisation (finite) and its
+            # point lin_in, so no non-finite linearisation becomes the next prior
+            back = ~finite & (passes > 0)
+            exceed = (moving & check & ~(largest <= self.relinearize_threshold)
+                      & (passes == 0) & ~back)
+            status = jnp.where(finite, Results.CONVERGED, Results.NON_FINITE).astype(jnp.int32)
+            lin_used = s.lin  # the point this pass's linearisation is from
             s = eqx.tree_at(lambda t: (t.lin, t.status), s,
                             (_where(exceed, s.states, s.lin), status))
-            return s, jnp.maximum(jnp.argmax(exceed) - 1, 0), passes + 1, jnp.any(exceed)
+            reverted = eqx.tree_at(lambda t: (t.lin, t.states, t.status), s_in,
+                                   (lin_in, lin_in, status))
+            s = jax.tree.map(lambda a, b: jnp.where(back, a, b), reverted, s)
+            return (s, jnp.maximum(jnp.argmax(exceed) - 1, 0), passes + 1, jnp.any(exceed),
+                    lin_used)
 
-        start = (self, jnp.asarray(k - 2), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+        start = (self, jnp.asarray(k - 2), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
+                 self.lin)
         return jax.lax.while_loop(lambda c: (c[2] == 0) | c[3], body, start)[0]
 
     # ------------------------------------------------------------------ public

@@ -103,3 +103,33 @@ def test_packed_smoother_keeps_the_status():
     step = jax.jit(PackedSmoother.update)
     packed = step(PackedSmoother(sm), {"p": jnp.zeros(2)}, _data(1.0))
     assert int(packed.unpack().status) == Results.CONVERGED
+
+
+@pytest.mark.parametrize("threshold", [None, 0.1])
+def test_a_step_out_of_a_factors_domain_does_not_poison_later_updates(threshold):
+    """z = √p with one measurement 0.05 among 1.0s: the first Gauss–Newton step from the
+    guess p = 1 lands at p = −0.9, where √p is NaN. The update kept that NaN
+    linearisation (incremental mode: the estimate −0.9 too); marginalised two updates
+    later it became a NaN prior, and every update after was non_finite, for good. Now the
+    update goes back to the last finite linearisation and the stream recovers."""
+    def motion(xp, x, d):
+        return x["p"] - xp["p"]
+
+    def unary(x, d):
+        return (jnp.sqrt(x["p"]) - d["z"]) / 0.01
+
+    guess = {"p": jnp.ones(1)}
+    sm = FixedLagSmoother(guess, {"z": jnp.ones(1)}, window=3, motion=motion, unary=unary,
+                          relinearize_threshold=threshold)
+    step = jax.jit(FixedLagSmoother.update)
+    statuses = []
+    for z in [1.0, 1.0, 1.0, 1.0, 0.05, 1.0, 1.0, 1.0, 1.0, 1.0]:
+        sm = step(sm, guess, {"z": jnp.array([z])})
+        statuses.append(sm.status_name)
+        assert np.all(np.isfinite(np.asarray(sm.latest()["p"])))
+        assert np.all(np.isfinite(np.asarray(sm.prior_info)))
+        assert np.all(np.isfinite(np.asarray(sm.marginal_covariances()[-1])))
+    assert statuses[4] == "non_finite"  # honest about the bad update
+    assert statuses[:4] == statuses[6:] == ["converged"] * 4 and statuses[-1] == "converged"
+    # after the window left the bad measurement: z = 1 everywhere in it, the estimate 1
+    np.testing.assert_allclose(np.asarray(sm.latest()["p"]), 1.0, atol=1e-6)
