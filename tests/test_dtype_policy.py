@@ -11,6 +11,7 @@ import numpy as np
 
 from jaxpose import control, dynamics, filters, graph, optim, read_g2o
 from jaxpose.lie import SE3
+from jaxpose.smoothing import FixedLagSmoother
 
 F32 = jnp.float32
 LTI = dynamics.LTI(np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]]),
@@ -80,3 +81,25 @@ def test_rollout_filters_and_lqr_keep_a_float32_state_with_float64_models():
     mpc = control.MPC(LTI, cost, 5)(x0)
     assert mpc.x.dtype == F32
     np.testing.assert_allclose(mpc.x, want.x, rtol=1e-5, atol=1e-6)
+
+
+def test_fixed_lag_smoother_float32_state_with_float64_data():
+    """A float32 state with float64 NumPy data (docs/smoothing.md: the packed buffer then
+    takes float64) failed inside the elimination's scan; the smoother now keeps its data
+    in the state's dtype. Against the same stream in float64."""
+    def motion(xp, x, d):
+        return (x - xp - d["u"]) / 0.1
+
+    def unary(x, d):
+        return x - d["z"]
+
+    def run(dtype):
+        sm = FixedLagSmoother(jnp.zeros(2, dtype), {"u": np.ones(2), "z": np.zeros(2)},
+                              window=4, motion=motion, unary=unary)
+        for t in range(6):
+            sm = sm.update(jnp.zeros(2, dtype), {"u": np.ones(2), "z": np.full(2, 0.9 * t)})
+        return sm
+
+    got, want = run(F32), run(jnp.float64)
+    assert got.latest().dtype == F32 and got.status_name == "converged"
+    np.testing.assert_allclose(got.latest(), want.latest(), rtol=1e-5)

@@ -79,6 +79,7 @@ import jax.scipy.linalg as jsl
 from jax.flatten_util import ravel_pytree
 
 from .._checks import check_count
+from .._dtypes import floats_as, keep_dtypes
 from .._forward_only import forward_mode_only
 from .._precision import full_precision
 from ..lie import manifold
@@ -298,6 +299,8 @@ class FixedLagSmoother(eqx.Module):
         k, m = window, max_loops
         self.states = _stack(state, k)
         self.prior_point = _stack(state, k)
+        # data in the state's dtype (float64 NumPy data with a float32 state, x64 on)
+        data, loop_data = floats_as(data, dtype), floats_as(loop_data, dtype)
         self.data = _stack(data, k)
         self.loop_lag = jnp.ones((k, m), jnp.int32)
         self.loop_valid = jnp.zeros((k, m), bool)
@@ -861,6 +864,10 @@ class FixedLagSmoother(eqx.Module):
                 loop_data, jnp.any(lv & ~_finite(loop_data, 1)),
                 "FixedLagSmoother.update(loop_data): non-finite values in a valid loop factor",
             )
+        # the smoother's dtype for everything it stores and solves with
+        guess = keep_dtypes(guess, _take(self.states, 0))
+        data, loop_data = floats_as(data, self.prior_grad.dtype), floats_as(
+            loop_data, self.prior_grad.dtype)
         guess = eqx.error_if(
             guess, ~jnp.all(_finite(guess)), "FixedLagSmoother.update(guess): non-finite values"
         )
