@@ -10,7 +10,6 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
 
 def keep_dtypes(new: Any, old: Any) -> Any:
@@ -18,13 +17,3 @@ def keep_dtypes(new: Any, old: Any) -> Any:
     (same pytree structure: a loop's next state and its current one)."""
     return jax.tree.map(lambda n, o: n.astype(o.dtype), new, old)
 
-
-def floats_as(tree: Any, dtype: Any) -> Any:
-    """``tree`` with its floating leaves (arrays, NumPy or Python floats) cast to
-    ``dtype``; other leaves (integers, booleans) unchanged."""
-    def cast(x: Any) -> Any:
-        if isinstance(x, float) or jnp.issubdtype(jnp.result_type(x), jnp.floating):
-            return jnp.asarray(x, dtype)
-        return x
-
-    return jax.tree.map(cast, tree)

@@ -16,12 +16,14 @@ import numpy as np
 
 
 def shifted(*stamps: Any) -> tuple[Any, ...]:
-    """``stamps`` minus one common origin (the first value of the first sequence),
-    computed on the host in int64 (integer stamps) or float64, when every sequence is host
-    data (NumPy arrays, lists, scalars) of integers or floats; otherwise (a JAX array,
-    traced or not, whose precision is the caller's; or anything the callers' own checks
-    refuse) unchanged. Differences, and so every result computed from them, stay the
-    same; the values become small enough for float32."""
+    """``stamps`` minus one common origin (the first value of the first sequence) as
+    float64 NumPy arrays, when every sequence is host data (NumPy arrays, lists, scalars)
+    of integers or floats; otherwise (a JAX array, traced or not, whose precision is the
+    caller's; or anything the callers' own checks refuse) unchanged. Integer stamps are
+    subtracted exactly in int64 first (nanoseconds: exact differences up to 2⁵³ ns, 104
+    days), and returned as floats: with x64 off JAX would wrap int64 differences beyond
+    2³¹ (2.1 s in nanoseconds) into int32. Differences, and so every result computed from
+    them, stay the same; the values become small enough for float32."""
     if any(isinstance(s, jax.Array) or s is None for s in stamps):
         return stamps
     try:
@@ -32,5 +34,6 @@ def shifted(*stamps: Any) -> tuple[Any, ...]:
         return stamps
     origin = arrays[0].reshape(-1)[0]
     if all(a.dtype.kind in "iu" for a in arrays):
-        return tuple(a.astype(np.int64) - np.int64(origin) for a in arrays)
+        return tuple((a.astype(np.int64) - np.int64(origin)).astype(np.float64)
+                     for a in arrays)
     return tuple(a.astype(np.float64) - np.float64(origin) for a in arrays)

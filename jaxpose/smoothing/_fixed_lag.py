@@ -79,7 +79,7 @@ import jax.scipy.linalg as jsl
 from jax.flatten_util import ravel_pytree
 
 from .._checks import check_count
-from .._dtypes import floats_as, keep_dtypes
+from .._dtypes import keep_dtypes
 from .._forward_only import forward_mode_only
 from .._precision import full_precision
 from ..lie import manifold
@@ -299,8 +299,6 @@ class FixedLagSmoother(eqx.Module):
         k, m = window, max_loops
         self.states = _stack(state, k)
         self.prior_point = _stack(state, k)
-        # data in the state's dtype (float64 NumPy data with a float32 state, x64 on)
-        data, loop_data = floats_as(data, dtype), floats_as(loop_data, dtype)
         self.data = _stack(data, k)
         self.loop_lag = jnp.ones((k, m), jnp.int32)
         self.loop_valid = jnp.zeros((k, m), bool)
@@ -407,7 +405,8 @@ class FixedLagSmoother(eqx.Module):
         def one(a, b, dat):
             def f(e):
                 lin = "retract_linear"
-                return fn(self._plus(a, e[:d], lin), self._plus(b, e[d:], lin), dat)
+                r = fn(self._plus(a, e[:d], lin), self._plus(b, e[d:], lin), dat)
+                return r.astype(self.prior_grad.dtype)  # see _unary_terms
 
             z = jnp.zeros(2 * d, self.prior_grad.dtype)
             r = f(z)
@@ -431,7 +430,10 @@ class FixedLagSmoother(eqx.Module):
 
         def one(xs, dat):
             def f(e):
-                return unary(self._plus(xs, e, "retract_linear"), dat)
+                # float64 data keep their precision in the residual (ECEF coordinates,
+                # epoch times); the residual is rounded to the state's dtype
+                r = unary(self._plus(xs, e, "retract_linear"), dat)
+                return r.astype(self.prior_grad.dtype)
 
             z = jnp.zeros(d, self.prior_grad.dtype)
             return f(z), jax.jacfwd(f)(z)
@@ -802,8 +804,12 @@ class FixedLagSmoother(eqx.Module):
             return (s, jnp.maximum(jnp.argmax(exceed) - 1, 0), passes + 1, jnp.any(exceed),
                     lin_used)
 
-        start = (self, jnp.asarray(k - 2), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
-                 self.lin)
+        # a cached elimination that is not finite (left by a non_finite update) would
+        # pass NaN messages on for good: eliminate the whole window again from the prior
+        cached = jnp.all(jnp.array([jnp.all(jnp.isfinite(x))
+                                    for x in jax.tree.leaves(self._linearization())]))
+        start = (self, jnp.where(cached, k - 2, 0), jnp.zeros((), jnp.int32),
+                 jnp.zeros((), bool), self.lin)
         return jax.lax.while_loop(lambda c: (c[2] == 0) | c[3], body, start)[0]
 
     # ------------------------------------------------------------------ public
@@ -864,10 +870,7 @@ class FixedLagSmoother(eqx.Module):
                 loop_data, jnp.any(lv & ~_finite(loop_data, 1)),
                 "FixedLagSmoother.update(loop_data): non-finite values in a valid loop factor",
             )
-        # the smoother's dtype for everything it stores and solves with
-        guess = keep_dtypes(guess, _take(self.states, 0))
-        data, loop_data = floats_as(data, self.prior_grad.dtype), floats_as(
-            loop_data, self.prior_grad.dtype)
+        guess = keep_dtypes(guess, _take(self.states, 0))  # the states' dtypes
         guess = eqx.error_if(
             guess, ~jnp.all(_finite(guess)), "FixedLagSmoother.update(guess): non-finite values"
         )
@@ -876,19 +879,26 @@ class FixedLagSmoother(eqx.Module):
         )
         full = self.valid[0]
         info_m, grad_m, coupled = self._marginalize_first()
+        # the oldest state's information enters the prior only from a finite
+        # linearisation: one that is not (the update that made it was non_finite, e.g. a
+        # guess outside a factor's domain) is dropped with the state, else the prior
+        # would be NaN for every later update
+        marginalize = full & jnp.all(jnp.isfinite(info_m)) & jnp.all(jnp.isfinite(grad_m))
         if self.chain:  # before the first marginalisation the prior is empty
-            info_s, grad_s = self.prior_info, self.prior_grad
+            info_s = jnp.where(full, 0.0, self.prior_info)
+            grad_s = jnp.where(full, 0.0, self.prior_grad)
         else:
             dd = (k - 1) * d
             info_s = jnp.zeros_like(self.prior_info).at[:dd, :dd].set(self.prior_info[d:, d:])
             grad_s = jnp.zeros_like(self.prior_grad).at[:dd].set(self.prior_grad[d:])
-        info = jnp.where(full, info_m, info_s)
-        grad = jnp.where(full, grad_m, grad_s)
+        info = jnp.where(marginalize, info_m, info_s)
+        grad = jnp.where(marginalize, grad_m, grad_s)
         # a new prior is anchored at the linearisation point; else unchanged
-        point = _shift_in(_where(full, self.linearization_point(), self.prior_point), guess)
+        point = _shift_in(_where(marginalize, self.linearization_point(), self.prior_point),
+                          guess)
         frozen = _shift_in(self.frozen, jnp.zeros((), bool))
         if self.first_estimate:
-            frozen = jnp.where(full, coupled, frozen)
+            frozen = jnp.where(marginalize, coupled, frozen)
         new = eqx.tree_at(
             lambda s: (
                 s.states,
@@ -921,10 +931,14 @@ class FixedLagSmoother(eqx.Module):
                 ),
             )
         if self.relinearize_threshold is not None:
+            cache = tuple(_shift_in(v, jnp.zeros_like(v[0])) for v in self._linearization())
+            # the message into the new oldest slot is the new prior: the marginalised one,
+            # or (a state dropped without its information, above) the shifted prior
+            cache = (cache[0].at[0].set(jnp.where(marginalize, cache[0][0], info)),
+                     cache[1].at[0].set(jnp.where(marginalize, cache[1][0], grad)), *cache[2:])
             new = eqx.tree_at(
                 lambda s: (s.lin, s.phase),
-                new._with_linearization(tuple(_shift_in(v, jnp.zeros_like(v[0]))
-                                              for v in self._linearization())),
+                new._with_linearization(cache),
                 (_shift_in(self.lin, guess), (self.phase + 1) % self.relinearize_skip),
             )
             return forward_mode_only(new._incremental(), _REVERSE_MODE)

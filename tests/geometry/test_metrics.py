@@ -290,3 +290,19 @@ def test_epoch_second_stamps_keep_their_differences_without_x64():
     assert float(res.stats.rmse) == 0.0
     np.testing.assert_array_equal(ri_ns, np.arange(10))  # nanoseconds: 2 ms > 1 ms too
     assert not np.any(ok_ns)
+
+
+def test_nanosecond_stamps_seconds_apart_are_not_paired_without_x64():
+    """Integer nanoseconds 2³² ns (4.3 s) apart with x64 off: the shifted int64
+    differences became int32 and wrapped, and associate called all 20 pairs valid (numpy:
+    the nearest stamps are 2.39 s apart). They are now shifted exactly in int64 and handed
+    over as floats."""
+    ns0 = 1_700_000_000_000_000_000
+    ref = ns0 + np.arange(20) * 100_000_000
+    est = ref + 2**32
+    with jax.enable_x64(False):
+        _, _, valid = associate(ref, est, max_diff=50_000_000)
+        far, _, ok_far = associate(ref, ref + 3 * 10**9, max_diff=50_000_000)
+    assert not np.any(valid)
+    assert not np.any(ok_far)
+    np.testing.assert_array_equal(far, np.full(20, 19))  # 3 s after the last ref stamp

@@ -133,3 +133,29 @@ def test_a_step_out_of_a_factors_domain_does_not_poison_later_updates(threshold)
     assert statuses[:4] == statuses[6:] == ["converged"] * 4 and statuses[-1] == "converged"
     # after the window left the bad measurement: z = 1 everywhere in it, the estimate 1
     np.testing.assert_allclose(np.asarray(sm.latest()["p"]), 1.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("threshold", [None, 0.1])
+def test_a_guess_out_of_a_factors_domain_is_dropped_at_marginalisation(threshold):
+    """A finite guess p = −1 for z = √p: the update's first linearisation is NaN, so there
+    is no finite one to go back to and the update is non_finite. Marginalising that state
+    made the prior NaN for good; its information is now dropped with it (the prior stays
+    finite) and the stream converges again once the window has moved past it."""
+    def motion(xp, x, d):
+        return x["p"] - xp["p"]
+
+    def unary(x, d):
+        return (jnp.sqrt(x["p"]) - d["z"]) / 0.01
+
+    sm = FixedLagSmoother({"p": jnp.ones(1)}, {"z": jnp.ones(1)}, window=3, motion=motion,
+                          unary=unary, relinearize_threshold=threshold)
+    step = jax.jit(FixedLagSmoother.update)
+    statuses = []
+    for t in range(10):
+        guess = {"p": jnp.full(1, -1.0 if t == 4 else 1.0)}
+        sm = step(sm, guess, {"z": jnp.ones(1)})
+        statuses.append(sm.status_name)
+        assert np.all(np.isfinite(np.asarray(sm.prior_info)))
+    assert statuses[4] == "non_finite"
+    assert statuses[:4] == statuses[-3:] + ["converged"] == ["converged"] * 4, statuses
+    np.testing.assert_allclose(np.asarray(sm.latest()["p"]), 1.0, atol=1e-6)
