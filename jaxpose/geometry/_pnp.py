@@ -375,6 +375,14 @@ def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
     return ts.data, dt
 
 
+def _stand_in(n: int, dtype: Any) -> tuple[Array, Array]:
+    """A solved, well-conditioned PnP problem of n ≥ 4 points for the identity pose and
+    K = I: points (n, 3) on a helix 2–3 m in front of the camera, their exact pixels."""
+    a = jnp.arange(n, dtype=dtype)
+    pts = jnp.stack([jnp.cos(a), jnp.sin(a), 2.0 + a / n], -1)
+    return pts, pts[:, :2] / pts[:, 2:]
+
+
 @functools.partial(jax.jit, static_argnames=("refine", "refine_steps"))
 def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps: int):
     """The compiled part of :func:`epnp`: (B, N, 3), (B, N, 2), (B, 3, 3) → t (B, 7),
@@ -400,7 +408,17 @@ def _epnp_batched(pw: Array, uv: Array, k: Array, *, refine: bool, refine_steps:
             # a refinement that stopped short of the optimum is the routine's status
             status = jnp.where(good & (lm != Results.CONVERGED), lm, status).astype(jnp.int32)
         ok = status != Results.NON_FINITE
-        t = jnp.where(ok, _implicit_tangent(t, pw, uv, k, status), t)
+        # a NON_FINITE problem keeps its (non-finite) pose and gets no derivative; the
+        # rule still runs for it under vmap (jnp.where evaluates both sides), so it sees a
+        # solved stand-in instead of NaN data: its check would otherwise raise for the
+        # whole batch, and a caller masking the problem out could not differentiate the
+        # others
+        stand_pw, stand_uv = _stand_in(pw.shape[0], pw.dtype)
+        rule = _implicit_tangent(
+            jnp.where(ok, t, jnp.zeros_like(t).at[6].set(1.0)), jnp.where(ok, pw, stand_pw),
+            jnp.where(ok, uv, stand_uv), jnp.where(ok, k, jnp.eye(3, dtype=k.dtype)),
+            jnp.where(ok, status, Results.CONVERGED).astype(jnp.int32))
+        t = jnp.where(ok, rule, t)
         err = jnp.mean(safe_norm(_residual(SE3(t), (pw, uv, k))), -1)
         return t, status, err
 

@@ -240,3 +240,27 @@ def test_refinement_out_of_steps_is_the_status_and_is_not_differentiated(rng):
     assert _tangent_gradient(pw[0], noisy, refined.transform.data[0]) < 1e-9
     with pytest.raises(Exception, match=r"epnp: cannot differentiate the solution"):
         jax.block_until_ready(jax.grad(lambda u: pose(u, 1)[0])(jnp.asarray(noisy)))
+
+
+def test_a_non_finite_problem_masked_out_of_a_batch_does_not_block_its_derivative(rng):
+    """A batch of two, one with a NaN pixel (NON_FINITE): the gradient of a loss that
+    masks that problem out raised "epnp: cannot differentiate ... refine to convergence"
+    for the whole batch (the implicit rule ran on the NaN lane under jnp.where); it now
+    equals the clean problem's own gradient, and the NaN problem's is zero."""
+    pw, _, uv = _scene(rng, 2)
+    noisy = uv + rng.normal(size=uv.shape) * 0.5
+    bad = noisy.copy()
+    bad[1, 0, 0] = np.nan
+    w = jnp.asarray(rng.normal(size=7))
+
+    def loss(u):
+        res = epnp(pw, u, K, refine_steps=20)
+        return jnp.sum(jnp.where(res.status[:, None] == Results.CONVERGED,
+                                 res.transform.data * w, 0.0))
+
+    g = jax.jit(jax.grad(loss))(jnp.asarray(bad))
+    single = jax.jit(jax.grad(
+        lambda u: jnp.sum(epnp(pw[0], u, K, refine_steps=20).transform.data * w)))(
+            jnp.asarray(noisy[0]))
+    np.testing.assert_allclose(g[0], single, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(g[1], 0.0)
