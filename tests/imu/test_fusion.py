@@ -194,6 +194,7 @@ def test_fusion_full_stream(stream):
     assert rot[0] < 1.5 * abs(bg[0]) * 100  # roll: the bias drift only
 
 
+@pytest.mark.slow  # ~12 s: two more fusion compilations (float64 and float32)
 @needs_data
 def test_fusion_float32_stream_with_x64_on(stream):
     """A float32 noisy stream and initial state with x64 on: the GPS positions were cast
