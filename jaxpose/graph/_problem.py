@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._dtypes import inexact
 from ..lie import manifold
 from ..lie._base import LieGroup, small_matmul, small_matvec
 from ..lie.series import computed_once
@@ -84,9 +85,7 @@ class FactorGraph(eqx.Module):
                         f"got {value.shape}"
                     )
             else:
-                arr = jnp.asarray(value)
-                if not jnp.issubdtype(arr.dtype, jnp.inexact):  # integer starts, as optim
-                    arr = arr.astype(jnp.result_type(float))
+                arr = inexact(jnp.asarray(value))  # integer starts, as least_squares
                 if arr.ndim != 2:
                     raise ValueError(
                         f"FactorGraph(variables[{name!r}]): expected an array (n, d), got "
@@ -410,18 +409,17 @@ def normal_dtype(dtype: Any) -> Any:
     return jnp.promote_types(dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
 
 
-def jtj_blocks(lin: GraphLinearization, dtype: Any = None) -> Any:
+def jtj_blocks(lin: GraphLinearization, dtype: Any) -> Any:
     """The Gauss–Newton blocks ``block(k, s, t)`` = J_sᵀJ_t (m, d_s, d_t) of factor group
-    k's slots s and t, formed in ``dtype`` (default: the Jacobians'); a block (t, s)
-    asked for after (s, t) is its transpose."""
+    k's slots s and t, formed in ``dtype`` (:func:`normal_dtype`); a block (t, s) asked for
+    after (s, t) is its transpose."""
     cache: dict[tuple[int, int, int], Array] = {}
 
     def jtj(k: int, s: int, t: int) -> Array:
         if (k, t, s) in cache:
             return cache[k, t, s].mT
         jac = lin.jacobians[k]
-        a, b = (jac[s], jac[t]) if dtype is None else (jac[s].astype(dtype), jac[t].astype(dtype))
-        cache[k, s, t] = small_matmul(a.mT, b)
+        cache[k, s, t] = small_matmul(jac[s].astype(dtype).mT, jac[t].astype(dtype))
         return cache[k, s, t]
 
     return jtj
@@ -456,13 +454,9 @@ def retract_all(graph: FactorGraph, variables: Variables, step: Array,
     return {
         name: _retract(
             variables[name],
-            (blocks[k] * graph.structure.free[k][:, None]).astype(_dtype(variables[name])),
+            (blocks[k] * graph.structure.free[k][:, None]).astype(
+                jax.tree.leaves(variables[name])[0].dtype),
             method,
         )
         for k, name in enumerate(graph.structure.names)
     }
-
-
-def _dtype(value: Any) -> Any:
-    """The float dtype of a variable batch (a group's data or an array)."""
-    return value.data.dtype if isinstance(value, LieGroup) else value.dtype

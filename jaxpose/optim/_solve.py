@@ -10,6 +10,7 @@ import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 
+from .._dtypes import inexact
 from .._precision import full_precision
 from . import _iterate
 from ._correctors import Corrector
@@ -63,20 +64,6 @@ def _runner(
                                            INITIAL_NOT_FINITE)
 
     return run
-
-
-def _inexact(params: PyTree) -> PyTree:
-    """Integer or bool array leaves (and Python numbers) of ``params`` as floating arrays
-    of JAX's default float dtype: the parameters of a continuous optimisation."""
-
-    def leaf(x: Any) -> Any:
-        if isinstance(x, bool | int | float) or (
-            eqx.is_array_like(x) and not jnp.issubdtype(jnp.result_type(x), jnp.inexact)
-        ):
-            return jnp.asarray(x, jnp.result_type(float))
-        return x
-
-    return jax.tree.map(leaf, params)
 
 
 @eqx.filter_jit
@@ -150,7 +137,7 @@ def least_squares(
             (as :func:`jaxpose.graph.solve` does). Also if a traced kernel parameter
             is outside its domain (e.g. ``Huber(d)`` with ``d ≤ 0``).
     """
-    params = _inexact(params)
+    params = inexact(params)
     solver = LevenbergMarquardt() if solver is None else solver
     if not isinstance(solver, AbstractSolver):
         raise TypeError(

@@ -720,7 +720,7 @@ class FixedLagSmoother(eqx.Module):
             back = ~ok & (it > 0)
             x_new = _where(ok, jax.vmap(self._plus)(y, step), _where(back, lin_prev, x))
             y = _where(back, lin_prev, y)
-            cache = jax.tree.map(lambda a, b: jnp.where(back, a, b), cache_prev, cache)
+            cache = _where(back, cache_prev, cache)
             change = jax.vmap(self._minus)(x_new, x)
             small = jnp.max(jnp.abs(change)) < self.tol
             status = jnp.where(~ok, Results.NON_FINITE, jnp.where(
@@ -800,16 +800,14 @@ class FixedLagSmoother(eqx.Module):
                             (_where(exceed, s.states, s.lin), status))
             reverted = eqx.tree_at(lambda t: (t.lin, t.states, t.status), s_in,
                                    (lin_in, lin_in, status))
-            s = jax.tree.map(lambda a, b: jnp.where(back, a, b), reverted, s)
+            s = _where(back, reverted, s)
             return (s, jnp.maximum(jnp.argmax(exceed) - 1, 0), passes + 1, jnp.any(exceed),
                     lin_used)
 
         # a cached elimination that is not finite (left by a non_finite update) would
         # pass NaN messages on for good: eliminate the whole window again from the prior
-        cached = jnp.all(jnp.array([jnp.all(jnp.isfinite(x))
-                                    for x in jax.tree.leaves(self._linearization())]))
-        start = (self, jnp.where(cached, k - 2, 0), jnp.zeros((), jnp.int32),
-                 jnp.zeros((), bool), self.lin)
+        start = (self, jnp.where(_finite(self._linearization()), k - 2, 0),
+                 jnp.zeros((), jnp.int32), jnp.zeros((), bool), self.lin)
         return jax.lax.while_loop(lambda c: (c[2] == 0) | c[3], body, start)[0]
 
     # ------------------------------------------------------------------ public
@@ -883,7 +881,7 @@ class FixedLagSmoother(eqx.Module):
         # linearisation: one that is not (the update that made it was non_finite, e.g. a
         # guess outside a factor's domain) is dropped with the state, else the prior
         # would be NaN for every later update
-        marginalize = full & jnp.all(jnp.isfinite(info_m)) & jnp.all(jnp.isfinite(grad_m))
+        marginalize = full & _finite((info_m, grad_m))
         if self.chain:  # before the first marginalisation the prior is empty
             info_s = jnp.where(full, 0.0, self.prior_info)
             grad_s = jnp.where(full, 0.0, self.prior_grad)

@@ -133,9 +133,9 @@ def test_schur_step_equals_the_dense_solve_of_the_full_system():
         zero = jnp.zeros(graph.size)
         return dict(
             lin=lin, g=g, add=add, free=free, J_ref=jax.jacfwd(ref)(zero), r_ref=ref(zero),
-            dense=schur_step(graph, schur_parts(graph, jtj_blocks(lin), g.dtype), g, add,
+            dense=schur_step(graph, schur_parts(graph, jtj_blocks(lin, g.dtype), g.dtype), g, add,
                              linear.solve_dense),
-            sparse=schur_step(graph, schur_parts(graph, jtj_blocks(lin), g.dtype), g, add,
+            sparse=schur_step(graph, schur_parts(graph, jtj_blocks(lin, g.dtype), g.dtype), g, add,
                               linear.solve_sparse_direct),
         )
 
