@@ -34,7 +34,8 @@ class Results(enum.IntEnum):
     CONVERGED = (0, "converged: a tolerance was met, or a closed-form solution is well posed")
     MAX_STEPS = (1, "the iteration budget ran out before a tolerance was met")
     DIVERGED = (2, "stalled: no trial step lowers the cost at the damping (regularisation) "
-                   "bound or after too many rejections; the best estimate is kept")
+                   "bound or after too many rejections, or Gauss-Newton's uphill steps "
+                   "converged above the best point seen; the best estimate is kept")
     NON_FINITE = (3, "NaN/Inf appeared in the data, the cost or a step; the best finite "
                      "estimate is kept")
     DEGENERATE = (4, "the configuration does not determine the answer (e.g. collinear "

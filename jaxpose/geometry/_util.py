@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._safe import safe_div, safe_norm, safe_sqrt  # noqa: F401 (the geometry modules' import)
 from ..lie._base import LieGroup, as_float_array
 
 Array = jax.Array
@@ -71,25 +72,6 @@ def same_count(a: Array, b: Array, name_a: str, name_b: str, axis: int = -2) -> 
 
 def common_dtype(*xs: Array) -> Any:
     return jnp.result_type(*[x.dtype for x in xs])
-
-
-def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
-    """Euclidean norm whose derivative is 0 (not NaN) at x = 0, any order (NaN stays NaN)."""
-    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
-    pos = sq > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), sq)
-
-
-def safe_sqrt(x: Array) -> Array:
-    """sqrt(max(x, 0)) with derivative 0 (not Inf/NaN) at x ≤ 0 (NaN stays NaN)."""
-    pos = x > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), jnp.where(x == x, 0.0, x))
-
-
-def safe_div(num: Array, den: Array) -> Array:
-    """num / den, with den = 0 replaced by 1 (result 0·num) so derivatives stay finite."""
-    ok = den != 0
-    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
 def flatten_batch(x: Array, batch: tuple[int, ...], core_ndim: int) -> Array:

@@ -20,14 +20,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._safe import safe_sqrt
 from ._kernels import Kernel, _check_param, _is_traced
 
 Array = jax.Array
-
-
-def _safe_sqrt(x: Array) -> Array:
-    pos = x > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
 
 
 class Corrector(eqx.Module):
@@ -56,7 +52,7 @@ class FastTriggs(Corrector):
 
     def __call__(self, kernel: Kernel, e: Array, jac: Array) -> tuple[Array, Array]:
         s = jnp.sum(e * e, axis=-1)
-        w = _safe_sqrt(kernel.derivative(s))
+        w = safe_sqrt(kernel.derivative(s))
         return w[:, None] * e, w[:, None, None] * jac
 
 
@@ -93,7 +89,7 @@ class Triggs(Corrector):
         s = jnp.sum(e * e, axis=-1)
         d1 = kernel.derivative(s)
         d2 = kernel.second_derivative(s)
-        sqrt_d1 = _safe_sqrt(d1)
+        sqrt_d1 = safe_sqrt(d1)
         use = (s > 0) & (d1 > 0)
         if not self.negative_curvature:
             use = use & (d2 > 0)

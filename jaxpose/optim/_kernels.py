@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._safe import safe_sqrt
+
 Array = jax.Array
 
 
@@ -50,12 +52,6 @@ def _check_param(name: str, key: str, val: Any, ok: Callable[[Any], Any], what: 
 # a parameter name -> (the condition on its value, what is expected)
 Constraints = dict[str, tuple[Callable[[Any], Any], str]]
 _POSITIVE_DELTA: Constraints = {"delta": (lambda v: v > 0, "positive")}
-
-
-def _safe_sqrt(s: Array) -> Array:
-    """sqrt(s) with a finite (zero) derivative at s = 0."""
-    pos = s > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
 
 
 class Kernel(eqx.Module):
@@ -133,12 +129,12 @@ class Huber(Kernel):
     def __call__(self, s: Array) -> Array:
         d = self.delta
         inner = s <= d * d
-        return jnp.where(inner, s, 2.0 * d * _safe_sqrt(jnp.where(inner, d * d, s)) - d * d)
+        return jnp.where(inner, s, 2.0 * d * safe_sqrt(jnp.where(inner, d * d, s)) - d * d)
 
     def derivative(self, s: Array) -> Array:
         d = self.delta
         inner = s <= d * d
-        return jnp.where(inner, 1.0, d / _safe_sqrt(jnp.where(inner, 1.0, s)))
+        return jnp.where(inner, 1.0, d / safe_sqrt(jnp.where(inner, 1.0, s)))
 
     def second_derivative(self, s: Array) -> Array:
         d = self.delta

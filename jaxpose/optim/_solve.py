@@ -52,9 +52,9 @@ def _runner(
             return ~s.done
 
         if stopping.budget > 0:
-            if unrolled:
+            if unrolled:  # budget + 1 trials: the first only linearises
                 state = eqxi.while_loop(
-                    cond, body, state, max_steps=stopping.budget, kind="checkpointed"
+                    cond, body, state, max_steps=stopping.budget + 1, kind="checkpointed"
                 )
             else:
                 state = jax.lax.while_loop(cond, body, state)

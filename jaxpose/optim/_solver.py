@@ -188,6 +188,7 @@ class _DensePath(eqx.Module):
     solver: AbstractSolver
     problem: Problem
     args: PyTree
+    placeholder_solvable = True  # identity H (see _init)
 
     def linearize(self, params: PyTree) -> tuple[NormalEquations, Array, Array]:
         lin = self.problem.linearize_structured(params, self.args)
@@ -219,7 +220,8 @@ class GaussNewton(AbstractSolver):
     No damping, so a non-finite step or residual (e.g. singular H with
     :class:`~jaxpose.optim.Cholesky`) ends the solve with ``NON_FINITE``; use
     :class:`~jaxpose.optim.SVD` (pseudo-inverse, PyPose GN's default) for rank-deficient
-    problems. The best estimate is tracked separately since GN may increase the cost."""
+    problems. GN may increase the cost: the solution is the best estimate seen, and if the
+    iterates converge above it the status is ``DIVERGED`` (the best one is not stationary)."""
 
     linear_solver: LinearSolver = Cholesky()
 

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import require
+from .._safe import safe_norm, safe_sqrt
 from ._linear import LinearSolver
 
 Array = jax.Array
@@ -263,13 +264,15 @@ class Dogleg(Strategy):
         gn = linear_solver.solve(system.jac, system.res, h, g, system.lift)
         gn_ok = jnp.all(jnp.isfinite(gn))
         gn = jnp.where(gn_ok, gn, 0.0)
-        gn_norm = jnp.linalg.norm(gn)
+        # safe norms and root: the step is differentiated (adjoint="unrolled") also at
+        # g = 0 (the first trial's placeholder, a converged lane under vmap)
+        gn_norm = safe_norm(gn)
         # Cauchy point along the unit direction u = g/‖g‖: ‖g‖²/gᵀHg = ‖g‖/uᵀHu, whose
         # two factors do not overflow for large residuals (gᵀg did: inf/inf, a NaN step);
         # ‖g‖ = m·‖g/m‖ with m = max |gᵢ|
         m = jnp.max(jnp.abs(g), initial=0.0)
         gs = g / jnp.where(m > 0, m, 1.0)
-        gs_norm = jnp.linalg.norm(gs)
+        gs_norm = safe_norm(gs)
         u = gs / jnp.where(gs_norm > 0, gs_norm, 1.0)
         g_norm = m * gs_norm
         uhu = u @ (h @ u)
@@ -282,7 +285,7 @@ class Dogleg(Strategy):
         a = d @ d
         b = 2.0 * (sd @ d)
         c = sd_norm**2 - radius**2
-        disc = jnp.sqrt(jnp.maximum(b * b - 4.0 * a * c, 0.0))
+        disc = safe_sqrt(b * b - 4.0 * a * c)
         denom = b + disc
         tau = jnp.where(denom > 0, -2.0 * c / jnp.where(denom > 0, denom, 1.0), 0.0)
         tau = jnp.clip(tau, 0.0, 1.0)

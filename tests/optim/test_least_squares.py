@@ -408,6 +408,29 @@ def test_gauss_newton_cost_increase_is_not_convergence():
     np.testing.assert_allclose(np.asarray(lm.best_params), [2.0, 1.3], rtol=1e-6)
 
 
+def test_gauss_newton_converging_above_its_best_point_is_not_convergence():
+    """GN's uphill steps can converge to a local minimum costlier than a point it passed
+    (here its start, cost 0.754 against 1.730). The solution returns the best point, which
+    is not stationary (‖Jᵀr‖∞ = 1.04): the status said CONVERGED, of the other point, and
+    the implicit derivative was a wrong number (finite differences and the unrolled
+    adjoint give 0). Now the status is DIVERGED and differentiating raises."""
+
+    def residual(x, p):
+        a, b, c0, w, t = p
+        return jnp.stack([a * jnp.sin(b * x[0]) + c0, w * (x[0] - t)])
+
+    p = jnp.array([1.8072279560784639, 1.9815309198954696, -0.6597229850424536,
+                   0.34321036709016245, -0.8817010445930258])
+    x0 = jnp.array([0.6822227028810968])
+    sol = jo.least_squares(residual, x0, p, solver=jo.GN(), history=True)
+    np.testing.assert_array_equal(sol.params, x0)  # the best point is kept
+    assert float(sol.history[int(sol.num_steps)]) > 2 * float(sol.cost)  # ended uphill
+    assert int(sol.status) == jp.Results.DIVERGED
+    with pytest.raises(Exception, match="cannot differentiate the solution"):
+        jax.block_until_ready(jax.grad(lambda q: jo.least_squares(
+            residual, x0, q, solver=jo.GN()).params[0])(p))
+
+
 def test_repeated_eager_calls_reuse_the_compiled_solve():
     """least_squares is filter_jit-compiled: new data of the same shapes never retraces."""
     traces = []
