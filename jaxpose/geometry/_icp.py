@@ -232,12 +232,19 @@ def _icp_single(
     idx = s.idx
     moved = SE3(jax.lax.stop_gradient(s.t_prev)).act(src_c)
     w = (jnp.sum(jnp.square(moved - tgt_c[idx]), -1) <= gate).astype(dtype)
+    # a problem with no accepted update returns its start (derivative zero), but the
+    # re-solve below is still differentiated: it sees zeros, not data that may be NaN
+    # (0·NaN in the batch's gradient) or a status that raises (the whole batch's)
+    def data(x: Array) -> Array:
+        return jnp.where(accepted, x, 0.0)
+
     if plane:
-        t_fin = _plane_implicit(jax.lax.stop_gradient(s.t), src, tgt[idx], nrm[idx], w,
-                                status)
+        t_fin = _plane_implicit(jax.lax.stop_gradient(s.t), data(src), data(tgt[idx]),
+                                data(nrm[idx]), w,
+                                jnp.where(accepted, status, Results.CONVERGED))
         rmse = _plane_rmse(s.t, src_c, tgt_c[idx], nrm_c[idx], w)
     else:
-        t_fin = _kabsch(src, tgt[idx], w)
+        t_fin = _kabsch(data(src), data(tgt[idx]), w)
         diff = SE3(jax.lax.stop_gradient(s.t)).act(src_c) - tgt_c[idx]
         rmse = _weighted_rms(diff, w)
     t_out = jnp.where(accepted, t_fin, s.t)

@@ -224,3 +224,30 @@ def test_point_to_plane_derivative_of_an_unconverged_loop_raises(rng):
     with pytest.raises(Exception, match=r"icp\(method='point_to_plane'\): cannot differentiate"):
         jax.block_until_ready(jax.grad(lambda s: shift(s, 2)[0])(jnp.asarray(src)))
     assert np.all(np.isfinite(jax.grad(lambda s: shift(s, 40)[0])(jnp.asarray(src))))
+
+
+@pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])
+def test_a_nan_problem_masked_out_of_a_batch_leaves_the_others_gradient(rng, method):
+    """A NON_FINITE problem (a NaN source point) returns its start, whose derivative is
+    zero, but its discarded re-solve was still differentiated: point to point on the NaN
+    data (0·NaN made the gradient of a loss that masks it out NaN for the whole batch, a
+    shared shift), point to plane with its NON_FINITE status (it raised "cannot
+    differentiate" for the whole batch)."""
+    tgt = jnp.asarray(rng.normal(size=(200, 3)))
+    src = SE3.exp(jnp.array([0.02, -0.01, 0.01, 0.02, 0.0, -0.03])).inv().act(tgt[:150])
+    batch = jnp.stack([src, src.at[3, 1].set(jnp.nan)])
+    nrm = estimate_normals(tgt, k=8) if method == "point_to_plane" else None
+
+    def loss(shift, clouds):
+        r = icp(clouds + shift, tgt, method=method, target_normals=nrm, tolerance=1e-12,
+                max_iterations=100)
+        per = jnp.sum(r.transform.data, -1)
+        return jnp.sum(jnp.where(r.status == Results.CONVERGED, per, 0.0))
+
+    grad = jax.jit(jax.grad(loss))
+    status = icp(batch, tgt, method=method, target_normals=nrm, tolerance=1e-12,
+                 max_iterations=100).status
+    assert status.tolist() == [0, 3]
+    alone = grad(jnp.zeros(3), src[None])
+    assert np.all(np.isfinite(alone)) and np.abs(alone).max() > 0.1
+    np.testing.assert_allclose(grad(jnp.zeros(3), batch), alone, rtol=1e-12)
