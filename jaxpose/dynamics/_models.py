@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import count_field
+from .._safe import safe_norm
 from ._checks import check_last
 from ._integrators import ContinuousSystem
 
@@ -129,7 +130,4 @@ class Bicycle(ContinuousSystem):
     def observation(self, x: Array, u: Array, t: Any = 0) -> Array:
         _check_sizes(self, x, u, "px, py, ψ, v", "a, δ")
         d = x[None, :2] - jnp.asarray(self.landmarks).astype(jnp.result_type(x))  # x's dtype
-        sq = jnp.sum(d * d, -1)
-        pos = sq > 0  # double where: sqrt's derivative at 0 would be inf · 0 = NaN
-        ranges = jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
-        return jnp.concatenate([ranges, x[3:4]])
+        return jnp.concatenate([safe_norm(d), x[3:4]])  # finite derivative at a landmark

@@ -115,8 +115,8 @@ def _spd_solve(a: Array, b: Array, free: Array) -> Array:
 
     top = jnp.max(jnp.where(free, jnp.diagonal(a), 0.0))
     ridge = max(1e-12, 10 * float(jnp.finfo(a.dtype).eps)) * jnp.where(top > 0, top, 1.0)
-    # the test factorises A without derivatives (XLA shares it with the branch's): a failed
-    # factor on the differentiated path, even discarded, sends 0·NaN back into A
+    # the test factorises A once more, without derivatives (≤ DENSE_MAX rows: milliseconds):
+    # a failed factor on the differentiated path, even discarded, sends 0·NaN back into A
     ok = jnp.all(jnp.isfinite(jnp.linalg.cholesky(jax.lax.stop_gradient(a))))
     low = jax.lax.cond(ok, lambda: factor(jnp.zeros((), a.dtype)), lambda: factor(ridge))
     return jax.scipy.linalg.cho_solve((low, True), b)

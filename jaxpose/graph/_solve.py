@@ -227,8 +227,6 @@ class _GraphPath:
     """The factor-graph path of the shared iteration (:mod:`jaxpose.optim._iterate`): the
     carried linearisation is ``(GraphLinearization, g)``, H a block-sparse operator."""
 
-    placeholder_solvable = False  # a zero linearisation
-
     def __init__(self, graph: FactorGraph, method: str, dense_max: int, damping: Damping,
                  cg: PCG, free: Array, g0_norm: Array | None, verbose: bool = False):
         self.graph, self.method, self.dense_max, self.damping = graph, method, dense_max, damping

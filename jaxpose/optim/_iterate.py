@@ -52,13 +52,7 @@ class SolverState(eqx.Module):
 
 
 class Path(Protocol):
-    """What one least-squares formulation supplies to :func:`trial`.
-
-    ``placeholder_solvable``: whether the unlinearised state's placeholder system is well
-    posed (the dense path's identity), so the first trial may solve it and discard δ
-    instead of skipping the solve in a ``lax.cond``."""
-
-    placeholder_solvable: bool
+    """What one least-squares formulation supplies to :func:`trial`."""
 
     def linearize(self, params: PyTree) -> tuple[Any, Array, Array]:
         """(system, cost, finite) at ``params``: the carried linearisation (any pytree of
@@ -190,16 +184,10 @@ def trial(rule: Rule, path: Path, state: SolverState, stopping: Stopping, *,
         step, its = path.propose(rule, state.strategy_state, state.system, normal)
         return step, jnp.asarray(its, jnp.int32)
 
-    # the first trial of a fresh state only linearises: its δ is discarded. Where the
-    # placeholder is solvable the solve runs and is masked: under vmap(grad) a lax.cond
-    # here would transpose lineax's solve on the zero residuals JAX stores for the branch
-    # a lane did not take, and lineax's derivative solves raise on a singular system.
-    if path.placeholder_solvable:
-        delta, its = propose()
-    else:  # skip the solve (graph.solve: a zero placeholder, a host factorisation)
-        delta, its = jax.lax.cond(
-            fresh, lambda: (jnp.zeros_like(normal.grad), jnp.zeros((), jnp.int32)), propose
-        )
+    # the first trial of a fresh state only linearises: no linear solve on the placeholder
+    delta, its = jax.lax.cond(
+        fresh, lambda: (jnp.zeros_like(normal.grad), jnp.zeros((), jnp.int32)), propose
+    )
     step_ok = fresh | jnp.all(jnp.isfinite(delta))
     delta = jnp.where(step_ok & ~fresh, delta, 0.0)
     trial_params = path.retract(state.params, delta)
@@ -260,10 +248,11 @@ def trial(rule: Rule, path: Path, state: SolverState, stopping: Stopping, *,
     )
     status = jnp.where(fresh, start_status(finite, grad_inf, stopping), status)
     # a rule that takes uphill steps (Gauss–Newton) can converge above the best point it
-    # has seen, which is what the solution returns: that point is not stationary (a rise
-    # within the cost tolerance or at rounding level is the same optimum)
-    rel = jnp.maximum(stopping.cost_rtol, 64 * jnp.finfo(cost.dtype).eps)
-    above = cost - best_cost > stopping.cost_atol + rel * initial_cost
+    # has seen, which is what the solution returns: that point is not stationary. A rise
+    # within the cost tolerance or √ε of the cost is the same optimum (residuals that
+    # cancel large values, data on an offset, carry far more rounding than ε·cost)
+    rel = jnp.maximum(stopping.cost_rtol, jnp.sqrt(jnp.finfo(cost.dtype).eps))
+    above = cost - best_cost > stopping.cost_atol + rel * cost
     status = jnp.where((status == Results.CONVERGED) & above, Results.DIVERGED,
                        status).astype(jnp.int32)
     hist = state.history

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import lineax as lx
 
 from .._checks import count_field
+from .._safe import safe_sqrt
 from ._colouring import BlockHessian, as_dense
 from ._sparse_hessian import SparseHessian
 from ._stopping import check_tolerance
@@ -97,7 +98,9 @@ class QR(LinearSolver):
 
     def solve(self, jac: Array, res: Array, hess: Array, grad: Array, diag_add: Array) -> Array:
         jac = as_dense(jac)
-        aug = jnp.concatenate([jac, jnp.diag(jnp.sqrt(jnp.maximum(diag_add, 0.0)))], 0)
+        # √a with a zero derivative at a = 0 (Gauss–Newton, Dogleg: no damping), where the
+        # plain root's infinite one made a NaN through the unrolled adjoint
+        aug = jnp.concatenate([jac, jnp.diag(safe_sqrt(diag_add))], 0)
         rhs = jnp.concatenate([-res, jnp.zeros_like(diag_add)])
         return lx.linear_solve(lx.MatrixLinearOperator(aug), rhs, lx.QR(), throw=False).value
 

@@ -52,9 +52,13 @@ def _runner(
             return ~s.done
 
         if stopping.budget > 0:
-            if unrolled:  # budget + 1 trials: the first only linearises
+            if unrolled:
+                # the first trial (it only linearises) runs before the loop: inside it,
+                # its skipped solve would be a lax.cond whose predicate vmap batches, and
+                # reverse mode then transposes lineax's solve on the zero residuals JAX
+                # stores for an untaken branch (lineax raises on the singular system)
                 state = eqxi.while_loop(
-                    cond, body, state, max_steps=stopping.budget + 1, kind="checkpointed"
+                    cond, body, body(state), max_steps=stopping.budget, kind="checkpointed"
                 )
             else:
                 state = jax.lax.while_loop(cond, body, state)

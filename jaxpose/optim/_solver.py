@@ -188,7 +188,6 @@ class _DensePath(eqx.Module):
     solver: AbstractSolver
     problem: Problem
     args: PyTree
-    placeholder_solvable = True  # identity H (see _init)
 
     def linearize(self, params: PyTree) -> tuple[NormalEquations, Array, Array]:
         lin = self.problem.linearize_structured(params, self.args)

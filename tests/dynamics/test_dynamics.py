@@ -178,6 +178,9 @@ def test_bicycle_ranges_exact_and_differentiable_at_a_landmark():
         J = np.asarray(jac(x))
         assert np.all(np.isfinite(J)) and np.all(J[3] == 0.0)
         np.testing.assert_allclose(J[:3, :2], (x[:2] - L[:3]) / y[:3, None], rtol=1e-13)
+    # a NaN position gives NaN ranges (the hand-written double where returned 0 for them)
+    y = np.asarray(h(np.array([np.nan, 1.0, 0.0, 2.0])))
+    assert np.all(np.isnan(y[:4])) and y[4] == 2.0
 
 
 def _pendulum_rk4_numpy(x, u, dt=0.05, g=9.81, length=1.0, mass=1.0, b=0.1):

@@ -354,7 +354,9 @@ def test_unrolled_adjoint_runs_the_whole_budget():
     jo.LM(strategy=jo.Dogleg()),
     pytest.param(jo.LM(linear_solver=jo.QR()), marks=pytest.mark.slow),
     pytest.param(jo.GN(), marks=pytest.mark.slow),
-], ids=["dogleg", "lm-qr", "gn"])
+    pytest.param(jo.GN(linear_solver=jo.QR()), marks=pytest.mark.slow),
+    pytest.param(jo.LM(linear_solver=jo.QR(), strategy=jo.Dogleg()), marks=pytest.mark.slow),
+], ids=["dogleg", "lm-qr", "gn", "gn-qr", "dogleg-qr"])
 def test_vmap_of_unrolled_gradient_equals_each_problems_gradient(solver):
     """vmap(grad) through the unrolled loop raised "a linear solver returned non-finite
     output": JAX stores zero residuals for the lax.cond branch a lane did not take (the

@@ -431,6 +431,28 @@ def test_gauss_newton_converging_above_its_best_point_is_not_convergence():
             residual, x0, q, solver=jo.GN()).params[0])(p))
 
 
+def test_gauss_newton_at_rounding_level_above_its_best_point_still_converges():
+    """The rule above must not read rounding as a costlier optimum. A fit on a 1e4 baseline
+    (residuals cancel large values) started 1e-6 from the optimum: GN's cost rose by
+    2.4e-10 relative over its first step, all rounding, and a first version of the rule
+    (64·ε of the initial cost) called it DIVERGED and its gradient raised."""
+    t = jnp.linspace(0.0, 5.0, 200)
+    noise = 1e-3 * jnp.asarray(np.random.default_rng(1).normal(size=200))
+    y = 2.0 * jnp.exp(-0.7 * t) + 1e4 + noise
+
+    def residual(x, y):
+        return x[0] * jnp.exp(-x[1] * t) + x[2] - y
+
+    ref = jo.least_squares(residual, jnp.array([1.5, 0.5, 1e4 + 0.3]), y)
+    x0 = ref.params + jnp.array([1e-6, -1e-6, 1e-6])
+    gn = jo.least_squares(residual, x0, y, solver=jo.GN(), history=True)
+    assert int(gn.status) == jp.Results.CONVERGED
+    assert float(jnp.max(gn.history[1:int(gn.num_steps) + 1])) > float(gn.cost)  # a rise
+    np.testing.assert_allclose(gn.params, ref.params, atol=1e-8)
+    grad = jax.grad(lambda y: jo.least_squares(residual, x0, y, solver=jo.GN()).params.sum())
+    assert np.all(np.isfinite(grad(y)))
+
+
 def test_repeated_eager_calls_reuse_the_compiled_solve():
     """least_squares is filter_jit-compiled: new data of the same shapes never retraces."""
     traces = []
