@@ -350,6 +350,23 @@ def test_unrolled_adjoint_runs_the_whole_budget():
     np.testing.assert_array_equal(sols[0].params, sols[1].params)
 
 
+def test_vmap_of_unrolled_gradient_of_three_dogleg_steps():
+    """The default-tier case of the test below (two compilations): each lane's gradient
+    through three unrolled Dogleg steps equals its own."""
+
+    def loss(a):
+        return jo.least_squares(_rosenbrock_residual, _ROSENBROCK_START, a,
+                                solver=jo.LM(strategy=jo.Dogleg()), adjoint="unrolled",
+                                max_steps=3).params.sum()
+
+    batch = jnp.array([[1.0], [1.5]])
+    lanes = jax.vmap(jax.grad(loss))(batch)
+    single = jax.jit(jax.grad(loss))
+    for i in range(2):
+        np.testing.assert_allclose(lanes[i], single(batch[i]), rtol=1e-12)
+
+
+@pytest.mark.slow  # five compilations of the unrolled loop per solver (~10 s)
 @pytest.mark.parametrize("solver", [
     jo.LM(strategy=jo.Dogleg()),
     pytest.param(jo.LM(linear_solver=jo.QR()), marks=pytest.mark.slow),
