@@ -22,7 +22,6 @@ def keep_dtypes(new: Any, old: Any) -> Any:
     return jax.tree.map(lambda n, o: n.astype(o.dtype), new, old)
 
 
-
 def inexact(tree: Any) -> Any:
     """Integer or bool array leaves (and Python numbers) of ``tree`` as floating arrays of
     JAX's default float dtype: the starting values of a continuous optimisation."""

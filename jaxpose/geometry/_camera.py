@@ -23,9 +23,10 @@ import jax
 import jax.numpy as jnp
 
 from .._precision import full_precision
+from .._safe import safe_norm
 from ..lie import SE3, SO3
 from ..lie._base import as_float_array, check_last_dim
-from ._util import Array, batch_shape, check_group, matrix_array, points_array, safe_norm
+from ._util import Array, batch_shape, check_group, matrix_array, points_array
 
 _REDUCTIONS = ("none", "sum", "norm", "mean")
 

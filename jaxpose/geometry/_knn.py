@@ -30,9 +30,10 @@ import jax.numpy as jnp
 
 from .._checks import check_count
 from .._precision import full_precision
+from .._safe import safe_norm
 from ..lie._base import runtime_check
 from ._kdtree import build_kdtree, query_kdtree
-from ._util import Array, batch_shape, flatten_batch, points_array, safe_norm
+from ._util import Array, batch_shape, flatten_batch, points_array
 
 DEFAULT_BUDGET = 1 << 22  # elements of the (tile, M) distance block (16 MiB in float32)
 """Default ``budget``: elements of one (tile, M) block of distances (16 MiB in float32)."""

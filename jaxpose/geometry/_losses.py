@@ -11,9 +11,10 @@ from typing import Any
 
 import jax.numpy as jnp
 
+from .._safe import safe_norm
 from ..lie import SO3, LieAlgebra, LieGroup
 from ..lie._base import broadcast_batch
-from ._util import Array, safe_norm
+from ._util import Array
 
 _REDUCTIONS = ("none", "mean", "sum")
 

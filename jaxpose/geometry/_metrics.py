@@ -39,11 +39,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_count
+from .._safe import safe_norm
 from .._stamps import shifted
 from ..lie import SE3, Sim3
 from ..lie._base import as_float_array, runtime_check
 from ._registration import umeyama
-from ._util import Array, check_group, safe_norm
+from ._util import Array, check_group
 
 _ETYPES = ("translation", "rotation", "pose", "radian", "degree")
 _ALIGN = (None, "se3", "sim3", "origin")

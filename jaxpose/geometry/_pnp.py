@@ -56,6 +56,7 @@ import jax.numpy as jnp
 
 from .._checks import check_count
 from .._precision import full_precision
+from .._safe import safe_div, safe_norm, safe_sqrt
 from ..lie import SE3
 from ..lie._base import skew
 from ..optim._implicit import at_stationary_point
@@ -69,9 +70,6 @@ from ._util import (
     flatten_batch,
     matrix_array,
     points_array,
-    safe_div,
-    safe_norm,
-    safe_sqrt,
     spd_solve,
 )
 

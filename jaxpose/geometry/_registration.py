@@ -27,9 +27,10 @@ import jax
 import jax.numpy as jnp
 
 from .._precision import full_precision
+from .._safe import safe_div
 from ..lie import SE3, SO3, Sim3
 from ..lie._base import as_float_array, runtime_check, skew, vee
-from ._util import Array, batch_shape, points_array, safe_div, same_count
+from ._util import Array, batch_shape, points_array, same_count
 
 
 def _det3(m: Array) -> Array:

@@ -13,7 +13,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._safe import safe_div, safe_norm, safe_sqrt  # noqa: F401 (the geometry modules' import)
 from ..lie._base import LieGroup, as_float_array
 
 Array = jax.Array

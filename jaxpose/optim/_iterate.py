@@ -244,17 +244,10 @@ def trial(rule: Rule, path: Path, state: SolverState, stopping: Stopping, *,
             plateau_count=plateau,
             nonfinite_run=~accepted & bad_run,
             trial_cost=cost_new,
+            best=best_cost,
         ),
     )
     status = jnp.where(fresh, start_status(finite, grad_inf, stopping), status)
-    # a rule that takes uphill steps (Gauss–Newton) can converge above the best point it
-    # has seen, which is what the solution returns: that point is not stationary. A rise
-    # within the cost tolerance or √ε of the cost is the same optimum (residuals that
-    # cancel large values, data on an offset, carry far more rounding than ε·cost)
-    rel = jnp.maximum(stopping.cost_rtol, jnp.sqrt(jnp.finfo(cost.dtype).eps))
-    above = cost - best_cost > stopping.cost_atol + rel * cost
-    status = jnp.where((status == Results.CONVERGED) & above, Results.DIVERGED,
-                       status).astype(jnp.int32)
     hist = state.history
     if hist.shape[0] > 0:
         hist = hist.at[jnp.minimum(num_steps, hist.shape[0] - 1)].set(cost)

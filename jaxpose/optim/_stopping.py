@@ -122,6 +122,7 @@ class Trial(NamedTuple):
     plateau_count: Array  # consecutive non-decreasing iterations so far (int32)
     nonfinite_run: Array | bool = False  # bool: every trial since the last accepted one
     # (at least this one) was not finite
+    best: Array | None = None  # lowest cost seen, this trial included (None: ``cost``)
 
 
 def nonfinite_run(previous: Array, accepted: Array, finite: Array) -> Array:
@@ -169,10 +170,18 @@ def check(stopping: Stopping, t: Trial) -> tuple[Array, Array]:
     conv = conv | (t.finite & ~t.accepted & (t.trial_cost == t.last))
     if stopping.plateau is not None:
         conv = conv | (t.plateau_count >= stopping.plateau.patience)
+    # a rule that takes uphill steps (Gauss–Newton) can converge above the best point it
+    # has seen, which is what the solution returns: that point is not stationary. A rise
+    # within the cost tolerance or √ε of the cost is the same optimum (residuals that
+    # cancel large values, data on an offset, carry far more rounding than ε·cost)
+    best = t.cost if t.best is None else t.best
+    rel = jnp.maximum(stopping.cost_rtol, jnp.sqrt(eps))
+    above_best = conv & (t.cost - best > stopping.cost_atol + rel * t.cost)
+    conv = conv & ~above_best
     stalled = t.rejects >= stopping.max_rejects
     out_of_steps = t.step >= stopping.budget
     nonfinite = (stalled & ~t.finite) | (out_of_steps & ~t.finite & t.nonfinite_run)
-    diverged = stalled & t.finite
+    diverged = (stalled & t.finite) | above_best
     status = jnp.where(
         nonfinite,
         Results.NON_FINITE,

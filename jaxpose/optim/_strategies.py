@@ -265,7 +265,7 @@ class Dogleg(Strategy):
         gn_ok = jnp.all(jnp.isfinite(gn))
         gn = jnp.where(gn_ok, gn, 0.0)
         # safe norms and root: the step is differentiated (adjoint="unrolled") also at
-        # g = 0 (the first trial's placeholder, a converged lane under vmap)
+        # g = 0 (a finished lane that vmap keeps stepping)
         gn_norm = safe_norm(gn)
         # Cauchy point along the unit direction u = g/‖g‖: ‖g‖²/gᵀHg = ‖g‖/uᵀHu, whose
         # two factors do not overflow for large residuals (gᵀg did: inf/inf, a NaN step);
