@@ -13,7 +13,8 @@ solution with respect to every array in the system (dynamics parameters), the co
   written with differentiable operations: reverse mode is its transpose and
   differentiating it again gives exact derivatives of any order (``jax.hessian``,
   ``jacfwd(jacrev(...))``). It holds at a converged solution only: differentiating a
-  solve that stopped otherwise (``status`` not converged) raises.
+  solve that stopped otherwise (``status`` not converged) raises (in reverse mode where
+  its cotangent is nonzero: a batch's loss may mask it out).
 * ``gradient="unroll"``: reverse mode through the solver iterations (``max_iter`` of
   them, in ``lax.scan``).
 
@@ -34,7 +35,7 @@ from .._checks import check_count, count_field
 from .._precision import full_precision
 from ..dynamics._checks import as_array
 from ..dynamics._system import LTI, LTV, System
-from ..optim._implicit import at_stationary_point
+from ..optim._implicit import converged_only
 from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
 from ._cost import Cost, QuadraticCost
@@ -137,11 +138,12 @@ def _solve_implicit_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...], *, 
     params, u_init, bounds, t0 = primals
     t_params, _, t_bounds, _ = tangents
     out = _solve_implicit(params, u_init, bounds, t0, cfg=cfg)  # differentiable again
-    xs, us = at_stationary_point(
-        out[:2], out[2], "MPC(gradient='implicit')",
+    xs, us = out[:2]
+    wx, wu = converged_only(
+        _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds, t0), out[2],
+        "MPC(gradient='implicit')",
         "Give iLQR more iterations or looser tolerances, or differentiate the iterates with "
         "gradient='unroll'.")
-    wx, wu = _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds, t0)
     return out, (wx, wu, None, None)
 
 

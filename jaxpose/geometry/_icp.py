@@ -42,7 +42,7 @@ from .._checks import check_count
 from .._precision import full_precision
 from ..lie import SE3
 from ..lie._base import as_float_array, check_last_dim, runtime_check
-from ..optim._implicit import at_stationary_point
+from ..optim._implicit import converged_only
 from ..results import Results
 from ._kdtree import build_kdtree, query_kdtree
 from ._knn import DEFAULT_BUDGET, _select, knn, resolve_method, tile_size
@@ -109,9 +109,11 @@ def _plane_implicit_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
     _, dsrc, dq, dnrm, _, _ = tangents
     # the optimum itself, carrying this rule when the rule is differentiated again: the
     # tangent is then a differentiable function of (T*(θ), θ), so higher orders are exact
-    ts = at_stationary_point(
-        _plane_implicit(t, src, q, nrm, w, status), status, "icp(method='point_to_plane')",
-        "Give it more iterations (max_iterations) or a looser tolerance.")
+    ts = _plane_implicit(t, src, q, nrm, w, status)
+
+    def converged(tangent: Array) -> Array:
+        return converged_only(tangent, status, "icp(method='point_to_plane')",
+                              "Give it more iterations (max_iterations) or a looser tolerance.")
 
     def cost(delta: Array) -> Array:  # Exp(δ)·T·p to second order (exact Hessian at 0)
         moved = exp_act2(delta, SE3(ts).act(src))
@@ -125,9 +127,9 @@ def _plane_implicit_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
 
     zero = jnp.zeros((6,), t.dtype)
     h = jax.hessian(cost)(zero)
-    dg = jax.jvp(grad, (src, q, nrm), (dsrc, dq, dnrm))[1]
+    dg = converged(jax.jvp(grad, (src, q, nrm), (dsrc, dq, dnrm))[1])
     damp = jnp.finfo(t.dtype).eps * (jnp.trace(jnp.abs(h)) + 1.0)
-    ddelta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), dg)
+    ddelta = converged(-jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), dg))
     dt = jax.jvp(lambda d: SE3.exp(d).compose(SE3(ts)).data, (zero,), (ddelta,))[1]
     return ts, dt
 
@@ -234,7 +236,8 @@ def _icp_single(
     w = (jnp.sum(jnp.square(moved - tgt_c[idx]), -1) <= gate).astype(dtype)
     # a problem with no accepted update returns its start (derivative zero), but the
     # re-solve below is still differentiated: it sees zeros, not data that may be NaN
-    # (0·NaN in the batch's gradient) or a status that raises (the whole batch's)
+    # (0·NaN in the batch's gradient), and a converged status (forward mode and higher
+    # orders raise for a non-converged one even where its loss is masked out)
     def data(x: Array) -> Array:
         return jnp.where(accepted, x, 0.0)
 

@@ -59,7 +59,7 @@ from .._precision import full_precision
 from .._safe import safe_div, safe_norm, safe_sqrt
 from ..lie import SE3
 from ..lie._base import skew
-from ..optim._implicit import at_stationary_point
+from ..optim._implicit import converged_only
 from ..results import Results
 from ._camera import point2pixel
 from ._registration import svdtf
@@ -352,9 +352,12 @@ def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
     # the optimum itself, carrying this rule's derivative when the rule is differentiated
     # again: the tangent below is then a differentiable function of (T*(θ), θ), so second
     # and higher derivatives are exact too
-    ts = SE3(at_stationary_point(
-        _implicit_tangent(t, pw, uv, k, status), status, "epnp",
-        "Refine to convergence (a larger refine_steps) and check the result's status."))
+    ts = SE3(_implicit_tangent(t, pw, uv, k, status))
+
+    def converged(tangent: Array) -> Array:
+        return converged_only(
+            tangent, status, "epnp",
+            "Refine to convergence (a larger refine_steps) and check the result's status.")
 
     def cost(delta: Array) -> Array:  # T·Exp(δ)·p to second order (exact Hessian at 0)
         h = ts.act(exp_act2(delta, pw)) @ k.T
@@ -366,9 +369,9 @@ def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
 
     zero = jnp.zeros((6,), t.dtype)
     h = jax.hessian(cost)(zero)
-    dg = jax.jvp(grad, (pw, uv, k), (dpw, duv, dk))[1]
+    dg = converged(jax.jvp(grad, (pw, uv, k), (dpw, duv, dk))[1])
     damp = jnp.finfo(t.dtype).eps * (jnp.trace(jnp.abs(h)) + 1.0)
-    ddelta = -jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), dg)
+    ddelta = converged(-jnp.linalg.solve(h + damp * jnp.eye(6, dtype=t.dtype), dg))
     dt = jax.jvp(lambda d: ts.retract(d).data, (zero,), (ddelta,))[1]
     return ts.data, dt
 

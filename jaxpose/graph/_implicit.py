@@ -40,7 +40,7 @@ import numpy as np
 from .._precision import full_precision
 from ..lie import SE3, LieGroup
 from ..lie._base import skew, small_matmul
-from ..optim._implicit import at_stationary_point, checked, jvp_where
+from ..optim._implicit import checked, converged_only, jvp_where
 from ._analysis import tangent_dim
 from ._factor import between_residual
 from ._linear import (
@@ -369,9 +369,12 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     t_graph, t_x0 = tangents
     _refuse_open_gauge(graph)
     sol = _differentiable(graph, x0, run=run, options=options)  # differentiable again
-    xs = at_stationary_point(
-        sol.variables, sol.status, "graph.solve",
-        "Give it more steps (Stopping(max_steps=...)) or looser tolerances.")
+    xs = sol.variables
+
+    def converged(t: Any) -> Any:
+        return converged_only(t, sol.status, "graph.solve",
+                              "Give it more steps (Stopping(max_steps=...)) or looser tolerances.")
+
     dtype = sol.cost.dtype
     zero = jnp.zeros((graph.structure.size,), dtype)
     free = free_flat(graph, dtype)
@@ -381,10 +384,11 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     # the residuals (φ(0) is the cost at the solution)
     (_, grad0), (dcost, b) = jvp_where(
         lambda g: jax.value_and_grad(_chart_cost, argnums=2)(g, xs, zero), graph, t_graph)
-    eps_dot = -_tangent_solve(graph, options, xs, b * free)
+    # checked before the solve in forward mode, after it in reverse (its transpose)
+    eps_dot = -_tangent_solve(graph, options, xs, converged(b * free))
+    dcost, eps_dot = converged((dcost + jnp.dot(grad0, eps_dot), eps_dot))
     x_dot = jax.jvp(lambda d: retract_all(graph, xs, d, "retract_quadratic"), (zero,),
                     (eps_dot,))[1]
-    dcost = dcost + jnp.dot(grad0, eps_dot)
     _, dinit = jvp_where(lambda gx: cost(*gx), (graph, x0), (t_graph, t_x0))
     t_sol = type(sol)(x_dot, dcost, dinit, None, None, None, None)  # None: no tangent
     return sol, t_sol

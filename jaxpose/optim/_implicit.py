@@ -90,28 +90,36 @@ def first_order_only(x: PyTree, what: str) -> PyTree:
     return ident(x)
 
 
-def at_stationary_point(x: PyTree, status: jax.Array, where: str, remedy: str) -> PyTree:
-    """``x`` (the solution a derivative rule works from), raising (``eqx.error_if``, also
-    under jit and vmap) unless ``status`` is CONVERGED: the implicit function theorem
-    holds at a stationary point only, and at an estimate a solver stopped at for another
-    reason (budget spent, stalled, non-finite) its derivative is neither the optimum's nor
-    that of the steps taken — a wrong number, never returned. ``remedy`` ends the message.
-    The check is a zero added to ``x``'s floating-point leaves under ``stop_gradient``,
-    so a rule differentiated again does not differentiate it."""
-    zero = eqx.error_if(
-        jnp.zeros(jnp.shape(status)), status != Results.CONVERGED,
-        f"{where}: cannot differentiate the solution: the solver stopped without converging "
-        f"(its status is not 'converged': check it), so the estimate is not a stationary "
-        f"point and the implicit derivative would be wrong. {remedy}")
-    zero = jax.lax.stop_gradient(zero)
+def converged_only(tangent: PyTree, status: jax.Array, where: str, remedy: str) -> PyTree:
+    """``tangent`` (of a solution, inside its derivative rule), raising (``eqx.error_if``,
+    also under jit and vmap) where it is nonzero for a problem whose ``status`` is not
+    CONVERGED: the implicit function theorem holds at a stationary point only, and at an
+    estimate a solver stopped at for another reason (budget spent, stalled, non-finite)
+    its derivative is neither the optimum's nor that of the steps taken — a wrong number,
+    never returned. ``remedy`` ends the message. ``status`` has the leaves' leading shape
+    (a batch of problems) or is a scalar.
 
-    def leaf(a: Any) -> Any:
-        if not eqx.is_inexact_array(a):
-            return a
-        z = zero.reshape(zero.shape + (1,) * (jnp.ndim(a) - zero.ndim)).astype(a.dtype)
-        return a + z
+    Each leaf passes through an identity ``jax.lax.custom_linear_solve`` whose solver
+    checks it: in forward mode that is the tangent, in reverse mode (the transpose) the
+    cotangent. So a problem of a vmapped batch that did not converge raises only when
+    something is differentiated through it: a loss that masks it out (zero cotangent)
+    differentiates the others, exactly, as its contribution is zero."""
+    bad = status != Results.CONVERGED
+    message = (f"{where}: cannot differentiate the solution: the solver stopped without "
+               f"converging (its status is not 'converged': check it), so the estimate is "
+               f"not a stationary point and the implicit derivative would be wrong. {remedy}")
 
-    return jax.tree.map(leaf, x)
+    def leaf(t: Any) -> Any:
+        if not eqx.is_inexact_array(t):
+            return t
+        mask = bad.reshape(bad.shape + (1,) * (jnp.ndim(t) - bad.ndim))
+
+        def check(_: object, r: jax.Array) -> jax.Array:
+            return eqx.error_if(r, jnp.any(mask & (r != 0)), message)
+
+        return jax.lax.custom_linear_solve(lambda v: v, t, check, symmetric=True)
+
+    return jax.tree.map(leaf, tangent)
 
 
 def jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple[Any, Any]:
@@ -146,7 +154,8 @@ def checked(inner: Inner, message: str) -> Inner:
     and reverse mode."""
 
     def solve(matvec: Callable[[jax.Array], jax.Array], rhs: jax.Array) -> jax.Array:
-        x = inner(matvec, rhs)
+        zero_rhs = jnp.all(rhs == 0)  # a problem masked out of a batch: H need not be valid
+        x = jnp.where(zero_rhs, 0, inner(matvec, rhs))
         failed = jnp.all(jnp.isfinite(rhs)) & ~jnp.all(jnp.isfinite(x))
         return eqx.error_if(x, failed, message)
 
@@ -202,10 +211,14 @@ def _implicit_jvp(
     theta, params0 = primals
     t_theta, t_params0 = tangents
     sol = _implicit(theta, params0, run=run, adjoint=adjoint)  # differentiable again
-    x_star = at_stationary_point(
-        sol.params, sol.status, "least_squares",
-        "Give it more steps (max_steps) or looser tolerances, or differentiate the steps "
-        "taken with adjoint='unrolled'.")
+    x_star = sol.params
+
+    def converged(t: PyTree) -> PyTree:
+        return converged_only(
+            t, sol.status, "least_squares",
+            "Give it more steps (max_steps) or looser tolerances, or differentiate the "
+            "steps taken with adjoint='unrolled'.")
+
     flat0, unravel = manifold.flat_tangent(x_star)
 
     def lift(eps: jax.Array) -> PyTree:  # differentiated at most twice in eps, at 0
@@ -234,7 +247,9 @@ def _implicit_jvp(
         lin = problem.linearize_structured(x_star, args)
         hess, _ = normal_equations(lin.jac, lin.res)  # dense, BlockHessian or SparseHessian
         hess = first_order_only(hess, "least_squares(ImplicitAdjoint(hessian='gauss_newton'))")
-    eps_dot = -_adjoint_solve(adjoint.linear_solver, hess, b)
+    # checked before the solve in forward mode, after it in reverse (its transpose)
+    eps_dot = -_adjoint_solve(adjoint.linear_solver, hess, converged(b))
+    dcost, eps_dot = converged((dcost + jnp.dot(grad0, eps_dot), eps_dot))
     x_dot = jax.jvp(lift, (flat0,), (eps_dot,))[1]
 
     # total derivative of the initial cost (the cost's partial derivative is above)
@@ -243,7 +258,6 @@ def _implicit_jvp(
         return prob.cost(p0, a)
 
     _, dinit = jvp_where(initial_cost, (theta, params0), (t_theta, t_params0))
-    dcost = dcost + jnp.dot(grad0, eps_dot)
     t_sol = Solution(x_dot, None, None, None, dcost, dinit, None, None)  # None: no tangent
     return sol, t_sol
 
@@ -270,5 +284,5 @@ def implicit_solve(
     return _implicit((args, problem), params0, run=run, adjoint=adjoint)
 
 
-__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "at_stationary_point", "checked",
+__all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "checked", "converged_only",
            "first_order_only", "implicit_solve", "jvp_where"]

@@ -288,6 +288,32 @@ def test_implicit_gradient_of_an_unconverged_solve_raises():
     assert np.isfinite(float(jax.grad(lambda a: effort(a, "unroll")[0])(1.0)))
 
 
+def test_an_unconverged_problem_masked_out_of_a_batch_does_not_block_its_gradient():
+    """A batch of two starts, two iLQR iterations: from rest at the target the solve
+    converges, from x0 = (0.2, −0.5) it stops (max_steps). A loss that masks the second
+    out has the first's own gradient; it raised for the whole batch."""
+    x0s = jnp.array([[0.0, 0.0], [0.2, -0.5]])
+
+    def effort(length, x0):
+        mpc = MPC(Pendulum(dt=0.1, length=length), QuadraticCost.tracking(
+            jnp.eye(3), jnp.array([1.0, 0.0, 0.0])), 6, gradient="implicit", max_iter=2)
+        sol = mpc(x0, jnp.zeros((6, 1)))
+        return jnp.sum(sol.u ** 2), sol.status
+
+    def masked(length):
+        e, status = jax.vmap(lambda x0: effort(length, x0))(x0s)
+        return jnp.sum(jnp.where(status == Results.CONVERGED, e, 0.0))
+
+    status = jax.vmap(lambda x0: effort(1.0, x0))(x0s)[1]
+    assert status.tolist() == [Results.CONVERGED, Results.MAX_STEPS]
+    alone = jax.grad(lambda a: effort(a, x0s[0])[0])(1.0)
+    assert abs(float(alone)) > 1e-3
+    h = 1e-5  # the converged problem's own derivative: central differences
+    fd = (effort(1.0 + h, x0s[0])[0] - effort(1.0 - h, x0s[0])[0]) / (2 * h)
+    assert float(alone) == pytest.approx(float(fd), rel=1e-6)
+    assert float(jax.grad(masked)(1.0)) == pytest.approx(float(alone), rel=1e-12)
+
+
 def test_implicit_gradient_at_a_stationary_point_that_is_not_a_minimum_raises():
     """Stage cost ½x² + ½(u² − 1)² from u = 0, x0 = 0: the gradient is zero at once, so MPC
     stops there (status converged), at a maximum in u. The implicit derivative does not

@@ -251,3 +251,31 @@ def test_a_nan_problem_masked_out_of_a_batch_leaves_the_others_gradient(rng, met
     alone = grad(jnp.zeros(3), src[None])
     assert np.all(np.isfinite(alone)) and np.abs(alone).max() > 0.1
     np.testing.assert_allclose(grad(jnp.zeros(3), batch), alone, rtol=1e-12)
+
+
+def test_an_unconverged_point_to_plane_problem_masked_out_of_a_batch(rng):
+    """Five iterations: the small motion converges, the large one stops (max_steps). A
+    loss that masks the second out has the first's own gradient; it raised "cannot
+    differentiate" for the whole batch. Unmasked, it still raises."""
+    tgt = jnp.asarray(rng.normal(size=(200, 3)))
+    nrm = estimate_normals(tgt, k=8)
+    motions = jnp.array([[0.02, -0.01, 0.01, 0.02, 0.0, -0.03],
+                         [0.3, -0.2, 0.1, 0.2, 0.1, -0.3]])
+    batch = jax.vmap(lambda m: SE3.exp(m).inv().act(tgt[:150]))(motions)
+
+    def per_problem(shift, clouds):
+        r = icp(clouds + shift, tgt, method="point_to_plane", target_normals=nrm,
+                tolerance=1e-12, max_iterations=5)
+        return jnp.sum(r.transform.data, -1), r.status
+
+    def masked(shift, clouds):
+        values, status = per_problem(shift, clouds)
+        return jnp.sum(jnp.where(status == Results.CONVERGED, values, 0.0))
+
+    assert per_problem(jnp.zeros(3), batch)[1].tolist() == [0, 1]
+    grad = jax.jit(jax.grad(masked))
+    alone = grad(jnp.zeros(3), batch[:1])
+    assert np.abs(alone).max() > 0.1
+    np.testing.assert_allclose(grad(jnp.zeros(3), batch), alone, rtol=1e-12)
+    with pytest.raises(Exception, match=r"icp\(method='point_to_plane'\): cannot differentiate"):
+        jax.block_until_ready(jax.grad(lambda s: per_problem(s, batch)[0].sum())(jnp.zeros(3)))

@@ -151,6 +151,34 @@ def test_derivative_of_an_unconverged_solve_raises():
         jax.block_until_ready(jax.jvp(pose_sum, (NOISE,), (jnp.ones_like(NOISE),))[1])
 
 
+@pytest.mark.slow  # vmapped and single gradients through graph.solve (~25 s each)
+@pytest.mark.parametrize("method", ["sparse", "pcg", "dense"])
+def test_an_unconverged_graph_masked_out_of_a_batch_does_not_block_its_gradient(method):
+    """Five LM steps: from the truth the loop graph converges, from a start 1.2 rad off it
+    stops (max_steps). A loss that masks the second out has the first's own gradient; it
+    raised "cannot differentiate" for the whole batch."""
+    starts = jnp.stack([TRUTH.data, TRUTH.retract(
+        jnp.asarray(1.2 * np.random.default_rng(1).normal(size=(N, 3)))).data])
+
+    def run(noise, x0):
+        f = G.Factor(between_residual, [("pose", EDGES[:, 0]), ("pose", EDGES[:, 1])],
+                     data=Z_TRUE.retract(noise), information=INFO)
+        graph = G.FactorGraph([f], {"pose": SE2(x0)}, fixed={"pose": np.array([0])})
+        sol = G.solve(graph, stopping=jo.Stopping(max_steps=5, cost_rtol=1e-12, gtol=1e-10),
+                      linear_solver=method)
+        return jnp.sum(W * sol.variables["pose"].data) + sol.cost, sol.status
+
+    def masked(noise):
+        values, status = jax.vmap(lambda x0: run(noise, x0))(starts)
+        return jnp.sum(jnp.where(status == 0, values, 0.0)), status
+
+    grad, status = jax.jit(jax.grad(masked, has_aux=True))(NOISE)
+    assert status.tolist() == [0, 1]  # converged, max_steps
+    alone = jax.jit(jax.grad(lambda n: run(n, starts[0])[0]))(NOISE)
+    assert np.abs(alone).max() > 0.1
+    np.testing.assert_allclose(grad, alone, rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.slow  # a vmapped gradient through graph.solve compiles for ~25 s
 def test_vmap_of_grad_gives_per_problem_derivatives():
     batch = jnp.stack([NOISE, 0.5 * NOISE, -NOISE])

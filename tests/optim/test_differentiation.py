@@ -331,6 +331,47 @@ def test_derivative_of_an_unconverged_solution_raises():
     assert np.isfinite(float(jax.grad(lambda y: rate(y, 40))(y).sum()))
 
 
+def _square_residual(p, a):
+    return jnp.stack([p[0] ** 2 - a[0], 0.1 * p[1] - a[1]])
+
+
+@pytest.mark.parametrize("linear_solver", [jo.SVD(), jo.Cholesky()])
+def test_an_unconverged_problem_masked_out_of_a_batch_does_not_block_its_derivative(
+        linear_solver):
+    """One Gauss-Newton step: problem 0 starts near its optimum and converges, problem 1
+    stops (max_steps) where its Hessian is indefinite (eigenvalues −1.46, 0.01). A loss
+    that masks problem 1 out has the gradient of problem 0 alone; it raised "cannot
+    differentiate" for the whole batch (the check saw the status, not the cotangent), and
+    with Cholesky the masked problem's indefinite H failed the adjoint's solve. Problem 0's
+    gradient: d(p0 + p1 + cost)/da = (1/(2 p0), 10) at p = (1, 10 a1) = (0.5, 10). Forward
+    mode still raises (the masked problem's tangent is computed either way)."""
+    a = jnp.array([1.0, 0.3])
+    starts = jnp.array([[1.0, 2.9], [0.3, 1.0]])
+    adjoint = jo.ImplicitAdjoint(linear_solver=linear_solver)
+
+    def per_problem(a):
+        sols = jax.vmap(lambda p0: jo.least_squares(
+            _square_residual, p0, a, solver=jo.GaussNewton(), max_steps=1,
+            adjoint=adjoint))(starts)
+        return sols.params.sum(-1) + sols.cost, sols.status
+
+    values, status = per_problem(a)
+    assert status.tolist() == [Results.CONVERGED, Results.MAX_STEPS]
+
+    def masked(a):
+        values, status = per_problem(a)
+        return jnp.sum(jnp.where(status == Results.CONVERGED, values, 0.0))
+
+    np.testing.assert_allclose(jax.jit(jax.grad(masked))(a), [0.5, 10.0], rtol=1e-12)
+    np.testing.assert_allclose(jax.jacrev(lambda a: per_problem(a)[0][0])(a), [0.5, 10.0],
+                               rtol=1e-12)
+    match = "least_squares: cannot differentiate the solution"
+    with pytest.raises(Exception, match=match):  # unmasked
+        jax.block_until_ready(jax.grad(lambda a: per_problem(a)[0].sum())(a))
+    with pytest.raises(Exception, match=match):  # forward mode computes its tangent anyway
+        jax.block_until_ready(jax.jacfwd(masked)(a))
+
+
 def _rosenbrock_residual(p, a):
     return jnp.stack([10 * (p[1] - p[0] ** 2), a[0] - p[0], 0.1 * p[0] * p[1]])
 
