@@ -75,6 +75,10 @@ def batch_mesh(devices: Sequence[Any] | int | None = None, axis_name: str = "bat
     all_devices = jax.devices()
     if devices is None:
         devs = all_devices
+    elif isinstance(devices, bool | str | bytes) or not isinstance(
+            devices, int | np.integer | Sequence | np.ndarray):
+        raise TypeError(f"batch_mesh(devices): expected a device count, a sequence of devices "
+                        f"or None, got {type(devices).__name__} {devices!r}")
     elif isinstance(devices, int | np.integer):
         if not 1 <= int(devices) <= len(all_devices):
             raise ValueError(
@@ -86,6 +90,9 @@ def batch_mesh(devices: Sequence[Any] | int | None = None, axis_name: str = "bat
         devs = list(devices)
         if not devs:
             raise ValueError("batch_mesh(devices): expected at least one device, got none")
+        if not all(isinstance(d, jax.Device) for d in devs):
+            raise TypeError(f"batch_mesh(devices): expected jax devices (jax.devices()), got "
+                            f"{[type(d).__name__ for d in devs]}")
     return Mesh(np.asarray(devs), (axis_name,))
 
 
@@ -136,10 +143,12 @@ def pad_batch(tree: PyTree, multiple: int) -> tuple[PyTree, int]:
     extra = -n % multiple
     if extra == 0:
         return tree, n
-    padded = [
-        jnp.concatenate([leaf, jnp.repeat(jnp.asarray(leaf)[-1:], extra, axis=0)], axis=0)
-        for leaf in leaves
-    ]
+
+    def pad(leaf: Any) -> Any:  # NumPy stays NumPy, as it does unpadded
+        xp = np if isinstance(leaf, np.ndarray) else jnp
+        return xp.concatenate([leaf, xp.repeat(xp.asarray(leaf)[-1:], extra, axis=0)], axis=0)
+
+    padded = [pad(leaf) for leaf in leaves]
     return jax.tree.unflatten(treedef, padded), n
 
 
@@ -166,6 +175,20 @@ def replicate(tree: PyTree, mesh: Mesh | None = None) -> PyTree:
     models, measurement noise)."""
     mesh, _ = _mesh_axis(mesh, None)
     return jax.device_put(tree, NamedSharding(mesh, P()))
+
+
+def _vmap_axes(in_axes: Any, nargs: int) -> tuple[int | None, ...]:
+    """``in_axes`` as one entry per positional argument, each 0 or None (a Python or
+    NumPy integer 0; a bool is refused), at least one 0."""
+    axes = tuple(in_axes) if isinstance(in_axes, Sequence) else (in_axes,) * nargs
+    if len(axes) != nargs:
+        raise ValueError(f"shard_vmap(in_axes): {len(axes)} entries for {nargs} arguments")
+    if not all(a is None or (isinstance(a, int | np.integer) and not isinstance(a, bool)
+                             and a == 0) for a in axes):
+        raise ValueError(f"shard_vmap(in_axes): entries must be 0 or None, got {axes}")
+    if all(a is None for a in axes):
+        raise ValueError("shard_vmap(in_axes): at least one argument must be batched (0)")
+    return tuple(None if a is None else 0 for a in axes)
 
 
 def shard_vmap(
@@ -199,8 +222,14 @@ def shard_vmap(
       ``graph.solve(..., linear_solver="pcg")``). ``graph.solve`` with its other linear
       solvers, filters, Lie ops and control work with both.
 
-    The returned function is jitted; ``.lower(*args).compile()`` gives the compiled
-    program (e.g. to inspect its collectives).
+      A host callback (``graph.solve(..., linear_solver="sparse")``: CHOLMOD) cannot be
+      partitioned: under ``"partition"`` XLA gathers its operands (the whole batch's
+      sparse systems) onto every device at every iteration; use ``"shard_map"``.
+
+    The returned function is jitted and takes the arguments positionally; every argument
+    is traced, so close over static values (shapes, strings, functions) in ``fn``. An
+    empty batch gives ``jax.vmap``'s empty result. ``.lower(*args).compile()`` gives the
+    compiled program (e.g. to inspect its collectives).
     """
     mesh, axis = _mesh_axis(mesh, axis_name)
     if method not in ("partition", "shard_map"):
@@ -209,17 +238,18 @@ def shard_vmap(
     batch = NamedSharding(mesh, P(axis))
 
     @jax.jit
-    def run(*args: Any) -> Any:
-        axes = (in_axes,) * len(args) if not isinstance(in_axes, Sequence) else tuple(in_axes)
-        if len(axes) != len(args):
-            raise ValueError(
-                f"shard_vmap(in_axes): {len(axes)} entries for {len(args)} arguments"
-            )
-        if any(a not in (0, None) for a in axes):
-            raise ValueError(f"shard_vmap(in_axes): entries must be 0 or None, got {axes}")
+    def run(*args: Any, **kwargs: Any) -> Any:
+        if kwargs:
+            raise TypeError(f"shard_vmap: pass the arguments positionally (in_axes is per "
+                            f"positional argument); got keyword arguments {sorted(kwargs)}")
+        axes = _vmap_axes(in_axes, len(args))
         batched = [i for i, a in enumerate(axes) if a == 0]
-        if not batched:
-            raise ValueError("shard_vmap(in_axes): at least one argument must be batched (0)")
+        sizes = {i: _leaves_with_batch(args[i], f"shard_vmap(argument {i})")[2] for i in batched}
+        if len(set(sizes.values())) > 1:
+            raise ValueError(f"shard_vmap: the batched arguments' leading axes disagree "
+                             f"(argument: size): {sizes}")
+        if not sizes[batched[0]]:
+            return jax.vmap(fn, in_axes=axes)(*args)
         padded, n = pad_batch(tuple(args[i] for i in batched), ndev)
         args = list(args)
         for i, x in zip(batched, padded):

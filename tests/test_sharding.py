@@ -91,6 +91,22 @@ def _worker() -> dict:
                       shape=list(gs[0].shape), iterations=np.asarray(gs[2]).tolist(),
                       collectives=collectives(compiled.as_text()))
 
+    # 2c. The same graphs with CHOLMOD (a host callback) under shard_map: no collective
+    #     either ("partition" would gather the batch's sparse systems for the callback)
+    def sparse_one(init, meas):
+        import equinox as eqx
+
+        from jaxpose.graph import default_stopping, solve
+        g = eqx.tree_at(lambda g: g.variables["pose"], base, jp.SE2(init).normalize())
+        g = eqx.tree_at(lambda g: g.factors[0].data, g, jp.SE2(meas).normalize())
+        sol = solve(g, linear_solver="sparse", stopping=default_stopping(50))
+        return sol.variables["pose"].data, sol.cost, sol.iterations, sol.status
+
+    compiled = shard_vmap(sparse_one, mesh, method="shard_map").lower(ginit, gmeas).compile()
+    diff, ints = bs.compare(compiled(ginit, gmeas), g1)
+    out["pgo_sparse"] = dict(diff=diff, int_diff=ints,
+                             collectives=collectives(compiled.as_text()))
+
     # 3. An EKF over ten sequences, explicit per-device programs (shard_map), shared
     #    (replicated) inputs through in_axes=None.
     us, ys_ = bs.ekf_inputs(10, np.float64, steps=12)
@@ -159,6 +175,9 @@ def test_four_simulated_devices_least_squares_and_ekf_equal_unsharded(four_devic
     assert pgo["status"] == [0] * 8 and min(pgo["iterations"]) >= 2
     assert pgo["diff"] < 1e-10 and pgo["int_diff"] == 0
     assert pgo["collectives"] == {}, pgo["collectives"]
+    sparse = r["pgo_sparse"]  # CHOLMOD on the host, against the dense solves
+    assert sparse["diff"] < 1e-10 and sparse["int_diff"] == 0
+    assert sparse["collectives"] == {}, sparse["collectives"]
     assert r["ekf"]["shape"] == [10, 12, 4] and r["ekf"]["diff"] < 1e-10
     assert r["pad"] == [[0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 5.0, 5.0], 6]
 
@@ -198,6 +217,40 @@ def test_single_device_equals_vmap_and_bad_input():
         shard_batch(x, mesh="cpu")
     with pytest.raises(ValueError, match="axis_name"):
         batch_sharding(mesh, "model")
+
+
+def test_shard_vmap_arguments_as_vmap_takes_them_or_a_clear_error():
+    """NumPy integer in_axes and an empty batch work as in vmap (they failed inside vmap
+    and in pad_batch); keyword arguments, disagreeing batch sizes and bool entries get
+    errors naming shard_vmap and the argument; batch_mesh refuses a bool (it built a
+    one-device mesh) and non-devices; pad_batch keeps NumPy as NumPy when it pads."""
+    from jaxpose.sharding import batch_mesh, pad_batch, shard_vmap
+
+    mesh = batch_mesh(1)
+    x = jnp.arange(12.0).reshape(3, 4)
+    fn = lambda v, s: jnp.sin(v) * s  # noqa: E731
+    want = jax.vmap(fn, in_axes=(0, None))(x, 2.0)
+    np.testing.assert_array_equal(
+        shard_vmap(fn, mesh, in_axes=(np.int64(0), None))(x, 2.0), want)
+    assert shard_vmap(fn, mesh, in_axes=(0, None))(x[:0], 2.0).shape == (0, 4)
+    with pytest.raises(TypeError, match=r"shard_vmap: pass the arguments positionally.*'s'"):
+        shard_vmap(fn, mesh)(x, s=2.0)
+    with pytest.raises(ValueError, match=r"shard_vmap: .*disagree.*\{0: 3, 1: 2\}"):
+        shard_vmap(fn, mesh)(x, x[:2])
+    with pytest.raises(ValueError, match=r"shard_vmap\(argument 1\).*scalar leaf"):
+        shard_vmap(fn, mesh)(x, jnp.float32(2.0))
+    with pytest.raises(ValueError, match=r"shard_vmap\(in_axes\): entries must be 0 or None"):
+        shard_vmap(fn, mesh, in_axes=(False, None))(x, 2.0)
+    with pytest.raises(ValueError, match=r"at least one argument must be batched"):
+        shard_vmap(fn, mesh, in_axes=None)(x, 2.0)
+    for bad in (True, 2.0, "cpu"):
+        with pytest.raises(TypeError, match=r"batch_mesh\(devices\): expected a device count"):
+            batch_mesh(bad)
+    with pytest.raises(TypeError, match=r"batch_mesh\(devices\): expected jax devices"):
+        batch_mesh([0])
+    padded, n = pad_batch({"a": np.arange(3.0)}, 2)
+    assert isinstance(padded["a"], np.ndarray) and padded["a"].tolist() == [0, 1, 2, 2]
+    assert n == 3
 
 
 if __name__ == "__main__":
