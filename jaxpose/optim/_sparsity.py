@@ -318,12 +318,35 @@ def _fingerprint(c: Any) -> str:
     return f"{a.dtype}{a.shape}" + hashlib.sha1(np.ascontiguousarray(a).tobytes()).hexdigest()
 
 
+def _nested_consts(jaxpr: Any) -> list[Any]:
+    """The constants of every sub-program of ``jaxpr`` (a nested ``jit``'s closed jaxpr
+    keeps the arrays its function closes over), in order: the printed program names them
+    but does not show their values, on which the pattern may depend (an index array)."""
+    out: list[Any] = []
+
+    def visit(p: Any) -> None:
+        if isinstance(p, jex_core.ClosedJaxpr):
+            out.extend(p.consts)
+            visit(p.jaxpr)
+        elif isinstance(p, jex_core.Jaxpr):
+            for eqn in p.eqns:
+                for v in eqn.params.values():
+                    visit(v)
+        elif isinstance(p, tuple | list):
+            for q in p:
+                visit(q)
+
+    visit(jaxpr)
+    return out
+
+
 def jacobian_pattern(f: Callable[[jax.Array], jax.Array], x: jax.Array
                      ) -> tuple[tuple[Any, ...], sp.csr_matrix]:
     """``(key, P)``: the boolean (m, n) structural pattern P of the Jacobian of
     ``f: (n,) -> (m,)`` at any point (``x`` gives only shape and dtype; see the module
     docstring) and a key identifying the analysed program (equal keys, equal patterns).
-    Patterns are cached by that program (its jaxpr and the values of its constants)."""
+    Patterns are cached by that program (its jaxpr and the values of its constants, those
+    of nested sub-programs included)."""
     x = jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
     n = int(x.shape[0])
 
@@ -334,7 +357,8 @@ def jacobian_pattern(f: Callable[[jax.Array], jax.Array], x: jax.Array
     if len(closed.jaxpr.outvars) != 1 or len(closed.jaxpr.outvars[0].aval.shape) != 1:
         raise ValueError("jacobian_pattern: f must map an (n,) vector to an (m,) vector")
     consts = list(closed.consts)
-    key = (str(closed.jaxpr), tuple(_fingerprint(c) for c in consts))
+    key = (str(closed.jaxpr),
+           tuple(_fingerprint(c) for c in consts + _nested_consts(closed.jaxpr)))
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return key, _CACHE[key]

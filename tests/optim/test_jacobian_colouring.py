@@ -165,6 +165,30 @@ def test_traced_indices_fall_back_to_a_conservative_pattern():
     assert const.pattern(x, y).num_colours < 20
 
 
+@pytest.mark.parametrize("jacobian", ["sparse", "auto"])
+def test_index_arrays_inside_a_nested_jit_are_part_of_the_cached_pattern(jacobian):
+    """Patterns are cached by the analysed program; an index array closed over by a
+    jitted helper is a constant of the nested program, which the cache key ignored: the
+    second residual (other indices, same program text) got the first one's pattern and
+    least_squares returned x = 0 with cost 24 and status CONVERGED."""
+    n, m = 96, 48  # "auto" colours 48 blocks of one residual over 96 unknowns
+
+    def residual_picking(idx):
+        pick = jax.jit(lambda x: x[idx][:, None])
+
+        def res(x, target):
+            return pick(x) - target
+
+        return res
+
+    target = jnp.ones((m, 1))
+    for idx in (np.arange(m), np.arange(m, n)):
+        sol = jo.least_squares(residual_picking(idx), jnp.zeros(n), target, jacobian=jacobian)
+        assert int(sol.status) == 0
+        np.testing.assert_allclose(sol.params[idx], 1.0, rtol=1e-12)
+        assert float(sol.cost) < 1e-20
+
+
 def test_greedy_colouring_is_valid_on_random_patterns():
     rng = np.random.default_rng(9)
     for density in (0.02, 0.1, 0.5):
