@@ -639,7 +639,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     command line). Failures print one line to stderr, no traceback unless ``--debug``.
     ``pgo`` run as the process's own command (``argv`` None) adds
     :data:`jaxpose._compile.WHOLE_LOOP_FLAGS` to ``XLA_FLAGS`` before JAX starts; called
-    with ``argv`` from Python it leaves the environment alone."""
+    with ``argv`` from Python it leaves the environment alone, and JAX's float64 setting
+    (which ``demo``, ``pgo`` and ``ba`` set for their run) is restored on return."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -656,6 +657,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     # JAX logs a callback's exception (an equinox check) with its traceback before raising it
     callback_log = logging.getLogger("jax._src.callback")
     level = callback_log.level
+    import jax
+
+    x64 = jax.config.jax_enable_x64  # commands set their precision; a Python caller's returns
     if not args.debug:
         callback_log.setLevel(logging.CRITICAL)
 
@@ -677,6 +681,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     finally:
         callback_log.setLevel(level)
+        jax.config.update("jax_enable_x64", x64)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -63,11 +63,8 @@ def plot_pose_graphs(path: str, kind: str, before: np.ndarray, after: np.ndarray
     chart (:func:`jaxpose.graph.marginals`), the optimised panels also show 2-σ ellipses
     of the position marginals (world frame, projected onto each view; at most
     ``max_ellipses`` poses, evenly spaced)."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+    try:  # a Figure of its own (no pyplot): the caller's backend and figures stay as they are
+        from matplotlib.figure import Figure
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ImportError(
             "plotting needs matplotlib: pip install 'jaxpose[plot]'"
@@ -75,7 +72,8 @@ def plot_pose_graphs(path: str, kind: str, before: np.ndarray, after: np.ndarray
     views = [(0, 1)] if kind == "SE2" else [(0, 1), (0, 2)]
     pos_cov = (None if covariances is None
                else position_covariances(kind, after, covariances))
-    fig, axes = plt.subplots(len(views), 2, figsize=(10, 4.5 * len(views)), squeeze=False)
+    fig = Figure(figsize=(10, 4.5 * len(views)))
+    axes = fig.subplots(len(views), 2, squeeze=False)
     for row, (a, b) in enumerate(views):
         for col, (label, poses) in enumerate((("initial", before), ("optimised", after))):
             ax: Any = axes[row][col]
@@ -95,4 +93,3 @@ def plot_pose_graphs(path: str, kind: str, before: np.ndarray, after: np.ndarray
         fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)

@@ -314,3 +314,16 @@ def test_fuzz_inputs_are_valid_to_start_with(tmp_path):
     """The unmutated files read (the fuzz test starts from valid inputs)."""
     assert read_g2o(write(tmp_path, GOOD_G2O, "g.g2o")).n_edges == 3
     assert read_bal(write(tmp_path, GOOD_BAL, "b.txt")).n_observations == 3
+
+
+def test_a_python_call_restores_jax_float64_setting(tmp_path):
+    """demo, pgo and ba set JAX's float64 mode for their run; called from Python, main()
+    left it changed for the caller (pgo --float32 turned a float64 session's arrays
+    float32, a failing run without it turned float64 on)."""
+    before = jax.config.jax_enable_x64
+    for flag in (True, False):
+        jax.config.update("jax_enable_x64", flag)
+        assert cli.main(["pgo", str(tmp_path / "missing.g2o"), "--float32"]) == 1
+        assert cli.main(["pgo", str(tmp_path / "missing.g2o")]) == 1
+        assert jax.config.jax_enable_x64 is flag
+    jax.config.update("jax_enable_x64", before)

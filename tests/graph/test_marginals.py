@@ -352,6 +352,25 @@ def test_gtsam_marginals_at_solution(name):
                         rtol=GTSAM_RTOL[name])
 
 
+def test_plot_pose_graphs_leaves_the_matplotlib_backend_alone(tmp_path):
+    """The plot switched the process's backend to Agg (matplotlib.use), which stops a
+    notebook's inline figures; it draws on a Figure of its own now."""
+    matplotlib = pytest.importorskip("matplotlib")
+    from jaxpose.plot import plot_pose_graphs
+
+    before = matplotlib.get_backend()
+    matplotlib.use("pdf")
+    try:
+        poses = np.array([[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 1.0, 0.0], [1.0, 1.0, 0.0, 1.0]])
+        path = tmp_path / "graph.png"
+        plot_pose_graphs(str(path), "SE2", poses, poses, np.array([[0, 1], [1, 2]]),
+                         covariances=np.broadcast_to(np.eye(3) * 0.01, (3, 3, 3)))
+        assert matplotlib.get_backend() == "pdf"
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    finally:
+        matplotlib.use(before)
+
+
 def test_position_ellipses_geometry():
     """World-frame position covariance R Σ_ρρ Rᵀ and the 2σ ellipse axes (closed forms)."""
     from jaxpose.plot import ellipse_axes, position_covariances
