@@ -52,6 +52,8 @@ class Structure(eqx.Module):
     block_class: tuple[tuple[int, ...], ...] = eqx.field(static=True)
     block_index: tuple[tuple[Array, ...], ...]
     schur: SchurStructure | None = None  # when the graph eliminates a variable type
+    # per factor group, per slot: index_checksum of the indices the structure was built from
+    index_sums: tuple[tuple[int, ...], ...] = eqx.field(static=True, default=())
 
     @property
     def nnz(self) -> int:
@@ -145,7 +147,18 @@ def build_structure(
         block_class=tuple(block_class),
         block_index=tuple(block_index),
         schur=schur,
+        index_sums=tuple(tuple(int(index_checksum(i)) for i in f.indices) for f in factors),
     )
+
+
+def index_checksum(idx: Any, xp: Any = np) -> Any:
+    """A position-weighted uint32 checksum of an index array (wrapping arithmetic, equal
+    in NumPy (``xp=np``) and JAX (``xp=jnp``)): whether a factor's indices are still
+    those its graph's structure was built from."""
+    i = xp.ravel(xp.asarray(idx)).astype(xp.uint32)
+    w = (xp.arange(i.shape[0], dtype=xp.uint32) * xp.asarray(2654435761, xp.uint32)
+         + xp.asarray(2246822519, xp.uint32))
+    return xp.sum((i + xp.asarray(1, xp.uint32)) * w, dtype=xp.uint32)
 
 
 class SchurStructure(eqx.Module):

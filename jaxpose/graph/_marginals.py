@@ -49,6 +49,7 @@ from . import _linear as linear
 from . import _selinv as selinv
 from ._problem import (
     FactorGraph,
+    check_structure,
     check_variables,
     csr_values,
     hessian_vector,
@@ -240,6 +241,7 @@ def marginals(
             f"marginals(solution): expected a GraphSolution, a variables mapping or None, got "
             f"{type(solution).__name__}"
         )
+    graph = check_structure(graph, "marginals")
     check_variables(graph, values, "marginals(solution)")
     graph = with_checked_kernels(graph)
     st = graph.structure

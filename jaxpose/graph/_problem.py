@@ -28,6 +28,7 @@ from ._analysis import (
     Variables,
     build_structure,
     count,
+    index_checksum,
     join,
     slot_pairs,
     split_tangent,
@@ -170,7 +171,9 @@ def residual_dim(f: Factor, variables: Variables) -> int | None:
 def check_variables(graph: FactorGraph, variables: Any, caller: str) -> None:
     """Raise unless ``variables`` holds the graph's variable types, each of the same kind
     (group class or plain array) and shape as ``graph.variables``: the factors' index
-    gathers would clamp a shorter batch silently. Shapes are static: works under jit."""
+    gathers would clamp a shorter batch silently. Shapes are static: works under jit. The
+    graph's own variables and information are checked against its structure too."""
+    _check_built_shapes(graph, caller)
     if not isinstance(variables, Mapping) or set(variables) != set(graph.variables):
         got = sorted(variables) if isinstance(variables, Mapping) else type(variables).__name__
         raise ValueError(f"{caller}: expected a mapping with the graph's variable types "
@@ -180,6 +183,51 @@ def check_variables(graph: FactorGraph, variables: Any, caller: str) -> None:
         if _kind(value) != _kind(ref):
             raise ValueError(f"{caller}: variables[{name!r}]: expected {_kind(ref)} like "
                              f"graph.variables, got {_kind(value)}")
+
+
+def check_structure(graph: FactorGraph, caller: str) -> FactorGraph:
+    """``graph``, raising unless its variables and factors still match the structure built
+    from them when it was made: ``eqx.tree_at`` (or a pytree transformation) can replace
+    a factor's indices or information, or the variables, without rebuilding it, and H
+    would then be assembled in the old pattern — a wrong solution and wrong marginals
+    under a converged status. Variable counts and tangent dimensions and information
+    sizes are checked now (static shapes); the indices by checksum, now where they are
+    known and at run time (``eqx.error_if``) where they are traced."""
+    _check_built_shapes(graph, caller)
+    traced = []
+    for k, (f, sums) in enumerate(zip(graph.factors, graph.structure.index_sums, strict=True)):
+        for idx, want in zip(f.indices, sums, strict=True):
+            if isinstance(idx, jax.core.Tracer):
+                traced.append(index_checksum(idx, jnp) != np.uint32(want))
+            elif int(index_checksum(np.asarray(idx))) != want:
+                raise ValueError(_stale_indices(caller, k))
+    if traced:
+        graph = eqx.error_if(graph, jnp.any(jnp.stack(traced)), _stale_indices(caller, None))
+    return graph
+
+
+def _check_built_shapes(graph: FactorGraph, caller: str) -> None:
+    """Raise unless the graph's variables have the counts and tangent dimensions, and its
+    information matrices the sizes, its structure was built with (static shapes)."""
+    st = graph.structure
+    for name, n, d in zip(st.names, st.counts, st.dims, strict=True):
+        value = graph.variables.get(name) if isinstance(graph.variables, Mapping) else None
+        if value is None or count(value) != n or tangent_dim(value) != d:
+            got = ("none" if value is None
+                   else f"{count(value)} of tangent dimension {tangent_dim(value)}")
+            raise ValueError(
+                f"{caller}: graph.variables[{name!r}] holds {got}, but the FactorGraph was "
+                f"built with {n} of tangent dimension {d} (replaced after construction, e.g. "
+                f"by eqx.tree_at?): build a new FactorGraph for other variables")
+    for f in graph.factors:
+        _check_information(f, graph.variables)
+
+
+def _stale_indices(caller: str, k: int | None) -> str:
+    which = "a factor's" if k is None else f"factor group {k}'s"
+    return (f"{caller}: {which} indices differ from those the FactorGraph's structure (the "
+            f"sparsity pattern of H) was built from (replaced after construction, e.g. by "
+            f"eqx.tree_at?): build a new FactorGraph for new indices")
 
 
 def _kind(value: Any) -> str:

@@ -80,7 +80,7 @@ from ..lie._base import runtime_check
 from ..optim._solve import least_squares
 from ..results import Results
 from . import _snooping as snooping
-from ._problem import FactorGraph, check_variables, factor_residuals, residual_dim
+from ._problem import FactorGraph, check_structure, check_variables, factor_residuals, residual_dim
 from ._solve import solve
 
 Array = jax.Array
@@ -752,6 +752,7 @@ def gnc(
             f"gnc(known_inliers, known_outliers): factor {int(np.argmax(known_in & known_out))}"
             f" (flat index) is in both"
         )
+    graph = check_structure(graph, "gnc")
     free = _free_indices(graph) if inner == "dense" else None
     x0 = graph.variables if variables is None else variables
     check_variables(graph, x0, "gnc(variables)")

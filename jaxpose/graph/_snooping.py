@@ -42,7 +42,7 @@ import numpy as np
 
 from .._precision import full_precision
 from ._marginals import _Plan, inverse_entries
-from ._problem import FactorGraph, check_variables, linearize
+from ._problem import FactorGraph, check_structure, check_variables, linearize
 from ._solve import GraphLinearSolver, with_checked_kernels
 
 Array = jax.Array
@@ -116,6 +116,7 @@ def deletion_statistics(graph: FactorGraph, values: Any = None, *,
     if not isinstance(graph, FactorGraph):
         raise TypeError(
             f"deletion_statistics(graph): expected a FactorGraph, got {type(graph).__name__}")
+    graph = check_structure(graph, "deletion_statistics")
     values = graph.variables if values is None else values
     check_variables(graph, values, "deletion_statistics(values)")
     if kept is not None:

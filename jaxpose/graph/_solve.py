@@ -46,6 +46,7 @@ from ._problem import (
     FactorGraph,
     Variables,
     block_diagonal,
+    check_structure,
     check_variables,
     csr_values,
     factor_residuals,
@@ -354,6 +355,7 @@ def solve(
         raise TypeError(
             f"solve(stopping): expected a jaxpose.optim Stopping, got {type(stopping).__name__}"
         )
+    graph = check_structure(graph, "solve")
     x0 = graph.variables if variables is None else variables
     check_variables(graph, x0, "solve(variables)")
     graph = with_checked_kernels(graph)

@@ -70,11 +70,14 @@ class Kernel(eqx.Module):
 
     def _checked(self) -> Kernel:
         """This kernel with its traced parameters checked at run time (``eqx.error_if``,
-        also under ``jit``/``vmap``); known values were checked on construction."""
+        also under ``jit``/``vmap``) and its known ones now (ValueError: construction
+        checked them, but ``eqx.tree_at`` can put a new value in without it)."""
         out = self
         for key, (ok, what) in self._constraints.items():
             val = getattr(self, key)
-            if _is_traced(val):
+            if not _is_traced(val):
+                _check_param(type(self).__name__, key, val, ok, what)
+            else:
                 val = eqx.error_if(val, ~jnp.all(ok(val)),
                                    f"{type(self).__name__}({key}): {key} has to be {what}")
                 out = eqx.tree_at(lambda k, key=key: getattr(k, key), out, val)

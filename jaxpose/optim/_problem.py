@@ -309,10 +309,12 @@ class Problem(eqx.Module):
             _PATTERNS[(key, shapes)] = make_pattern(jp, _block_of_row(leaves))
         return _PATTERNS[(key, shapes)]
 
-    def resolve(self, params: PyTree, args: PyTree) -> Problem:
+    def _resolve(self, params: PyTree, args: PyTree) -> Problem:
         """This problem with :meth:`jacobian_mode` decided once for the shapes of
         ``params`` and ``args`` (the sparsity analysis traces the residual program;
-        a solve linearises many times at the same shapes). Use it only with those shapes."""
+        a solve linearises many times at the same shapes). Use it only with those shapes and
+        this residual function: least_squares resolves the problem it is given (private:
+        a resolved problem whose residual_fn is replaced keeps the old pattern)."""
         mode, pattern = self.jacobian_mode(params, args)
         return dataclasses.replace(self, _resolved=_Resolved(mode, pattern))
 

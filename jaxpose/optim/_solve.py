@@ -169,7 +169,7 @@ def least_squares(
             f"{type(adjoint).__name__}"
         )
     problem.check(params, args)
-    problem = problem._with_checked_kernels().resolve(params, args)
+    problem = problem._with_checked_kernels()._resolve(params, args)
     unrolled = isinstance(adjoint, UnrolledAdjoint)
     run = _runner(solver, stopping, verbose=verbose, history=history, unrolled=unrolled)
     if unrolled:

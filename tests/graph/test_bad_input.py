@@ -335,3 +335,75 @@ def test_integer_starting_values_are_promoted_like_least_squares():
     sol = solve(graph)
     assert sol.status_name == "converged"
     np.testing.assert_allclose(sol.variables["pt"], z, atol=1e-12)
+
+
+def _chain_and_star():
+    """A graph on four scalars (a prior on x0, three between factors along a chain) and
+    the indices of a star from x0 with the same counts."""
+    def prior(x, z):
+        return x - z
+
+    def between(xi, xj, z):
+        return xj - xi - z
+
+    pri = Factor(prior, [("x", np.array([0]))], data=jnp.zeros((1, 1)))
+    chain = Factor(between, [("x", np.array([0, 1, 2])), ("x", np.array([1, 2, 3]))],
+                   data=jnp.ones((3, 1)))
+    graph = FactorGraph([pri, chain], {"x": jnp.zeros((4, 1))})
+    star = (np.array([0, 0, 0], np.int32), np.array([1, 2, 3], np.int32))
+    return graph, star
+
+
+def test_indices_replaced_after_construction_are_refused():
+    """The structure (H's pattern) is built from the indices once: with a chain's indices
+    replaced by a star's (eqx.tree_at), marginals came out [1, 2, 3, 4] (the chain's)
+    where the star's are [1, 2, 2, 2], and a solve with gtol 1e-4 said converged with an
+    implicit gradient of [6, 10, 12] where [2, 2, 2] is right. Now solve, marginals, gnc
+    and deletion_statistics raise, eagerly and with the graph traced under jit."""
+    import equinox as eqx
+    import jax
+
+    from jaxpose.graph import deletion_statistics, gnc, marginals
+
+    graph, star = _chain_and_star()
+    stale = eqx.tree_at(lambda g: g.factors[1].indices, graph, star)
+    match = r"indices differ from those the FactorGraph's structure .* was built from"
+    for call in (lambda g: solve(g), lambda g: marginals(g, method="dense"),
+                 lambda g: gnc(g), lambda g: deletion_statistics(g),
+                 jax.jit(lambda g: solve(g).cost)):  # traced indices: checked at run time
+        with pytest.raises(Exception, match=match):
+            jax.block_until_ready(call(stale))
+    assert float(jax.jit(lambda g: solve(g).cost)(graph)) < 1e-20  # the built graph runs
+    rebuilt = FactorGraph([graph.factors[0], Factor(graph.factors[1].residual,
+                                                     [("x", star[0]), ("x", star[1])],
+                                                     data=jnp.ones((3, 1)))],
+                          {"x": jnp.zeros((4, 1))})
+    np.testing.assert_allclose(np.ravel(marginals(rebuilt, method="dense").covariances["x"]),
+                               [1.0, 2.0, 2.0, 2.0], rtol=1e-12)
+
+
+def test_variables_and_information_replaced_after_construction_are_refused():
+    """Three variables put in place of four (eqx.tree_at): cost clamped the factor that
+    uses x3 to x2 and returned 1.5 silently; a 1 × 1 square-root information on 2-D
+    residuals weighted only the first component (cost 5 for 15)."""
+    import equinox as eqx
+
+    from jaxpose.graph import cost, marginals
+
+    graph, _ = _chain_and_star()
+    fewer = eqx.tree_at(lambda g: g.variables["x"], graph, jnp.zeros((3, 1)))
+    match = r"graph.variables\['x'\] holds 3 of tangent dimension 1, but the FactorGraph " \
+            r"was built with 4"
+    for call in (lambda g: cost(g, g.variables), lambda g: solve(g),
+                 lambda g: marginals(g, method="dense")):
+        with pytest.raises(ValueError, match=match):
+            call(fewer)
+
+    def prior2(x, z):
+        return x - z
+
+    two = FactorGraph([Factor(prior2, [("x", np.arange(2))], data=jnp.ones((2, 2)),
+                              information=np.eye(2))], {"x": jnp.zeros((2, 2))})
+    narrow = eqx.tree_at(lambda g: g.factors[0].sqrt_info, two, jnp.ones((2, 1, 1)))
+    with pytest.raises(ValueError, match=r"2-dimensional residuals but 1 × 1 information"):
+        cost(narrow, narrow.variables)

@@ -220,3 +220,21 @@ def test_covariance_rcond_is_checked_and_only_for_svd():
         jo.covariance(_lin, x, (a, b), rcond=1e-8)
     np.testing.assert_allclose(jo.covariance(_lin, x, (a, b), method="svd", rcond=1e-8),
                                np.linalg.inv(a.T @ a), rtol=1e-10)
+
+
+def test_a_kernel_parameter_put_in_after_construction_is_checked():
+    """Huber(-1.0) is refused when made, but a Python float put in with eqx.tree_at stayed
+    static under jit and was never checked: least_squares and graph.solve returned a
+    negative cost (−10.5) with status diverged."""
+    import equinox as eqx
+
+    from jaxpose import graph as G
+
+    bad = eqx.tree_at(lambda k: k.delta, jo.Huber(1.0), -1.0)
+    a = jnp.array([0.0, 0.5, 10.0])
+    with pytest.raises(ValueError, match=r"Huber\(delta=-1.0\): delta has to be positive"):
+        jo.least_squares(lambda x, a: (x - a)[:, None], jnp.zeros(3), a, kernel=bad)
+    graph = G.FactorGraph([G.Factor(lambda x, z: x - z, [("x", np.arange(3))],
+                                    data=a[:, None], kernel=bad)], {"x": jnp.zeros((3, 1))})
+    with pytest.raises(ValueError, match=r"Huber\(delta=-1.0\): delta has to be positive"):
+        G.solve(graph)

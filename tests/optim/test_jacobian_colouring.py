@@ -367,7 +367,7 @@ def test_a_solve_analyses_the_sparsity_pattern_once(monkeypatch):
     x0, a = _poses(10, 0), _poses(10, 1)  # 60 tangent coordinates: the coloured path
     prob = jo.Problem(invnet)
     assert prob.jacobian_mode(x0, a)[0] == "sparse" and len(calls) == 1
-    resolved = prob.resolve(x0, a)
+    resolved = prob._resolve(x0, a)
     assert resolved.jacobian_mode(x0, a)[0] == "sparse" and len(calls) == 2
     calls.clear()
     sol = jo.least_squares(lambda x, a: invnet(x, a), x0, a)
