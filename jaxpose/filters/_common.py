@@ -43,6 +43,17 @@ def model_and_noise(model: Any, Q: Any, R: Any) -> tuple[System, Array, Array]:
     return model, noise_matrix(Q, "Q"), noise_matrix(R, "R", strict=True)
 
 
+def noise_checked(Q: Array, R: Array, *, once: bool) -> tuple[Array, Array]:
+    """A filter's ``(Q, R)`` checked as :func:`model_and_noise` does (Q positive
+    semi-definite, R positive definite) where their values are known; with ``once`` also
+    in the compiled program where they are traced (a whole run, not every step)."""
+    if once:
+        return noise_matrix(Q, "Q"), noise_matrix(R, "R", strict=True)
+    check_psd(Q, "Q")
+    check_psd(R, "R", strict=True)
+    return Q, R
+
+
 def check_cov(P: Any, dim: int, name: str = "P", *, once: bool = False) -> Array:
     """A (dim, dim) covariance for a state with ``dim`` tangent coordinates; its values
     are checked where known, and also under ``jit`` with ``once`` (a starting covariance,

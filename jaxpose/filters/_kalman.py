@@ -23,6 +23,7 @@ from ._common import (
     finite_tree,
     innovation_ok,
     model_and_noise,
+    noise_checked,
     select_tree,
     symmetrize,
 )
@@ -43,6 +44,13 @@ class NoisyModelFilter(eqx.Module):
     def __init__(self, model: System, Q: Any, R: Any, skip_nonfinite: bool = False):
         self.model, self.Q, self.R = model_and_noise(model, Q, R)
         self.skip_nonfinite = bool(skip_nonfinite)
+
+    def _noise_checked(self, *, once: bool) -> NoisyModelFilter:
+        """This filter with ``Q`` and ``R`` checked again (``eqx.tree_at`` can put in a
+        value the constructor refuses): where known, and with ``once`` (a whole run) also
+        in the compiled program, as a run's ``P0`` is."""
+        Q, R = noise_checked(self.Q, self.R, once=once)
+        return eqx.tree_at(lambda f: (f.Q, f.R), self, (Q, R))
 
 
 class KalmanFilter(NoisyModelFilter):
@@ -66,12 +74,13 @@ class KalmanFilter(NoisyModelFilter):
     def step(self, x: Any, P: Array, y: Any, u: Array, t: Any = 0) -> tuple[Any, Array]:
         """Predict with ``u`` then update with ``y``; also ``filter(x, P, y, u, t)``.
         ``P`` is checked for its shape always and for its values (symmetric positive
-        semi-definite) where they are known (not under ``jit``, unlike ``run``'s ``P0``).
+        semi-definite) where they are known (not under ``jit``, unlike ``run``'s ``P0``),
+        and so are ``Q`` and ``R``.
         Compiled on first call (``eqx.filter_jit``; ``t`` is passed as an array, so a loop
         over time steps reuses one program)."""
         x = as_state(x)
         P = check_cov(P, tangent_space(x).dim, "P")  # eager: its values are checked
-        return _compiled_step(self, x, P, y, u, jnp.asarray(t))
+        return _compiled_step(self._noise_checked(once=False), x, P, y, u, jnp.asarray(t))
 
     def _step(self, x: Any, P: Array, y: Any, u: Array, t: Any) -> tuple[Any, Array, Array]:
         xp, Pp = self.predict(x, P, u, t)
@@ -87,7 +96,7 @@ class KalmanFilter(NoisyModelFilter):
         the program."""
         x0 = as_state(x0, "x0")
         P0 = check_cov(P0, tangent_space(x0).dim, "P0", once=True)
-        return _compiled_run(self, x0, P0, ys, us, jnp.asarray(t0))
+        return _compiled_run(self._noise_checked(once=True), x0, P0, ys, us, jnp.asarray(t0))
 
     def _run(self, x0: Any, P0: Array, ys: Any, us: Array, t0: Array) -> FilterResult:
         us = check_sequence(self.model, self.R, x0, ys, us, t0)

@@ -128,7 +128,8 @@ class ParticleFilter(NoisyModelFilter):
         """Propagate, reweight, estimate, resample if needed. Returns the new state and
         ``(mean, cov, ess)`` (estimates before resampling). Compiled on first call
         (``eqx.filter_jit``; ``t`` is passed as an array)."""
-        return _compiled_step(self, key, state, y, u, jnp.asarray(t))
+        return _compiled_step(self._noise_checked(once=False), key, state, y, u,
+                              jnp.asarray(t))
 
     def _factors(self) -> tuple[Array, Array]:
         """Cholesky factor of Q (positive semi-definite: zero columns where Q is singular,
@@ -194,7 +195,8 @@ class ParticleFilter(NoisyModelFilter):
         trace time as in :meth:`EKF.run <jaxpose.filters.EKF.run>`. Compiled on first
         call (``eqx.filter_jit``)."""
         P0 = check_cov(P0, tangent_space(x0).dim, "P0", once=True)
-        return _compiled_run(self, key, x0, P0, ys, us, jnp.asarray(t0))
+        return _compiled_run(self._noise_checked(once=True), key, x0, P0, ys, us,
+                             jnp.asarray(t0))
 
     def _run(self, key: Array, x0: Any, P0: Any, ys: Any, us: Array,
              t0: Array) -> tuple[FilterResult, Array]:

@@ -449,3 +449,27 @@ def test_particle_filter_one_nan_particle_observation_loses_only_that_particle(s
     np.testing.assert_allclose(got.x, want.x, rtol=1e-12)
     np.testing.assert_allclose(got_ess, want_ess, rtol=1e-12)
     assert abs(float(got.x[-1, 0]) - 3.0) < 0.05
+
+
+@pytest.mark.parametrize("filt", ["ekf", "ukf", "pf"])
+def test_noise_put_in_after_construction_is_checked(filt):
+    """EKF(R=−0.5·I) is refused when made, but the same R put in with eqx.tree_at gave a
+    step with a negative posterior variance (−0.67) and a run with NaN covariances; a
+    negative Q a zero covariance. step and run check Q and R where known, and run also
+    under jit (the filter traced)."""
+    sys = LTI(np.eye(2), np.eye(2))
+    make = {"ekf": EKF, "ukf": UKF,
+            "pf": lambda *a: ParticleFilter(*a, num_particles=16)}[filt]
+    good = make(sys, np.eye(2), np.eye(2))
+    x0, P0, ys, us = jnp.zeros(2), jnp.eye(2), jnp.ones((3, 2)), jnp.zeros((3, 2))
+    for field, value, match in (
+            ("R", -0.5 * jnp.eye(2), r"R: expected a (finite, symmetric, )?positive-definite"),
+            ("Q", -jnp.eye(2), r"Q: expected a (finite, symmetric, )?positive semi-definite")):
+        bad = eqx.tree_at(lambda f, field=field: getattr(f, field), good, value)
+        with pytest.raises(ValueError, match=match):
+            _run_any(bad, x0, P0, ys, us)
+        if filt != "pf":
+            with pytest.raises(ValueError, match=match):
+                bad.step(x0, P0, ys[0], us[0])
+        with pytest.raises(Exception, match=match):  # traced: checked in the program
+            jax.block_until_ready(jax.jit(lambda f: _run_any(f, x0, P0, ys, us))(bad))
