@@ -35,7 +35,7 @@ from .._checks import check_count, count_field
 from .._precision import full_precision
 from ..dynamics._checks import as_array
 from ..dynamics._system import LTI, LTV, System
-from ..optim._implicit import converged_only
+from ..optim._implicit import converged_only, with_start
 from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
 from ._cost import Cost, QuadraticCost
@@ -136,14 +136,16 @@ def _solve_implicit(
 @full_precision  # traced when differentiated, outside the entry point
 def _solve_implicit_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...], *, cfg: _Config):
     params, u_init, bounds, t0 = primals
-    t_params, _, t_bounds, _ = tangents
+    t_params, t_u_init, t_bounds, _ = tangents
     out = _solve_implicit(params, u_init, bounds, t0, cfg=cfg)  # differentiable again
     xs, us = out[:2]
+    where = "MPC(gradient='implicit')"
+    remedy = ("Give iLQR more iterations or looser tolerances, or differentiate the iterates "
+              "with gradient='unroll'.")
     wx, wu = converged_only(
-        _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds, t0), out[2],
-        "MPC(gradient='implicit')",
-        "Give iLQR more iterations or looser tolerances, or differentiate the iterates with "
-        "gradient='unroll'.")
+        _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds, t0), out[2], where,
+        remedy)
+    wx, wu = with_start((wx, wu), t_u_init, out[2], where, remedy)
     return out, (wx, wu, None, None)
 
 

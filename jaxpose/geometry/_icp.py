@@ -111,9 +111,9 @@ def _plane_implicit_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
     # tangent is then a differentiable function of (T*(θ), θ), so higher orders are exact
     ts = _plane_implicit(t, src, q, nrm, w, status)
 
-    def converged(tangent: Array) -> Array:
-        return converged_only(tangent, status, "icp(method='point_to_plane')",
-                              "Give it more iterations (max_iterations) or a looser tolerance.")
+    converged = functools.partial(
+        converged_only, status=status, where="icp(method='point_to_plane')",
+        remedy="Give it more iterations (max_iterations) or a looser tolerance.")
 
     def cost(delta: Array) -> Array:  # Exp(δ)·T·p to second order (exact Hessian at 0)
         moved = exp_act2(delta, SE3(ts).act(src))

@@ -354,10 +354,9 @@ def _implicit_tangent_jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...]
     # and higher derivatives are exact too
     ts = SE3(_implicit_tangent(t, pw, uv, k, status))
 
-    def converged(tangent: Array) -> Array:
-        return converged_only(
-            tangent, status, "epnp",
-            "Refine to convergence (a larger refine_steps) and check the result's status.")
+    converged = functools.partial(
+        converged_only, status=status, where="epnp",
+        remedy="Refine to convergence (a larger refine_steps) and check the result's status.")
 
     def cost(delta: Array) -> Array:  # T·Exp(δ)·p to second order (exact Hessian at 0)
         h = ts.act(exp_act2(delta, pw)) @ k.T

@@ -40,7 +40,7 @@ import numpy as np
 from .._precision import full_precision
 from ..lie import SE3, LieGroup
 from ..lie._base import skew, small_matmul
-from ..optim._implicit import checked, converged_only, jvp_where
+from ..optim._implicit import checked, converged_only, jvp_where, with_start
 from ._analysis import tangent_dim
 from ._factor import between_residual
 from ._linear import (
@@ -371,9 +371,9 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     sol = _differentiable(graph, x0, run=run, options=options)  # differentiable again
     xs = sol.variables
 
-    def converged(t: Any) -> Any:
-        return converged_only(t, sol.status, "graph.solve",
-                              "Give it more steps (Stopping(max_steps=...)) or looser tolerances.")
+    remedy = "Give it more steps (Stopping(max_steps=...)) or looser tolerances."
+    converged = functools.partial(converged_only, status=sol.status, where="graph.solve",
+                                  remedy=remedy)
 
     dtype = sol.cost.dtype
     zero = jnp.zeros((graph.structure.size,), dtype)
@@ -390,6 +390,7 @@ def _differentiable_jvp(primals: tuple[Any, Any], tangents: tuple[Any, Any], *,
     x_dot = jax.jvp(lambda d: retract_all(graph, xs, d, "retract_quadratic"), (zero,),
                     (eps_dot,))[1]
     _, dinit = jvp_where(lambda gx: cost(*gx), (graph, x0), (t_graph, t_x0))
+    x_dot, dcost = with_start((x_dot, dcost), t_x0, sol.status, "graph.solve", remedy)
     t_sol = type(sol)(x_dot, dcost, dinit, None, None, None, None)  # None: no tangent
     return sol, t_sol
 

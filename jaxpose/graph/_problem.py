@@ -190,10 +190,10 @@ def check_structure(graph: FactorGraph, caller: str) -> FactorGraph:
     from them when it was made: ``eqx.tree_at`` (or a pytree transformation) can replace
     a factor's indices or information, or the variables, without rebuilding it, and H
     would then be assembled in the old pattern — a wrong solution and wrong marginals
-    under a converged status. Variable counts and tangent dimensions and information
-    sizes are checked now (static shapes); the indices by checksum, now where they are
-    known and at run time (``eqx.error_if``) where they are traced."""
-    _check_built_shapes(graph, caller)
+    under a converged status. The indices are compared by checksum, now where they are
+    known and at run time (``eqx.error_if``) where they are traced; the variables' counts
+    and dimensions and the information sizes by :func:`check_variables`, which every
+    caller runs next."""
     traced = []
     for k, (f, sums) in enumerate(zip(graph.factors, graph.structure.index_sums, strict=True)):
         for idx, want in zip(f.indices, sums, strict=True):

@@ -14,7 +14,8 @@ the (differentiable) solution, so differentiating it again gives the exact secon
 derivative, and so on at any order: ``jax.grad``, ``jvp``, ``jacfwd``, ``jacrev``,
 ``jacfwd(jacrev)``, ``hessian``. ``cost`` and ``initial_cost`` carry their total
 derivatives. Derivatives with respect to the initial params are zero (the solution does
-not depend on them), ``history``, ``grad_norm`` and the counters have none.
+not depend on them; where the solve did not converge, differentiating with respect to them
+raises), ``history``, ``grad_norm`` and the counters have none.
 
 By default H is the exact Hessian of the (robust, weighted) cost, so derivatives are exact
 for any residual. On the coloured path (``jacobian="sparse"``, or ``"auto"`` choosing it)
@@ -30,6 +31,7 @@ Hessian's residual terms, so they raise ``NotImplementedError`` (never a wrong n
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -90,6 +92,12 @@ def first_order_only(x: PyTree, what: str) -> PyTree:
     return ident(x)
 
 
+def _not_converged(where: str, remedy: str) -> str:
+    return (f"{where}: cannot differentiate the solution: the solver stopped without "
+            f"converging (its status is not 'converged': check it), so the estimate is not "
+            f"a stationary point and the implicit derivative would be wrong. {remedy}")
+
+
 def converged_only(tangent: PyTree, status: jax.Array, where: str, remedy: str) -> PyTree:
     """``tangent`` (of a solution, inside its derivative rule), raising (``eqx.error_if``,
     also under jit and vmap) where it is nonzero for a problem whose ``status`` is not
@@ -105,9 +113,7 @@ def converged_only(tangent: PyTree, status: jax.Array, where: str, remedy: str) 
     something is differentiated through it: a loss that masks it out (zero cotangent)
     differentiates the others, exactly, as its contribution is zero."""
     bad = status != Results.CONVERGED
-    message = (f"{where}: cannot differentiate the solution: the solver stopped without "
-               f"converging (its status is not 'converged': check it), so the estimate is "
-               f"not a stationary point and the implicit derivative would be wrong. {remedy}")
+    message = _not_converged(where, remedy)
 
     def leaf(t: Any) -> Any:
         if not eqx.is_inexact_array(t):
@@ -120,6 +126,31 @@ def converged_only(tangent: PyTree, status: jax.Array, where: str, remedy: str) 
         return jax.lax.custom_linear_solve(lambda v: v, t, check, symmetric=True)
 
     return jax.tree.map(leaf, tangent)
+
+
+def with_start(tangent: PyTree, t_start: PyTree, status: jax.Array, where: str,
+               remedy: str) -> PyTree:
+    """``tangent`` (a solution's, from its rule) plus its derivative along ``t_start``,
+    the starting point's tangent (``None`` where a leaf has none): zero, exact for a
+    converged problem, which does not depend on where it started; a problem stopped early
+    does, so where ``status`` (a scalar) is not CONVERGED this raises as
+    :func:`converged_only` does: in forward mode where ``t_start`` is nonzero, in reverse
+    mode where the result's cotangent is. (Without this term a derivative with respect to
+    the start alone never reached a check and came out zero.)"""
+    starts = [t for t in jax.tree.leaves(t_start) if eqx.is_inexact_array(t)]
+    if not starts:
+        return tangent
+    bad = status != Results.CONVERGED
+
+    def zeros_checked(_: object, r: list[jax.Array]) -> list[jax.Array]:
+        nonzero = jnp.any(jnp.stack([jnp.any(x != 0) for x in r]))
+        return eqx.error_if([jnp.zeros_like(x) for x in r], bad & nonzero,
+                            _not_converged(where, remedy))
+
+    zero = jax.lax.custom_linear_solve(lambda v: v, starts, zeros_checked, symmetric=True)
+    link = sum(jnp.sum(z) for z in zero)  # 0, linear in t_start: the outputs depend on it
+    moved = jax.tree.map(lambda t: t + link.astype(t.dtype), tangent)
+    return converged_only(moved, status, where, remedy)
 
 
 def jvp_where(f: Callable[[PyTree], Any], tree: PyTree, t_tree: PyTree) -> tuple[Any, Any]:
@@ -213,11 +244,10 @@ def _implicit_jvp(
     sol = _implicit(theta, params0, run=run, adjoint=adjoint)  # differentiable again
     x_star = sol.params
 
-    def converged(t: PyTree) -> PyTree:
-        return converged_only(
-            t, sol.status, "least_squares",
-            "Give it more steps (max_steps) or looser tolerances, or differentiate the "
-            "steps taken with adjoint='unrolled'.")
+    remedy = ("Give it more steps (max_steps) or looser tolerances, or differentiate the "
+              "steps taken with adjoint='unrolled'.")
+    converged = functools.partial(converged_only, status=sol.status, where="least_squares",
+                                  remedy=remedy)
 
     flat0, unravel = manifold.flat_tangent(x_star)
 
@@ -258,6 +288,7 @@ def _implicit_jvp(
         return prob.cost(p0, a)
 
     _, dinit = jvp_where(initial_cost, (theta, params0), (t_theta, t_params0))
+    x_dot, dcost = with_start((x_dot, dcost), t_params0, sol.status, "least_squares", remedy)
     t_sol = Solution(x_dot, None, None, None, dcost, dinit, None, None)  # None: no tangent
     return sol, t_sol
 
@@ -285,4 +316,4 @@ def implicit_solve(
 
 
 __all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "checked", "converged_only",
-           "first_order_only", "implicit_solve", "jvp_where"]
+           "first_order_only", "implicit_solve", "jvp_where", "with_start"]

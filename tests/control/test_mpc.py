@@ -313,6 +313,15 @@ def test_an_unconverged_problem_masked_out_of_a_batch_does_not_block_its_gradien
     assert float(alone) == pytest.approx(float(fd), rel=1e-6)
     assert float(jax.grad(masked)(1.0)) == pytest.approx(float(alone), rel=1e-12)
 
+    def effort_from(u_init):  # the stopped solve depends on its start: that raises too
+        mpc = MPC(Pendulum(dt=0.1, length=1.0), QuadraticCost.tracking(
+            jnp.eye(3), jnp.array([1.0, 0.0, 0.0])), 6, gradient="implicit", max_iter=2)
+        return jnp.sum(mpc(x0s[1], u_init).u ** 2)
+
+    match = r"MPC\(gradient='implicit'\): cannot differentiate the solution"
+    with pytest.raises(Exception, match=match):  # it was 0
+        jax.block_until_ready(jax.grad(effort_from)(jnp.zeros((6, 1))))
+
 
 def test_implicit_gradient_at_a_stationary_point_that_is_not_a_minimum_raises():
     """Stage cost ½x² + ½(u² − 1)² from u = 0, x0 = 0: the gradient is zero at once, so MPC

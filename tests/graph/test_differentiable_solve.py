@@ -150,6 +150,16 @@ def test_derivative_of_an_unconverged_solve_raises():
     with pytest.raises(Exception, match=match):
         jax.block_until_ready(jax.jvp(pose_sum, (NOISE,), (jnp.ones_like(NOISE),))[1])
 
+    def from_start(x0):  # the stopped solve depends on its start: that raised nothing (0)
+        f = G.Factor(between_residual, [("pose", EDGES[:, 0]), ("pose", EDGES[:, 1])],
+                     data=Z_TRUE.retract(NOISE), information=INFO)
+        graph = G.FactorGraph([f], {"pose": SE2(x0)}, fixed={"pose": np.array([0])})
+        sol = G.solve(graph, stopping=jo.Stopping(max_steps=2, cost_rtol=0.0))
+        return jnp.sum(sol.variables["pose"].data)
+
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(jax.grad(from_start)(X0.data))
+
 
 @pytest.mark.slow  # vmapped and single gradients through graph.solve (~25 s each)
 @pytest.mark.parametrize("method", ["sparse", "pcg", "dense"])

@@ -372,6 +372,35 @@ def test_an_unconverged_problem_masked_out_of_a_batch_does_not_block_its_derivat
         jax.block_until_ready(jax.jacfwd(masked)(a))
 
 
+def test_derivative_with_respect_to_the_start_of_an_unconverged_solve_raises():
+    """One Gauss-Newton step stops (max_steps) where the iterate depends on the start (the
+    unrolled derivative is the identity); jvp, jacfwd, jacrev and hessian with respect
+    to the start returned 0 (the check saw only the data's tangent). Converged, the
+    derivative with respect to the start is exactly 0."""
+    a = jnp.array([1.0, 0.3])
+
+    def params(p0, steps):
+        return jo.least_squares(_square_residual, p0, a, solver=jo.GaussNewton(),
+                                max_steps=steps).params
+
+    start = jnp.array([0.3, 1.0])
+    assert int(jo.least_squares(_square_residual, start, a, solver=jo.GaussNewton(),
+                                max_steps=1).status) == Results.MAX_STEPS
+    def cost(p0):
+        return jo.least_squares(_square_residual, p0, a, solver=jo.GaussNewton(),
+                                max_steps=1).cost
+
+    match = "least_squares: cannot differentiate the solution"
+    for call in (lambda: jax.jvp(lambda p: params(p, 1), (start,), (jnp.ones(2),))[1],
+                 lambda: jax.jacfwd(lambda p: params(p, 1))(start),
+                 lambda: jax.jacrev(lambda p: params(p, 1))(start),
+                 lambda: jax.jit(jax.grad(cost))(start)):
+        with pytest.raises(Exception, match=match):
+            jax.block_until_ready(call())
+    np.testing.assert_array_equal(jax.jacrev(lambda p: params(p, 50))(start), 0.0)
+    np.testing.assert_array_equal(jax.jacfwd(lambda p: params(p, 50))(start), 0.0)
+
+
 def _rosenbrock_residual(p, a):
     return jnp.stack([10 * (p[1] - p[0] ** 2), a[0] - p[0], 0.1 * p[0] * p[1]])
 
