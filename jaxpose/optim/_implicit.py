@@ -149,7 +149,8 @@ def with_start(tangent: PyTree, t_start: PyTree, status: jax.Array, where: str,
 
     zero = jax.lax.custom_linear_solve(lambda v: v, starts, zeros_checked, symmetric=True)
     link = sum(jnp.sum(z) for z in zero)  # 0, linear in t_start: the outputs depend on it
-    moved = jax.tree.map(lambda t: t + link.astype(t.dtype), tangent)
+    moved = jax.tree.map(
+        lambda t: t + link.astype(t.dtype) if eqx.is_inexact_array(t) else t, tangent)
     return converged_only(moved, status, where, remedy)
 
 
@@ -243,12 +244,10 @@ def _implicit_jvp(
     t_theta, t_params0 = tangents
     sol = _implicit(theta, params0, run=run, adjoint=adjoint)  # differentiable again
     x_star = sol.params
-
     remedy = ("Give it more steps (max_steps) or looser tolerances, or differentiate the "
               "steps taken with adjoint='unrolled'.")
     converged = functools.partial(converged_only, status=sol.status, where="least_squares",
                                   remedy=remedy)
-
     flat0, unravel = manifold.flat_tangent(x_star)
 
     def lift(eps: jax.Array) -> PyTree:  # differentiated at most twice in eps, at 0
