@@ -29,26 +29,22 @@ class FilterResult(eqx.Module):
     ok: Array
 
 
-def noise_matrix(M: Any, name: str, strict: bool = False) -> Array:
-    """Validate a (k, k) covariance (symmetric PSD, or PD when ``strict``)."""
-    return psd_checked(as_array(M, name, 2), name, strict=strict)
-
-
 def model_and_noise(model: Any, Q: Any, R: Any) -> tuple[System, Array, Array]:
-    """A filter's validated ``(model, Q, R)``: a :class:`~jaxpose.dynamics.System`, the
-    process noise Q (n, n) positive semi-definite and the measurement noise R (p, p)
-    positive definite."""
+    """A filter's validated ``(model, Q, R)``: a :class:`~jaxpose.dynamics.System` and the
+    noise as :func:`noise_checked` gives it."""
     if not isinstance(model, System):
         raise TypeError(f"model: expected a jaxpose.dynamics.System, got {type(model).__name__}")
-    return model, noise_matrix(Q, "Q"), noise_matrix(R, "R", strict=True)
+    return (model, *noise_checked(Q, R, once=True))
 
 
-def noise_checked(Q: Array, R: Array, *, once: bool) -> tuple[Array, Array]:
-    """A filter's ``(Q, R)`` checked as :func:`model_and_noise` does (Q positive
-    semi-definite, R positive definite) where their values are known; with ``once`` also
-    in the compiled program where they are traced (a whole run, not every step)."""
+def noise_checked(Q: Any, R: Any, *, once: bool) -> tuple[Array, Array]:
+    """A filter's process noise Q (n, n) positive semi-definite and measurement noise R
+    (p, p) positive definite, as arrays, checked where their values are known; with
+    ``once`` (construction, a whole run) also in the compiled program where they are
+    traced, not at every step."""
     if once:
-        return noise_matrix(Q, "Q"), noise_matrix(R, "R", strict=True)
+        return (psd_checked(as_array(Q, "Q", 2), "Q"),
+                psd_checked(as_array(R, "R", 2), "R", strict=True))
     check_psd(Q, "Q")
     check_psd(R, "R", strict=True)
     return Q, R
