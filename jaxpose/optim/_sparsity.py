@@ -325,16 +325,17 @@ def _nested_consts(jaxpr: Any) -> list[Any]:
     out: list[Any] = []
 
     def visit(p: Any) -> None:
+        if isinstance(p, tuple | list):
+            for q in p:
+                visit(q)
+            return
         if isinstance(p, jex_core.ClosedJaxpr):
             out.extend(p.consts)
-            visit(p.jaxpr)
-        elif isinstance(p, jex_core.Jaxpr):
+            p = p.jaxpr  # p itself from jax 0.11 (ClosedJaxpr is an alias of Jaxpr there)
+        if isinstance(p, jex_core.Jaxpr):
             for eqn in p.eqns:
                 for v in eqn.params.values():
                     visit(v)
-        elif isinstance(p, tuple | list):
-            for q in p:
-                visit(q)
 
     visit(jaxpr)
     return out
