@@ -64,8 +64,11 @@ def _optimal_rotation_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tupl
     b = vee(rt @ dh - jnp.swapaxes(dh, -1, -2) @ r)
     # Tikhonov: (a² + μ² I)⁻¹ a b = a⁻¹ b up to (μ/λ)² when a is regular; → 0 along null
     # directions of a (where the rotation is not unique) instead of Inf. Solved with a
-    # scaled to unit trace (μ² = eps), so a = 0 (coincident points) gives 0, not 0/0.
-    scale = (jnp.abs(tr[..., 0, 0]) + jnp.finfo(h.dtype).tiny)[..., None, None]
+    # scaled to unit trace (μ² = eps). tr = 0 only where S = 0 (coincident points): a = 0
+    # is divided by 1 there. (A scale of 0 + tiny gave NaN derivatives on an H200: XLA's
+    # simplifier may rewrite (a / s) / s as a / (s · s), and tiny² underflows to 0.)
+    tr_abs = jnp.abs(tr[..., 0, 0])
+    scale = jnp.where(tr_abs > 0, tr_abs, 1)[..., None, None]
     a = a / scale
     lhs = a @ a + jnp.finfo(h.dtype).eps * eye
     # a/scale, not (a·b)/scale: reverse mode would divide the cotangent by the tiny
