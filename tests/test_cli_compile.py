@@ -4,11 +4,16 @@ nothing where it does not; the CLI compiles its solvers with it."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jaxpose as jp
 from jaxpose import _compile, cli
 
+# the options are XLA:CPU's; an accelerator's default backend gets none (tested below)
+cpu_only = pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA:CPU options")
 
+
+@cpu_only
 def test_compile_options_on_this_cpu_compile_the_same_program():
     opts = jp.compile_options()
     assert opts == {"xla_cpu_use_fusion_emitters": False}  # CI and this machine: XLA:CPU
@@ -36,6 +41,7 @@ def test_other_backends_get_no_options():
     assert _compile._supported("gpu", (("xla_cpu_use_fusion_emitters", False),)) == ()
 
 
+@cpu_only
 def test_whole_loop_flags_add_the_ynn_option(monkeypatch):
     """With the whole-loop flags in XLA_FLAGS the options also turn YNNPACK's dot fusions
     off where this XLA knows that option; an unknown one is dropped, not fatal."""

@@ -321,7 +321,8 @@ def test_ilqr_time_varying_cost_or_ltv_shorter_than_horizon_raises():
         with pytest.raises(ValueError, match=message):
             ilqr(LTI(A2, B2), q4, X2, np.zeros((3, 1)), t0=t0)
     with pytest.raises(RuntimeError, match="t0: expected 0 ≤ t0 ≤ 1"):
-        jax.jit(lambda t0: ilqr(LTI(A2, B2), q4, X2, np.zeros((3, 1)), t0=t0).u)(2)
+        jax.block_until_ready(jax.jit(lambda t0: ilqr(LTI(A2, B2), q4, X2, np.zeros((3, 1)),
+                                                      t0=t0).u)(2))
     with pytest.raises(ValueError, match="t: expected a time step index >= 0"):
         QuadraticCost(q_tv).stage(np.zeros(2), np.zeros(1), -1)
 

@@ -128,6 +128,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="whole loops are XLA:CPU's")
 def test_solves_with_whole_loops_equal_the_lapack_solves():
     """A process with the flags compiles (with ``compile_options``, as the CLI) the LM loop
     of the tiny shared graphs whole (no loop left in the program's entry) and reaches this

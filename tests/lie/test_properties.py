@@ -694,7 +694,10 @@ def _check_identity_random_components(cls, dtype, shape, e, e_m, x, x_m, tr, sc,
     assert_dtype(tr, dtype)
     assert_dtype(sc, dtype)
     if cls.matrix_dim == n + 1:
-        assert_close(tr, m[..., :n, n], dtype, f64=0.0, f32=0.0)
+        # exact on the CPU; XLA:GPU may compute random()'s data twice in two fusions that
+        # round differently (one float32 ulp seen for Sim3 on an H200)
+        exact = 0.0 if jax.default_backend() == "cpu" else 2.0**-23
+        assert_close(tr, m[..., :n, n], dtype, f64=exact, f32=exact)
         block = m[..., :n, :n]
     else:
         assert_close(tr, np.zeros((*shape, n)), dtype, f64=0.0, f32=0.0)

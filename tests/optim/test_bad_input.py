@@ -35,7 +35,8 @@ def test_nan_residual_at_start_raises_naming_residual_fn():
     # the check lives on every output a caller may keep alone (XLA drops unused checks)
     for out in ("params", "cost", "initial_cost"):
         with pytest.raises(Exception, match="residual_fn"):
-            jax.jit(lambda x, out=out: getattr(jo.least_squares(bad, x), out))(jnp.zeros(2))
+            jax.block_until_ready(  # an accelerator raises when the result is read
+                jax.jit(lambda x, out=out: getattr(jo.least_squares(bad, x), out))(jnp.zeros(2)))
 
 
 def test_nan_mid_run_reports_non_finite_and_keeps_best():
