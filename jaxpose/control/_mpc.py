@@ -35,7 +35,7 @@ from .._checks import check_count, count_field
 from .._precision import full_precision
 from ..dynamics._checks import as_array
 from ..dynamics._system import LTI, LTV, System
-from ..optim._implicit import converged_only, with_start
+from ..optim._implicit import converged_only, refused_where_used, with_start
 from ..optim._implicit import jvp_where as _jvp_where
 from ..results import Results
 from ._cost import Cost, QuadraticCost
@@ -142,9 +142,9 @@ def _solve_implicit_jvp(primals: tuple[Any, ...], tangents: tuple[Any, ...], *, 
     where = "MPC(gradient='implicit')"
     remedy = ("Give iLQR more iterations or looser tolerances, or differentiate the iterates "
               "with gradient='unroll'.")
-    wx, wu = converged_only(
-        _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds, t0), out[2], where,
-        remedy)
+    tangent, strict = _trajectory_tangent(params, t_params, xs, us, bounds, t_bounds, t0)
+    wx, wu = converged_only(refused_where_used(tangent, ~strict, _NOT_STRICT_MINIMUM),
+                            out[2], where, remedy)
     wx, wu = with_start((wx, wu), t_u_init, out[2], where, remedy)
     return out, (wx, wu, None, None)
 
@@ -167,7 +167,7 @@ def _trajectory_tangent(
     bounds: Any,
     t_bounds: Any,
     t0: Array,
-) -> tuple[Array, Array]:
+) -> tuple[tuple[Array, Array], Array]:
     """Tangent ``(ẋ (T+1, n), u̇ (T, m))`` of a locally optimal trajectory ``(xs, us)``
     over the steps ``t0`` … ``t0 + T − 1`` along the parameter tangent ``t_params`` (and
     ``t_bounds``, moving the active limits), by the implicit function theorem on the KKT
@@ -176,7 +176,10 @@ def _trajectory_tangent(
     with H the Lagrangian Hessian, F the dynamics Jacobians, ċ = ∂_θ∇_τL·θ̇ and
     ḟ = ∂_θ f·θ̇ (active control limits held at their own tangents). Linear in the
     tangents and written with differentiable operations on ``(xs, us)``, so reverse mode
-    is its transpose and every order is exact."""
+    is its transpose and every order is exact. Also returns whether the solution is a
+    strict minimum (every Q_uu positive definite): where it is not, the derivative does
+    not exist, and the tangent is that of a stand-in problem (identity Hessians), finite,
+    for the caller to refuse where it is used."""
     system, cost, x0 = params
     T, m = us.shape
     n = xs.shape[-1]
@@ -228,10 +231,16 @@ def _trajectory_tangent(
         # the fixed part d of u̇ enters the dynamics offset and the linear cost term
         f_dot = f_dot + jnp.einsum("tij,tj->ti", F[:, :, n:], d)
         c_dot = c_dot + jnp.einsum("tij,tj->ti", H[:, :, n:], d)
-    K, k, _, _, ok, _ = riccati(F, f_dot, H, c_dot, HT, cT_dot, free)
-    K = eqx.error_if(K, ~ok, _NOT_STRICT_MINIMUM)  # K and ok depend on the primal only
+    # ok (every Q_uu positive definite) depends on the primal only. Where it fails the
+    # recursion's K and k are NaN, and a batch that masks this problem out would still
+    # meet them in the transpose (0 · NaN): the stand-in's Hessians are identities
+    ok = riccati(F, jnp.zeros_like(f_dot), H, jnp.zeros_like(c_dot), HT,
+                 jnp.zeros_like(cT_dot), free)[4]
+    H = jnp.where(ok, H, jnp.eye(n + m, dtype=H.dtype))
+    HT = jnp.where(ok, HT, jnp.eye(n, dtype=HT.dtype))
+    K, k, *_ = riccati(F, f_dot, H, c_dot, HT, cT_dot, free)
     wx, wu = policy_rollout(F, f_dot, K, k, x0_dot)
-    return wx, wu + d
+    return (wx, wu + d), ok
 
 
 # ----------------------------------------------------------------------------------

@@ -105,15 +105,21 @@ def converged_only(tangent: PyTree, status: jax.Array, where: str, remedy: str) 
     estimate a solver stopped at for another reason (budget spent, stalled, non-finite)
     its derivative is neither the optimum's nor that of the steps taken — a wrong number,
     never returned. ``remedy`` ends the message. ``status`` has the leaves' leading shape
-    (a batch of problems) or is a scalar.
+    (a batch of problems) or is a scalar (:func:`refused_where_used`)."""
+    return refused_where_used(tangent, status != Results.CONVERGED,
+                              _not_converged(where, remedy))
+
+
+def refused_where_used(tangent: PyTree, bad: jax.Array, message: str) -> PyTree:
+    """``tangent``, raising ``message`` where it is nonzero for a problem where ``bad``
+    (the leaves' leading shape, or a scalar) holds: one whose derivative does not exist.
 
     Each leaf passes through an identity ``jax.lax.custom_linear_solve`` whose solver
     checks it: in forward mode that is the tangent, in reverse mode (the transpose) the
-    cotangent. So a problem of a vmapped batch that did not converge raises only when
-    something is differentiated through it: a loss that masks it out (zero cotangent)
-    differentiates the others, exactly, as its contribution is zero."""
-    bad = status != Results.CONVERGED
-    message = _not_converged(where, remedy)
+    cotangent. So a bad problem of a vmapped batch raises only when something is
+    differentiated through it: a loss that masks it out (zero cotangent) differentiates
+    the others, exactly, as its contribution is zero (if the rule keeps the bad problem's
+    tangent finite: 0 · NaN is NaN in a transpose)."""
 
     def leaf(t: Any) -> Any:
         if not eqx.is_inexact_array(t):
@@ -315,4 +321,5 @@ def implicit_solve(
 
 
 __all__ = ["ImplicitAdjoint", "UnrolledAdjoint", "checked", "converged_only",
-           "first_order_only", "implicit_solve", "jvp_where", "with_start"]
+           "first_order_only", "implicit_solve", "jvp_where", "refused_where_used",
+           "with_start"]

@@ -355,6 +355,24 @@ def test_implicit_gradient_at_a_stationary_point_that_is_not_a_minimum_raises():
     g = jax.grad(lambda a, x: total_u(a, x, "unroll")[0], (0, 1))(a, x0)
     assert np.all(np.isfinite(np.concatenate([np.ravel(g[0]), np.ravel(g[1])])))
 
+    # in a batch, such a problem raises only where its derivative is used: a loss that
+    # masks it out has the other problem's own gradient (it raised for the whole batch)
+    def batch(a):
+        def one(x0, u0):
+            sol = MPC(Scalar(a), cost, 4)(x0, jnp.full((4, 1), u0))
+            return sol.u.sum(), sol.status
+        return jax.vmap(one)(jnp.array([[0.0], [1.0]]), jnp.array([0.0, 0.5]))
+
+    u, status = batch(a)
+    assert status.tolist() == [0, 0] and float(u[0]) == 0.0  # both converged
+    alone = lambda a: MPC(Scalar(a), cost, 4)(jnp.ones(1), jnp.full((4, 1), 0.5)).u.sum()
+    h = 1e-6
+    fd = (alone(a + h) - alone(a - h)) / (2 * h)
+    masked = jax.jit(jax.grad(lambda a: jnp.sum(jnp.where(jnp.arange(2) == 1, batch(a)[0], 0))))
+    assert float(masked(a)) == pytest.approx(float(fd), rel=1e-8)
+    with pytest.raises(Exception, match=match):
+        jax.block_until_ready(jax.grad(lambda a: jnp.sum(batch(a)[0]))(a))
+
 
 def test_closed_loop_rejects_non_system_plant_and_non_mpc():
     # a plant that is not a System was an AttributeError from inside the scan
