@@ -9,7 +9,8 @@ numerically zero partial derivatives (x·y at y = 0) count, and any primitive it
 model makes each of its outputs depend on all of its inputs. The pattern is therefore a
 superset of the nonzeros of the Jacobian at *every* point and for every value of traced
 arguments (conservative, never missing an entry); it is exact for the elementwise,
-indexing, reduction and contraction primitives the Lie-group code uses. Index operands
+indexing, reduction and contraction primitives the Lie-group code uses, and sees into
+calls (``jit``, ``checkpoint``, ``custom_jvp``); loops are conservative. Index operands
 (gather, dynamic_slice) must be compile-time constants for an exact answer; traced
 indices make the affected outputs depend on the whole operand.
 
@@ -46,6 +47,14 @@ _COPY_ONE = frozenset(
 )
 _COPY_ALL = frozenset(["concatenate", "stack"])
 _REDUCE = frozenset(["reduce_sum", "reduce_max", "reduce_min", "reduce_prod"])
+# primitives that apply their sub-program once to their operands (a call): analysed
+# inside. Others with a sub-program are not calls — scan and fori_loop run theirs once
+# per step on slices and a carry, shard_map on shards — and get the conservative answer
+# (analysed as a call, a scan's pattern missed entries: a wrong Jacobian, silently)
+_CALLS = frozenset(
+    """jit pjit closed_call core_call eval_jaxpr remat2 checkpoint custom_jvp_call
+    custom_vjp_call custom_vjp_call_jaxpr xla_metadata_call""".split()
+)
 _MAX_EVAL = 1 << 20  # largest constant (elements) folded on the host
 
 
@@ -187,6 +196,8 @@ class _Analysis:
 
     @staticmethod
     def _subjaxpr(eqn: Any) -> tuple[Any, list[Any]] | None:
+        if eqn.primitive.name not in _CALLS:
+            return None
         for key in ("jaxpr", "call_jaxpr", "fun_jaxpr"):
             j = eqn.params.get(key)
             if j is None:

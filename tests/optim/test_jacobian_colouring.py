@@ -149,6 +149,39 @@ def test_optimization_barriers_keep_the_exact_pattern():
     assert not np.any(pat.toarray() & ~expected)  # one pose's outputs, its own inputs
 
 
+def _roll_scan(x):  # x after three cyclic shifts: J is a permutation
+    return jax.lax.scan(lambda c, _: (jnp.roll(c, 1), None), x, None, length=3)[0]
+
+
+def _scan_over_slices(x):  # a running sum of x[::2] and the doubled x[1::2]
+    c, ys = jax.lax.scan(lambda c, xi: (c + xi[0], xi[1] * 2.0), 0.0, x.reshape(3, 2))
+    return jnp.concatenate([c[None], ys])
+
+
+@pytest.mark.parametrize("f", [
+    _roll_scan,
+    lambda x: jax.lax.fori_loop(0, 3, lambda i, c: jnp.roll(c, 1), x),
+    _scan_over_slices,
+    lambda x: jax.lax.map(lambda r: r[::-1] * r, x.reshape(3, 2)).reshape(-1),
+], ids=["scan-carry", "fori_loop", "scan-slices", "lax.map"])
+def test_loops_never_miss_an_entry_of_the_pattern(f):
+    """scan's body was analysed as a call of the whole operands: a carry rolled three
+    times kept one roll's pattern and per-step slices the whole array's rows, so entries
+    were missing (the sparse Jacobian was a wrong permutation, silently). Loops now get
+    the conservative answer."""
+    x = jnp.asarray(np.random.default_rng(5).normal(size=6))
+    _, pat = jacobian_pattern(f, x)
+    jac = np.asarray(jax.jacfwd(f)(x))
+    assert not np.any((jac != 0) & ~pat.toarray())
+
+
+def test_scan_residual_solves_on_the_sparse_path():
+    target = jnp.arange(6.0)
+    res = lambda x, _: (_roll_scan(x) - target)[:, None]  # noqa: E731
+    sol = jo.least_squares(res, jnp.zeros(6), jacobian="sparse", max_steps=20)
+    np.testing.assert_allclose(sol.params, np.roll(target, -3), atol=1e-10)  # was wrong
+
+
 def test_traced_indices_fall_back_to_a_conservative_pattern():
     def res(x, args):
         idx, y = args
