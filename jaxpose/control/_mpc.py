@@ -12,9 +12,10 @@ solution with respect to every array in the system (dynamics parameters), the co
   initial state; active control limits held at their own tangents), a ``custom_jvp``
   written with differentiable operations: reverse mode is its transpose and
   differentiating it again gives exact derivatives of any order (``jax.hessian``,
-  ``jacfwd(jacrev(...))``). It holds at a converged solution only: differentiating a
-  solve that stopped otherwise (``status`` not converged) raises (in reverse mode where
-  its cotangent is nonzero: a batch's loss may mask it out).
+  ``jacfwd(jacrev(...))``). It holds at a converged solution that is a strict minimum
+  only: differentiating a solve that stopped otherwise (``status`` not converged), or
+  one whose Q_uu is not positive definite, raises (in reverse mode where its cotangent
+  is nonzero: a batch's loss may mask it out).
 * ``gradient="unroll"``: reverse mode through the solver iterations (``max_iter`` of
   them, in ``lax.scan``).
 
