@@ -17,6 +17,7 @@ inverse and the Jacobian are differentiable functions of params and args).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -97,15 +98,37 @@ def covariance(
         linv = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
         cov = linv.T @ linv
     else:
-        w, v = jnp.linalg.eigh(h)
-        tol = (n * jnp.finfo(h.dtype).eps if rcond is None else rcond) * jnp.max(w)
-        keep = w > tol
-        inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
-        cov = (v * inv_w) @ v.T
+        cov = _psd_pinv(h, rcond)
     cov = 0.5 * (cov + cov.T)
     if flat:
         return cov
     return _nest(cov, manifold.zero_tangent(params))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _psd_pinv(h: Array, rcond: float | None) -> Array:
+    """Pseudo-inverse C of a symmetric PSD (n, n) ``h``: eigenvalues below
+    ``rcond·λ_max`` (default n·eps) dropped."""
+    n = h.shape[-1]
+    w, v = jnp.linalg.eigh(h)
+    tol = (n * jnp.finfo(h.dtype).eps if rcond is None else rcond) * jnp.max(w)
+    keep = w > tol
+    inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
+    return (v * inv_w) @ v.T
+
+
+@_psd_pinv.defjvp
+def _psd_pinv_jvp(rcond: float | None, primals: tuple[Array], tangents: tuple[Array]
+                  ) -> tuple[Array, Array]:
+    """dC = −C dH C + C² dH P + P dH C² (P = I − C H, the dropped eigenspace), the
+    derivative at constant rank (Golub & Pereyra 1973), written with C and H only: the
+    eigenvectors' own derivative is infinite where eigenvalues repeat (an isotropic
+    problem), which made it NaN in both modes."""
+    (h,), (dh,) = primals, tangents
+    c = _psd_pinv(h, rcond)
+    p = jnp.eye(h.shape[-1], dtype=h.dtype) - c @ h
+    cc = c @ c
+    return c, -c @ dh @ c + cc @ dh @ p + p @ dh @ cc
 
 
 def _nest(cov: Array, tangent: PyTree) -> PyTree:

@@ -109,3 +109,30 @@ def test_rank_deficient_svd_and_cholesky_error():
         covariance(res, p)
     with pytest.raises(ValueError, match="method"):
         covariance(res, p, method="qr")
+
+
+def _fd(f, x, h=1e-6):
+    return (np.asarray(f(x + h)) - np.asarray(f(x - h))) / (2 * h)
+
+
+def test_svd_covariance_differentiates_at_repeated_and_dropped_eigenvalues():
+    """The pseudo-inverse's derivative went through eigh's, infinite where eigenvalues
+    repeat: an isotropic problem (JᵀJ = a²I) gave NaN in both modes. Now the constant-rank
+    formula: equal to the Cholesky path's −C dH C at full rank, and to central differences
+    when the dropped eigenspace moves (rank 2 of 3, both rows of J depend on θ)."""
+    iso = lambda a: covariance(lambda x, a: a * (x - 1.0), jnp.zeros(3), a,  # noqa: E731
+                               method="svd")
+    for d in (jax.jacfwd(iso)(2.0), jax.jacrev(iso)(2.0)):
+        np.testing.assert_allclose(d, -0.25 * np.eye(3), atol=1e-14)  # d/da a⁻² = −2a⁻³
+
+    m = np.random.default_rng(3).normal(size=(2, 3))
+
+    def deficient(t):  # J(θ) (2, 3): rank 2, its null direction turns with θ
+        res = lambda x, t: (jnp.asarray(m) + t * jnp.array([[0.0, 1, 2], [1, 0, -1]])) @ x
+        return covariance(res, jnp.zeros(3), t, method="svd")
+
+    fd = _fd(deficient, 0.3)
+    for d in (jax.jacfwd(deficient)(0.3), jax.jacrev(deficient)(0.3)):
+        np.testing.assert_allclose(d, fd, rtol=1e-7, atol=1e-9)
+    second = jax.jacfwd(jax.jacrev(deficient))(0.3)  # differentiates again
+    np.testing.assert_allclose(second, _fd(jax.jacrev(deficient), 0.3), rtol=1e-6, atol=1e-8)
