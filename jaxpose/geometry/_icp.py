@@ -340,13 +340,48 @@ def _icp_batched(srcf: Array, tgtf: Array, nrmf: Array | None, initf: Array,
         srcf, tgtf, nrmf, initf)
 
 
+@jax.custom_jvp
+def _smallest_eigenvector(a: Array) -> Array:
+    """Unit eigenvector (..., 3) of the smallest eigenvalue of symmetric PSD (..., 3, 3)."""
+    return jnp.linalg.eigh(a)[1][..., :, 0]
+
+
+@_smallest_eigenvector.defjvp
+def _smallest_eigenvector_jvp(primals: tuple[Array], tangents: tuple[Array]
+                              ) -> tuple[Array, Array]:
+    """dv = −B⁺ dA v with B = A − λ₀ I (λ₀ = vᵀ A v): only v's own eigenvalue need be
+    simple. (The eigh derivative has 1/(λᵢ − λⱼ) for every pair: two equal in-plane
+    eigenvalues, as on a regular grid, gave inf, and NaN in reverse mode.) B⁺ acts on
+    v's complement as the inverse of B/s + v vᵀ (s = tr B; eigenvalues 1 on v and
+    (λᵢ − λ₀)/s): written with v and A only, so it differentiates again. Where λ₀ is not
+    simple (collinear or coincident neighbours) the normal is not unique and its
+    derivative is returned as 0 (it was NaN)."""
+    (a,), (da,) = primals, tangents
+    v = _smallest_eigenvector(a)
+    lam = jnp.einsum("...i,...ij,...j->...", v, a, v)
+    eye = jnp.eye(3, dtype=a.dtype)
+    b = a - lam[..., None, None] * eye
+    s = jnp.trace(b, axis1=-2, axis2=-1)
+    w = jax.lax.stop_gradient(jnp.linalg.eigvalsh(a))
+    ok = w[..., 1] - w[..., 0] > 1e3 * jnp.finfo(a.dtype).eps * s
+    s = jnp.where(ok, s, 1)[..., None, None]  # each of B and dA is divided once by s
+    m = jnp.where(ok[..., None, None], b / s + v[..., :, None] * v[..., None, :], eye)
+    y = ((da / s) @ v[..., None])[..., 0]
+    project = lambda z: z - v * jnp.sum(v * z, -1, keepdims=True)  # noqa: E731
+    x = project(jnp.linalg.solve(m, project(y)[..., None])[..., 0])
+    return v, jnp.where(ok[..., None], -x, 0)
+
+
 def estimate_normals(
     points: Any, k: int = 16, viewpoint: Any = None, method: str = "auto"
 ) -> Array:
     """Unit normals (..., N, 3) of a cloud (..., N, 3) from the k nearest neighbours
     (the eigenvector of the smallest eigenvalue of the local covariance; the point itself
     counts as a neighbour). Orientation is arbitrary unless ``viewpoint`` (…, 3) is given,
-    then normals face it. ``k`` is clipped to N."""
+    then normals face it. ``k`` is clipped to N. Differentiable at any order where the
+    smallest eigenvalue is simple (also on regular grids, whose in-plane eigenvalues are
+    equal); where it is not (collinear or coincident neighbours: the normal is not
+    unique) the derivative is 0."""
     p = points_array(points, "estimate_normals(points)", 3, min_points=3)
     k = check_count(k, "estimate_normals(k)", minimum=3)
     k = min(k, p.shape[-2])
@@ -354,8 +389,7 @@ def estimate_normals(
     nb = jnp.take_along_axis(p[..., None, :, :], idx[..., None], axis=-2)  # (..., N, k, 3)
     centered = nb - jnp.mean(nb, -2, keepdims=True)
     cov = jnp.einsum("...ki,...kj->...ij", centered, centered)
-    _, vecs = jnp.linalg.eigh(cov)
-    nrm = vecs[..., :, 0]
+    nrm = _smallest_eigenvector(cov)
     if viewpoint is not None:
         v = as_float_array(viewpoint, "estimate_normals(viewpoint)").astype(p.dtype)
         check_last_dim(v, 3, "estimate_normals(viewpoint)", "[x, y, z]")

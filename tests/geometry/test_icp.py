@@ -73,6 +73,39 @@ def test_estimate_normals_plane_and_sphere(rng):
     assert np.all(cos < -0.85) and np.mean(cos) < -0.98
 
 
+def _central(f, x, h=1e-6):
+    """Central differences of f at x (…) → (*f.shape, *x.shape)."""
+    cols = []
+    for i in range(x.size):
+        e = np.zeros(x.size)
+        e[i] = h
+        e = e.reshape(x.shape)
+        cols.append((np.asarray(f(x + e)) - np.asarray(f(x - e))) / (2 * h))
+    return np.stack(cols, -1).reshape(*np.shape(f(x)), *x.shape)
+
+
+def test_estimate_normals_derivatives_on_a_grid_and_a_noisy_patch(rng):
+    """A regular grid's neighbourhoods have two equal in-plane eigenvalues: eigh's
+    derivative (1/(λᵢ − λⱼ) for every pair) made reverse mode NaN there (153 of the centre
+    normal's 225 entries). The normal's own derivative needs only its eigenvalue simple:
+    jacrev = jacfwd = central differences, on the grid and on a noisy patch, and second
+    derivatives too; collinear neighbours (the normal is not unique) stay finite."""
+    g = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0), indexing="ij"), -1)
+    grid = np.c_[g.reshape(-1, 2), np.zeros(25)]
+    noisy = grid + rng.normal(scale=0.05, size=grid.shape)
+    vp = np.array([0.3, 0.2, 10.0])
+    for pts in (grid, noisy):
+        f = jax.jit(lambda p: estimate_normals(p, k=9, viewpoint=vp)[12])  # the centre's
+        fd = _central(f, pts)
+        for jac in (jax.jacrev(f)(pts), jax.jacfwd(f)(pts)):
+            np.testing.assert_allclose(jac, fd, atol=1e-8)
+    loss = jax.jit(lambda p: jnp.sum(estimate_normals(p, k=9, viewpoint=vp)[:, 2] ** 3))
+    hess = jax.hessian(loss)(noisy)[12, 2]  # row of one coordinate, against FD of grad
+    np.testing.assert_allclose(hess, _central(jax.grad(loss), noisy)[..., 12, 2], atol=1e-6)
+    line = np.c_[np.arange(6.0), np.zeros(6), np.zeros(6)]
+    assert np.all(np.isfinite(jax.jacrev(lambda p: estimate_normals(p, k=3))(line)))
+
+
 def test_outlier_gate_and_statuses(rng):
     src = _cloud(rng, 200)
     truth = _small_motion(rng, 0.05, 0.02)
