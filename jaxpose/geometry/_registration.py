@@ -64,16 +64,15 @@ def _optimal_rotation_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tupl
     b = vee(rt @ dh - jnp.swapaxes(dh, -1, -2) @ r)
     # Tikhonov: (a² + μ² I)⁻¹ a b = a⁻¹ b up to (μ/λ)² when a is regular; → 0 along null
     # directions of a (where the rotation is not unique) instead of Inf. Solved with a
-    # scaled to unit trace (μ² = eps). tr = 0 only where S = 0 (coincident points): a = 0
-    # is divided by 1 there. (A scale of 0 + tiny gave NaN derivatives on an H200: XLA's
-    # simplifier may rewrite (a / s) / s as a / (s · s), and tiny² underflows to 0.)
+    # scaled to unit trace (μ² = eps): a⁻¹ b = (a/s)⁻¹ (b/s). tr = 0 only where S = 0
+    # (coincident points): a = 0 is divided by 1 there. Each of a and b is divided once:
+    # a scale of 0 + tiny and a chain (a / s) / s gave NaN derivatives on an H200 (XLA's
+    # simplifier rewrites (a / s) / s as a / (s · s), and tiny² underflows to 0)
     tr_abs = jnp.abs(tr[..., 0, 0])
     scale = jnp.where(tr_abs > 0, tr_abs, 1)[..., None, None]
     a = a / scale
     lhs = a @ a + jnp.finfo(h.dtype).eps * eye
-    # a/scale, not (a·b)/scale: reverse mode would divide the cotangent by the tiny
-    # scale first (inf) and then multiply by a = 0 (NaN)
-    omega = jnp.linalg.solve(lhs, (a / scale) @ b[..., None])[..., 0]
+    omega = jnp.linalg.solve(lhs, a @ (b[..., None] / scale))[..., 0]
     return r, r @ skew(omega)
 
 
