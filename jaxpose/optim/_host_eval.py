@@ -54,7 +54,16 @@ _UNARY: dict[str, Callable[[Any], Any]] = {
 
 def _clamped_starts(shape: Sequence[int], sizes: Sequence[int], idx: Sequence[Any]
                     ) -> list[int]:
-    return [int(min(max(int(i), 0), d - s)) for i, d, s in zip(idx, shape, sizes, strict=True)]
+    starts = []
+    for i, d, s in zip(idx, shape, sizes, strict=True):
+        i = np.asarray(i)
+        if i.dtype.kind == "u" and int(i) >= 2 ** (8 * i.itemsize - 1):
+            # eager JAX clamps such an unsigned start; XLA's constant folding under jit
+            # reads it as negative (uint8 200 → −56 → 0): no one answer to model (not
+            # UnsupportedPrimitiveError, whose callers would bind the primitive eagerly)
+            raise ValueError(f"unsigned start index {int(i)}: its meaning depends on jit")
+        starts.append(int(min(max(int(i), 0), d - s)))
+    return starts
 
 
 def _pad(x: np.ndarray, value: Any, config: Sequence[tuple[int, int, int]]) -> np.ndarray:
@@ -85,9 +94,12 @@ def _eval_one(name: str, args: list[np.ndarray], p: dict[str, Any]) -> list[Any]
         return [_UNARY[name](args[0])]
     if name == "convert_element_type":
         x = np.asarray(args[0])
-        if np.issubdtype(x.dtype, np.inexact) and not np.all(np.isfinite(x)):
-            raise UnsupportedPrimitiveError(name)  # NaN/Inf → int: XLA's own definition
-        return [x.astype(p["new_dtype"])]
+        new = np.dtype(p["new_dtype"])
+        if np.issubdtype(x.dtype, np.inexact) and np.issubdtype(new, np.integer):
+            info = np.iinfo(new)  # XLA saturates out-of-range values, NumPy wraps them
+            if not np.all((x > info.min - 1) & (x < info.max + 1)):  # NaN/Inf too
+                raise UnsupportedPrimitiveError(name)
+        return [x.astype(new)]
     if name == "select_n":
         which, cases = args[0], args[1:]
         return [np.choose(np.asarray(which, np.int64), np.broadcast_arrays(*cases))
@@ -148,7 +160,9 @@ def host_eval(eqn: Any, args: Sequence[Any], *, cast: bool = True) -> list[np.nd
     """The outputs of ``eqn`` applied to concrete ``args`` (NumPy arrays), checked against
     the output shapes and cast to the output dtypes (``cast=False`` keeps the arguments'
     dtype: copy primitives applied to index arrays); raises
-    :class:`UnsupportedPrimitiveError` otherwise."""
+    :class:`UnsupportedPrimitiveError` where it has no rule (or NumPy's answer differs
+    from XLA's: a float out of an integer type's range), ``ValueError`` where XLA's own
+    answer differs with and without jit (an unsigned dynamic-slice start ≥ 2^(bits−1))."""
     arrays = [np.asarray(a) for a in args]
     outs = _eval_one(eqn.primitive.name, arrays, eqn.params)
     result = []

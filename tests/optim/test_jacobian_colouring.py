@@ -182,6 +182,35 @@ def test_scan_residual_solves_on_the_sparse_path():
     np.testing.assert_allclose(sol.params, np.roll(target, -3), atol=1e-10)  # was wrong
 
 
+def test_constant_indices_folded_as_xla_computes_them():
+    """Index arrays computed from constants are folded on the host. A float out of an
+    integer type's range was converted by NumPy (−1.5 → uint8 255, 300.0 → 44), where XLA
+    saturates (0, 255): the pattern named the wrong column. And a uint8 dynamic-slice
+    start of 200 is clamped by eager JAX (→ 21) but read as −56 (→ 0) by XLA's constant
+    folding under jit: no one answer, so its pattern is the conservative one. Both gave
+    wrong least-squares solutions on the sparse path (sparsity fuzz)."""
+    coords = np.array([-1.5, 3.2, 7.9, 300.0])
+
+    def saturated(x, _):
+        idx = jnp.minimum(jnp.asarray(coords).astype(jnp.uint8).astype(jnp.int32), 11)
+        r = jnp.concatenate([x[idx] ** 2 - jnp.array([4.0, 9.0, 1.0, 16.0]), 0.1 * (x - 1)])
+        return r[:, None]
+
+    def unsigned_start(x, _):
+        r = jax.lax.dynamic_slice(x, (jnp.uint8(200),), (3,)) ** 2 - 4.0
+        return jnp.concatenate([r, 0.1 * (x - 1.0)])[:, None]
+
+    for res, n in ((saturated, 12), (unsigned_start, 24)):
+        x0 = jnp.full(n, 0.5)
+        f = lambda x, res=res: res(x, None).ravel()  # noqa: E731
+        _, pat = jacobian_pattern(f, x0)
+        jac = np.asarray(jax.jit(jax.jacfwd(f))(x0))  # what least_squares' program computes
+        assert not np.any((jac != 0) & ~pat.toarray())
+        sparse = jo.least_squares(res, x0, jacobian="sparse")
+        dense = jo.least_squares(res, x0, jacobian="fwd")
+        np.testing.assert_allclose(sparse.params, dense.params, atol=1e-10)
+
+
 def test_traced_indices_fall_back_to_a_conservative_pattern():
     def res(x, args):
         idx, y = args
