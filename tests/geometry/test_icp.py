@@ -106,6 +106,26 @@ def test_estimate_normals_derivatives_on_a_grid_and_a_noisy_patch(rng):
     assert np.all(np.isfinite(jax.jacrev(lambda p: estimate_normals(p, k=3))(line)))
 
 
+@pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])
+def test_derivative_with_respect_to_init_is_zero_in_both_modes(rng, method):
+    """The documented zero: forward mode gave it, reverse mode raised JAX's while_loop
+    error, also for a parameter that only computes init (a network's coarse pose)."""
+    src = _cloud(rng, 200)
+    tgt = np.asarray(_small_motion(rng, 0.05, 0.02).act(src))
+    kw = {"method": method, "max_iterations": 30}
+    if method == "point_to_plane":
+        kw["target_normals"] = estimate_normals(tgt, k=8)
+
+    def translation(xi):
+        return icp(src, tgt, init=SE3.exp(xi), **kw).transform.translation()
+
+    xi = jnp.asarray(rng.normal(size=6) * 0.01)
+    for jac in (jax.jacrev(translation)(xi), jax.jacfwd(translation)(xi)):
+        np.testing.assert_array_equal(jac, 0.0)
+    grad = jax.grad(lambda s: jnp.sum(icp(s, tgt, init=SE3.exp(xi), **kw).transform.data))
+    assert np.all(np.isfinite(grad(src)))  # the other derivatives are unaffected
+
+
 def test_outlier_gate_and_statuses(rng):
     src = _cloud(rng, 200)
     truth = _small_motion(rng, 0.05, 0.02)
