@@ -402,12 +402,24 @@ def _chart_cost(graph: FactorGraph, xs: Variables, delta: Array) -> Array:
 
 
 def _refuse_open_gauge(graph: FactorGraph) -> None:
-    """Raise where the graph's cost is certainly invariant under a motion of all its
-    variables (a gauge freedom): its solution is not unique, H is singular and the
-    solution's derivative undefined — a sparse factorisation would return large,
-    meaningless numbers. Recognised: graphs of between factors only with no fixed pose,
-    and of BAL reprojections only with fewer than two fixed cameras (the scale stays
-    free). Other graphs (priors, custom factors) are the user's to fix."""
+    """Raise where the graph has a gauge freedom (:func:`open_gauge`): its solution is not
+    unique, H is singular and the solution's derivative undefined — a sparse
+    factorisation would return large, meaningless numbers."""
+    gauge = open_gauge(graph)
+    if gauge is not None:
+        why, fix = gauge
+        raise ValueError(
+            f"graph.solve: cannot differentiate the solution: {why} (a gauge freedom); the "
+            f"solution is not unique and its derivative is undefined. To differentiate, "
+            f"{fix}.")
+
+
+def open_gauge(graph: FactorGraph) -> tuple[str, str] | None:
+    """``(why, fix)`` where the graph's cost is certainly invariant under a motion of all
+    its variables (a gauge freedom, H singular), else None. Recognised: graphs of between
+    factors only with no fixed pose, and of BAL reprojections only with fewer than two
+    fixed cameras (the scale stays free). Other graphs (priors, custom factors) are the
+    user's to fix."""
     st = graph.structure
     fixed = dict(zip(st.names, st.fixed_counts, strict=True))
     factors = graph.factors
@@ -422,10 +434,8 @@ def _refuse_open_gauge(graph: FactorGraph) -> None:
         fix = ("fix two cameras whose values you trust (bundle_adjustment_problem(..., "
                "fixed_cameras=[0, 1]) holds them at their current values) or add priors")
     else:
-        return
-    raise ValueError(
-        f"graph.solve: cannot differentiate the solution: {why} (a gauge freedom); the "
-        f"solution is not unique and its derivative is undefined. To differentiate, {fix}.")
+        return None
+    return why, fix
 
 
 BACKWARD_RTOL = {"float64": 1e-10, "float32": 1e-5}

@@ -47,6 +47,7 @@ from .._precision import full_precision
 from ..optim._stopping import check_tolerance
 from . import _linear as linear
 from . import _selinv as selinv
+from ._implicit import open_gauge
 from ._problem import (
     FactorGraph,
     check_structure,
@@ -214,10 +215,13 @@ def marginals(
     Returns:
         :class:`Marginals`: covariances in the tangent chart at the solution (right
         perturbation, jaxpose's tangent layout; :func:`se3_to_gtsam` maps se3 blocks to
-        GTSAM's order); fixed variables have zero blocks. A singular H (an unobserved
-        direction with no gauge fixed) gives non-finite values; with ``"pcg"`` a column
-        whose CG does not reach ``cg_rtol`` (checked on its true residual) within
-        ``cg_max_iters`` raises instead of returning an inexact covariance.
+        GTSAM's order); fixed variables have zero blocks. An open gauge that the graph
+        shows (between factors only with no pose fixed, BAL reprojections only with
+        fewer than two cameras fixed) raises ``ValueError``; another singular H (an
+        unobserved direction) gives values that are not covariances, usually non-finite;
+        with ``"pcg"`` a column whose CG does not reach ``cg_rtol`` (checked on its true
+        residual) within ``cg_max_iters`` raises instead of returning an inexact
+        covariance.
 
     The selection is checked eagerly; the computation is compiled (``eqx.filter_jit``), so
     a repeated call on a graph of the same structure with new values reuses the program.
@@ -243,6 +247,10 @@ def marginals(
         )
     graph = check_structure(graph, "marginals")
     check_variables(graph, values, "marginals(solution)")
+    gauge = open_gauge(graph)
+    if gauge is not None:  # H is singular: a factorisation may still "succeed" on rounding
+        raise ValueError(f"marginals: the covariances are undefined: {gauge[0]} (a gauge "
+                         f"freedom), so H is singular. To compute them, {gauge[1]}.")
     graph = with_checked_kernels(graph)
     st = graph.structure
     schur = st.schur

@@ -89,6 +89,24 @@ def test_host_methods_refuse_derivatives_clearly(method):
     assert float(got) == pytest.approx(float(total(1.0)), rel=1e-12)
 
 
+@pytest.mark.parametrize("method", ["dense", "sparse", "pcg"])
+def test_an_open_gauge_is_refused(method):
+    """Between factors only and no pose fixed: H is singular. The dense path's Cholesky
+    "succeeded" on rounding and returned finite covariances of 1e14 (pose2example), the
+    sparse path NaN, PCG an error about CG (docs-claims audit); now one ValueError."""
+    from jaxpose.graph import pose_graph_problem
+    from jaxpose.io import read_g2o
+
+    from .conftest import data_file
+
+    graph = pose_graph_problem(read_g2o(data_file("pose2example.txt")), fix="none")
+    with pytest.raises(ValueError, match=r"marginals: .*gauge freedom.*fix a pose"):
+        marginals(graph, None, "pose", method=method)
+    fixed = pose_graph_problem(read_g2o(data_file("pose2example.txt")))
+    assert np.all(np.isfinite(marginals(fixed, None, "pose", method=method)
+                              .covariances["pose"]))
+
+
 def test_non_integer_pair_index_raises():
     """((type, 1.7), ...) was truncated to index 1 (a covariance of the wrong pose)."""
     graph, _ = _graph()
