@@ -105,14 +105,20 @@ def covariance(
     return _nest(cov, manifold.zero_tangent(params))
 
 
+def _eigen_pinv(h: Array, rcond: float | None) -> tuple[Array, Array, Array]:
+    """(w, v, keep) of symmetric PSD ``h``: eigenvalues, eigenvectors and the kept ones,
+    those above ``rcond·λ_max`` (default n·eps)."""
+    n = h.shape[-1]
+    w, v = jnp.linalg.eigh(h)
+    tol = (n * jnp.finfo(h.dtype).eps if rcond is None else rcond) * jnp.max(w)
+    return w, v, w > tol
+
+
 @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
 def _psd_pinv(h: Array, rcond: float | None) -> Array:
     """Pseudo-inverse C of a symmetric PSD (n, n) ``h``: eigenvalues below
     ``rcond·λ_max`` (default n·eps) dropped."""
-    n = h.shape[-1]
-    w, v = jnp.linalg.eigh(h)
-    tol = (n * jnp.finfo(h.dtype).eps if rcond is None else rcond) * jnp.max(w)
-    keep = w > tol
+    w, v, keep = _eigen_pinv(h, rcond)
     inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
     return (v * inv_w) @ v.T
 
@@ -120,15 +126,31 @@ def _psd_pinv(h: Array, rcond: float | None) -> Array:
 @_psd_pinv.defjvp
 def _psd_pinv_jvp(rcond: float | None, primals: tuple[Array], tangents: tuple[Array]
                   ) -> tuple[Array, Array]:
-    """dC = −C dH C + C² dH P + P dH C² (P = I − C H, the dropped eigenspace), the
-    derivative at constant rank (Golub & Pereyra 1973), written with C and H only: the
-    eigenvectors' own derivative is infinite where eigenvalues repeat (an isotropic
-    problem), which made it NaN in both modes."""
+    """The derivative at constant rank, never dividing by a difference of two kept
+    eigenvalues (eigh's own derivative does: infinite where they repeat, as in an
+    isotropic problem, which made it NaN in both modes).
+
+    Default ``rcond``: the dropped eigenvalues are zero to rounding, and
+    dC = −C dH C + C² dH P + P dH C² (P = I − C H, Golub & Pereyra 1973), written with C
+    and H only, so it differentiates again. A user ``rcond`` may drop eigenvalues μ > 0:
+    the Daleckii–Krein form in the eigenbasis, weights −1/(λλ') between kept ones and
+    1/(λ(λ − μ)) between kept and dropped (λ > μ) — its second derivative goes through
+    eigh's, finite only where eigenvalues are distinct."""
     (h,), (dh,) = primals, tangents
     c = _psd_pinv(h, rcond)
-    p = jnp.eye(h.shape[-1], dtype=h.dtype) - c @ h
-    cc = c @ c
-    return c, -c @ dh @ c + cc @ dh @ p + p @ dh @ cc
+    if rcond is None:
+        p = jnp.eye(h.shape[-1], dtype=h.dtype) - c @ h
+        cc = c @ c
+        return c, -c @ dh @ c + cc @ dh @ p + p @ dh @ cc
+    w, v, keep = _eigen_pinv(h, rcond)
+    lam = jnp.where(keep, w, 1.0)
+    kk = keep[:, None] & keep[None, :]
+    kd = keep[:, None] & ~keep[None, :]
+    gap = jnp.where(kd, lam[:, None] - w[None, :], 1.0)  # λ − μ > 0 where kd
+    f = jnp.where(kk, -1.0 / (lam[:, None] * lam[None, :]),
+                  jnp.where(kd, 1.0 / (lam[:, None] * gap), 0.0))
+    f = f + jnp.where(kd.T, f.T, 0.0)  # the dropped-kept block mirrors the kept-dropped
+    return c, v @ (f * (v.T @ dh @ v)) @ v.T
 
 
 def _nest(cov: Array, tangent: PyTree) -> PyTree:

@@ -136,3 +136,20 @@ def test_svd_covariance_differentiates_at_repeated_and_dropped_eigenvalues():
         np.testing.assert_allclose(d, fd, rtol=1e-7, atol=1e-9)
     second = jax.jacfwd(jax.jacrev(deficient))(0.3)  # differentiates again
     np.testing.assert_allclose(second, _fd(jax.jacrev(deficient), 0.3), rtol=1e-6, atol=1e-8)
+
+
+def test_svd_covariance_derivative_with_an_rcond_that_drops_nonzero_eigenvalues():
+    """A user rcond drops eigenvalues that are not zero: the kept-dropped terms weigh
+    1/(λ(λ − μ)), not 1/λ² (review: the zero-μ formula gave a gradient 26 % off)."""
+    rng = np.random.default_rng(0)
+    u, v = np.linalg.qr(rng.normal(size=(8, 5)))[0], np.linalg.qr(rng.normal(size=(5, 5)))[0]
+    w = jnp.asarray(np.random.default_rng(5).normal(size=(5, 5)))
+    for sv in ([1, 0.7, 0.3, 0.047, 0.04], [1.0, 0.5, 0.5, 0.05, 0.02]):  # a repeated pair
+        a = jnp.asarray(u @ np.diag(sv) @ v.T)
+        da = jnp.asarray(rng.normal(size=a.shape))
+        cov = lambda t, a=a, da=da: covariance(  # noqa: E731
+            lambda x, m: m @ x, jnp.zeros(5), a + t * da, method="svd", rcond=2e-3)
+        fd = _fd(cov, 0.0)
+        np.testing.assert_allclose(jax.jvp(cov, (0.0,), (1.0,))[1], fd, rtol=1e-6, atol=1e-6)
+        loss = lambda t, cov=cov: jnp.sum(cov(t) * w)  # noqa: E731
+        assert float(jax.grad(loss)(0.0)) == pytest.approx(float(_fd(loss, 0.0)), rel=1e-6)
