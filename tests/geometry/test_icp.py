@@ -104,6 +104,16 @@ def test_estimate_normals_derivatives_on_a_grid_and_a_noisy_patch(rng):
     np.testing.assert_allclose(hess, _central(jax.grad(loss), noisy)[..., 12, 2], atol=1e-6)
     line = np.c_[np.arange(6.0), np.zeros(6), np.zeros(6)]
     assert np.all(np.isfinite(jax.jacrev(lambda p: estimate_normals(p, k=3))(line)))
+    # float32 on a strip 1 % as wide as long (in-plane gap/trace ~ 1e-4): a well-defined
+    # normal whose derivative a too wide "not simple" threshold had set to 0 (review)
+    x, y = np.meshgrid(np.arange(15.0), np.array([-0.01, 0.0, 0.01]), indexing="ij")
+    strip = np.c_[x.ravel(), y.ravel(), 1e-4 * rng.normal(size=x.size)]
+    g = lambda p: estimate_normals(p, k=9, viewpoint=vp.astype(p.dtype))[22]  # noqa: E731
+    fd = _central(jax.jit(g), strip, h=1e-7)
+    jac32 = np.asarray(jax.jacfwd(g)(jnp.asarray(strip, jnp.float32)))
+    np.testing.assert_allclose(jac32, fd, atol=1e-5 * np.abs(fd).max())
+    huge = jnp.asarray(strip * 1e20, jnp.float32)  # its covariance overflows: NaN normals
+    assert np.all(np.isnan(g(huge))) and np.all(np.isnan(jax.jacfwd(g)(huge)))  # not 0
 
 
 @pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])
