@@ -230,8 +230,10 @@ def from_matrix(m: Array) -> Array:
 def normalize(q: Array) -> Array:
     """Project onto the unit sphere: q / |q|, computed as (q/m) / |q/m| with m = max |qᵢ|
     so that quaternions ×1e200 or ×1e-200 neither overflow nor underflow. The zero
-    quaternion has no projection and gives NaN (``SO3(data, check=True)`` rejects it)."""
-    m = max_abs(parts(q))
+    quaternion has no projection and gives NaN (``SO3(data, check=True)`` rejects it).
+    m is held constant in derivatives (the projection does not depend on q's scale, so
+    they are exact): through 1/m they were NaN below ×1e-160, where m² underflows."""
+    m = jax.lax.stop_gradient(max_abs(parts(q)))
     q = q * (1.0 / jnp.where(m > 0, m, 1.0))[..., None]
     return q / jnp.sqrt(series.safe_norm_sq(q))[..., None]
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import jax
 import jax.numpy as jnp
 
 from ._base import Array, LieAlgebra, LieGroup, parts
@@ -51,9 +52,10 @@ def angle(cs: Array) -> Array:
 
 def normalize2(cs: Array) -> Array:
     """``[cos, sin]`` (…, 2) divided by its norm, without overflow or underflow (the pair
-    is first divided by its larger magnitude); ``[0, 0]`` gives NaN."""
+    is first divided by its larger magnitude, held constant in derivatives, which the
+    scale does not change: through 1/m they were NaN below ×1e-160); ``[0, 0]`` gives NaN."""
     c, s = parts(cs)
-    m = jnp.maximum(jnp.abs(c), jnp.abs(s))
+    m = jax.lax.stop_gradient(jnp.maximum(jnp.abs(c), jnp.abs(s)))
     scale = 1.0 / jnp.where(m > 0, m, 1.0)
     c, s = c * scale, s * scale
     n = jnp.sqrt(c * c + s * s)

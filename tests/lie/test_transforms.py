@@ -516,3 +516,17 @@ def test_identity_and_random_under_jit_and_vmap(cls):
         assert_close(batch.data[i], cls.random(keys[i], (), 0.7).data, np.float64, f64=1e-12)
     jitted = fast_jit(lambda k: jp.random(cls, k, (5,), 0.3))(KEY)
     assert_close(jitted.data, cls.random(KEY, (5,), 0.3).data, np.float64, f64=1e-12)
+
+
+@pytest.mark.parametrize("scale", [1e-200, 1e200])
+def test_normalize_derivatives_at_extreme_scales(scale):
+    """normalize divides by m = max |qᵢ| first; its derivatives went through 1/m too and
+    were NaN below ×1e-160 (m² underflows). The projection does not depend on the scale,
+    so d normalize(c·q)/dq = d normalize(q)/dq / c exactly (degenerate-input audit)."""
+    from jaxpose.lie import SO2
+
+    for cls, x in ((SO3, jnp.array([0.1, -0.3, 0.2, 0.9])), (SO2, jnp.array([0.6, 0.7]))):
+        f = jax.jit(lambda q, cls=cls: cls(q).normalize().data)
+        ref = np.asarray(jax.jacfwd(f)(x)) / scale
+        for jac in (jax.jacfwd(f)(x * scale), jax.jacrev(f)(x * scale)):
+            np.testing.assert_allclose(np.asarray(jac), ref, rtol=1e-12, atol=0)
