@@ -201,7 +201,11 @@ def _icp_single(
         return ~s.done & (s.it < max_iterations)
 
     def body(s: State) -> State:
-        idx = nearest(SE3(s.t).act(src_c), s.idx)
+        # vmapped, the body also runs for problems that have stopped (their results are
+        # discarded); one that stopped on NaN data would send NaN queries to the k-d tree,
+        # whose check raises for the whole batch: they search from the origin instead
+        moved = jnp.where(s.done, 0.0, SE3(s.t).act(src_c))
+        idx = nearest(moved, s.idx)
         t_new, w, _ = update(s.t, idx)
         finite = jnp.all(jnp.isfinite(t_new))
         enough = (jnp.sum(w) >= 3) & _spread(src_c, w)
