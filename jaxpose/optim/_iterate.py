@@ -189,7 +189,10 @@ def trial(rule: Rule, path: Path, state: SolverState, stopping: Stopping, *,
         fresh, lambda: (jnp.zeros_like(normal.grad), jnp.zeros((), jnp.int32)), propose
     )
     step_ok = fresh | jnp.all(jnp.isfinite(delta))
-    delta = jnp.where(step_ok & ~fresh, delta, 0.0)
+    # a stopped problem's trial is discarded, but a vmapped (or unrolled) loop still
+    # computes it: cut it here, so that reverse mode through an unrolled batch does not
+    # meet a stopped problem's non-finite system (lineax's transpose raised for the batch)
+    delta = jnp.where(step_ok & ~fresh & ~state.done, delta, 0.0)
     trial_params = path.retract(state.params, delta)
     system_new, cost_new, finite = path.linearize(trial_params)
     finite = step_ok & finite

@@ -466,3 +466,26 @@ def test_vmap_of_unrolled_gradient_equals_each_problems_gradient(solver):
     implicit = jax.grad(lambda a: jo.least_squares(
         _rosenbrock_residual, _ROSENBROCK_START, a, solver=solver).params.sum())(batch[1])
     np.testing.assert_allclose(batched[1], implicit, rtol=1e-4)
+
+
+def test_unrolled_gradient_of_a_batch_with_a_problem_stopped_at_the_start():
+    """A batch of two: one problem converges, the other's Jacobian is infinite at its
+    start (NON_FINITE after 0 steps). vmap(grad) through the unrolled solver raised
+    lineax's "non-finite input" for the whole batch: the loop still computed the stopped
+    problem's trials. Each problem now gets its own gradient, as in a loop (vmap audit)."""
+    def res(p, a):
+        x, y = p[0], p[1]
+        return jnp.array([a[0] * (y - x ** 2), a[1] - x, jnp.sqrt(jnp.abs(x) + a[2])])
+
+    a = jnp.array([[10.0, 1.0, 1.0], [1.0, 0.0, 0.0]])
+    p = jnp.array([[-1.2, 1.0], [0.0, 0.3]])
+
+    def loss(a, p):
+        return jnp.sum(jo.least_squares(res, p, a, max_steps=40, adjoint="unrolled").params ** 2)
+
+    g = jax.grad(loss)
+    batched = np.asarray(jax.vmap(g)(a, p))
+    looped = np.stack([np.asarray(g(a[i], p[i])) for i in range(2)])
+    np.testing.assert_allclose(batched[0], looped[0], rtol=1e-12)
+    assert np.all(np.isfinite(batched[0])) and np.abs(batched[0]).max() > 0.1
+    np.testing.assert_array_equal(np.isnan(batched[1]), np.isnan(looped[1]))
