@@ -170,8 +170,9 @@ def _icp_single(
     dtype = src.dtype
     src_c, tgt_c = jax.lax.stop_gradient(src), jax.lax.stop_gradient(tgt)
     nrm_c = None if nrm is None else jax.lax.stop_gradient(nrm)
-    init = jax.lax.stop_gradient(init)  # its derivative is zero (the loop is not reverse-
-    # differentiable: jax.grad with respect to init, or to what computes it, raised)
+    # the derivative with respect to init is zero (documented); the loop is not reverse-
+    # differentiable, so jax.grad with respect to init (or what computes it) raised
+    init = jax.lax.stop_gradient(init)
     tree = build_kdtree(tgt_c) if use_tree else None
     gate = jnp.square(max_distance.astype(dtype))  # +inf: no gate
 
