@@ -105,22 +105,22 @@ def covariance(
     return _nest(cov, manifold.zero_tangent(params))
 
 
-def _eigen_pinv(h: Array, rcond: float | None) -> tuple[Array, Array, Array]:
-    """(w, v, keep) of symmetric PSD ``h``: eigenvalues, eigenvectors and the kept ones,
-    those above ``rcond·λ_max`` (default n·eps)."""
+def _eigen_pinv(h: Array, rcond: float | None) -> tuple[Array, Array, Array, Array]:
+    """(C, w, v, keep) of symmetric PSD ``h``: the pseudo-inverse, the eigenvalues,
+    eigenvectors and the kept ones, those above ``rcond·λ_max`` (default n·eps)."""
     n = h.shape[-1]
     w, v = jnp.linalg.eigh(h)
     tol = (n * jnp.finfo(h.dtype).eps if rcond is None else rcond) * jnp.max(w)
-    return w, v, w > tol
+    keep = w > tol
+    inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
+    return (v * inv_w) @ v.T, w, v, keep
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
 def _psd_pinv(h: Array, rcond: float | None) -> Array:
     """Pseudo-inverse C of a symmetric PSD (n, n) ``h``: eigenvalues below
     ``rcond·λ_max`` (default n·eps) dropped."""
-    w, v, keep = _eigen_pinv(h, rcond)
-    inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
-    return (v * inv_w) @ v.T
+    return _eigen_pinv(h, rcond)[0]
 
 
 @_psd_pinv.defjvp
@@ -137,12 +137,12 @@ def _psd_pinv_jvp(rcond: float | None, primals: tuple[Array], tangents: tuple[Ar
     1/(λ(λ − μ)) between kept and dropped (λ > μ) — its second derivative goes through
     eigh's, finite only where eigenvalues are distinct."""
     (h,), (dh,) = primals, tangents
-    c = _psd_pinv(h, rcond)
     if rcond is None:
+        c = _psd_pinv(h, rcond)
         p = jnp.eye(h.shape[-1], dtype=h.dtype) - c @ h
         cc = c @ c
         return c, -c @ dh @ c + cc @ dh @ p + p @ dh @ cc
-    w, v, keep = _eigen_pinv(h, rcond)
+    c, w, v, keep = _eigen_pinv(h, rcond)  # one eigendecomposition for C and its derivative
     lam = jnp.where(keep, w, 1.0)
     kk = keep[:, None] & keep[None, :]
     kd = keep[:, None] & ~keep[None, :]
