@@ -16,7 +16,7 @@ poses): the normal equations come from one product with the dense incidence matr
 weights enter as ``BᵀQB`` with Q = M (rotations) and Ω_tt (translations), no square roots,
 and the translation target needs no pseudo-inverse (Ω_tt·Ω_tt⁺·Ω_tR = Ω_tR for a positive
 semi-definite Ω); the rotations are projected by
-:func:`~jaxpose.geometry.optimal_rotation` (SVD, det +1, its own derivative rule).
+:func:`~jaxpose.geometry.optimal_rotation` (det +1, its own derivative rule).
 
 Anchors are the graph's held poses (``fixed``); every connected piece needs one (as
 ``pose_graph_problem(fix="first")`` arranges). Where the weights leave a pose's rotation

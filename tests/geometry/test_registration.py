@@ -151,3 +151,59 @@ def test_bad_input():
         umeyama(np.zeros((5, 3)), np.zeros((5, 3)), weights=np.ones(4))
     with pytest.raises(ValueError, match=r"batch shapes do not broadcast: source"):
         svdtf(np.zeros((2, 5, 3)), np.zeros((3, 5, 3)))
+
+
+def _numpy_optimal_rotation(h: np.ndarray) -> np.ndarray:
+    """Reference: argmax tr(Rᵀ H) over SO(3) by NumPy's SVD with the reflection fix."""
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ (np.diag([1.0, 1.0, 1.0])[None] * np.stack([np.ones_like(d), np.ones_like(d),
+                                                            d], -1)[:, None, :]) @ vt
+
+
+def _with_condition(rng, kappa: float, det_sign: float = 1.0) -> np.ndarray:
+    u, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    v, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    h = u @ np.diag([1.0, kappa ** -0.5, 1.0 / kappa]) @ v.T
+    return h if np.sign(np.linalg.det(h)) == det_sign else h * np.array([1.0, 1.0, -1.0])
+
+
+def test_optimal_rotation_newton_and_svd_paths_match_numpy(rng):
+    from jaxpose.geometry._registration import _polar_rotation
+
+    hs = np.concatenate([
+        rng.normal(size=(64, 3, 3)),                               # half with det < 0
+        np.stack([_with_condition(rng, k) for k in (1e2, 1e5, 1e8, 1e12)]),
+        np.stack([_with_condition(rng, 1e3, -1.0)]),               # a reflection
+        np.stack([np.outer(rng.normal(size=3), rng.normal(size=3))  # rank 1
+                  + np.outer(rng.normal(size=3), rng.normal(size=3))]),  # rank 2: det 0
+        np.zeros((1, 3, 3)),
+    ])
+    r = np.asarray(jax.jit(optimal_rotation)(hs))
+    want = _numpy_optimal_rotation(hs)
+    np.testing.assert_allclose(r[:-1], want[:-1], atol=1e-11)  # the zero matrix: any R
+    np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-12)
+    np.testing.assert_allclose(r @ np.swapaxes(r, -1, -2), np.broadcast_to(np.eye(3), r.shape),
+                               atol=1e-12)
+    # which lanes Newton's iteration takes: det > 0 and converged; the SVD the others
+    _, ok = _polar_rotation(jnp.asarray(hs))
+    ok = np.asarray(ok)
+    assert np.all(ok[np.linalg.det(hs) <= 0] == False)  # noqa: E712
+    assert np.all(ok[64:68]) and np.mean(ok[:64]) > 0.3
+    # a lane's rotation does not depend on its neighbours' path (vmap = batch = single)
+    one = jax.jit(optimal_rotation)
+    single = np.stack([np.asarray(one(jnp.asarray(h))) for h in hs[60:70]])
+    np.testing.assert_array_equal(single, r[60:70])
+    np.testing.assert_array_equal(np.asarray(jax.jit(jax.vmap(optimal_rotation))(hs[60:70])),
+                                  r[60:70])
+
+
+def test_optimal_rotation_float32(rng):
+    h = rng.normal(size=(200, 3, 3)).astype(np.float32)
+    r = np.asarray(jax.jit(optimal_rotation)(h))
+    assert r.dtype == np.float32
+    want = _numpy_optimal_rotation(h.astype(np.float64))
+    # float32 rotations where the SVD's gap is not tiny (σ₂ + σ₃ ≥ 0.1·σ₁)
+    s = np.linalg.svd(h.astype(np.float64), compute_uv=False)
+    fine = s[:, 1] + s[:, 2] * np.sign(np.linalg.det(h)) >= 0.1 * s[:, 0]
+    np.testing.assert_allclose(r[fine], want[fine], atol=2e-5)
