@@ -57,12 +57,12 @@ from ._problem import (
     hessian_vector,
     linearize,
     normal_dtype,
+    with_checked_kernels,
 )
 from ._solve import (
     GraphLinearSolver,
     GraphSolution,
     damped_block_jacobi,
-    with_checked_kernels,
 )
 
 Array = jax.Array

@@ -266,7 +266,18 @@ def factor_residuals(factor: Factor, variables: Variables) -> Array:
 def cost(graph: FactorGraph, variables: Variables) -> Array:
     """0.5 · Σ ρ(rᵀΩr) over all factors."""
     check_variables(graph, variables, "cost(variables)")
+    graph = with_checked_kernels(graph)
     return residual_cost(graph, [factor_residuals(f, variables) for f in graph.factors])
+
+
+def with_checked_kernels(graph: FactorGraph) -> FactorGraph:
+    """``graph`` with its kernels' traced parameters (a learned ``Huber(δ)``) checked at
+    run time (``eqx.error_if``: δ ≤ 0 would give a negative cost silently); known values
+    were checked when the kernels were made, and add nothing here."""
+    factors = tuple(f if f.kernel is None else eqx.tree_at(lambda f: f.kernel, f,
+                                                            f.kernel._checked())
+                    for f in graph.factors)
+    return eqx.tree_at(lambda g: g.factors, graph, factors)
 
 
 def residual_cost(graph: FactorGraph, residuals: Any) -> Array:

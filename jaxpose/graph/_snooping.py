@@ -42,8 +42,8 @@ import numpy as np
 
 from .._precision import full_precision
 from ._marginals import _Plan, inverse_entries
-from ._problem import FactorGraph, check_structure, check_variables, linearize
-from ._solve import GraphLinearSolver, with_checked_kernels
+from ._problem import FactorGraph, check_structure, check_variables, linearize, with_checked_kernels
+from ._solve import GraphLinearSolver
 
 Array = jax.Array
 METHODS = ("auto", "dense", "sparse")

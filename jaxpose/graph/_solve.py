@@ -60,6 +60,7 @@ from ._problem import (
     residual_cost,
     retract_all,
     split,
+    with_checked_kernels,
     zero_linearization,
 )
 from ._schur import reduced_solver, schur_parts, schur_step
@@ -279,16 +280,6 @@ def default_stopping(max_steps: int = 100, dtype: Any = None) -> Stopping:
     no gradient or step tolerance."""
     dtype = jnp.result_type(float) if dtype is None else dtype
     return Stopping(max_steps=max_steps, cost_rtol=default_rtol(dtype), gtol=0.0, xtol=0.0)
-
-
-def with_checked_kernels(graph: FactorGraph) -> FactorGraph:
-    """``graph`` with its kernels' traced parameters (a learned ``Huber(δ)``) checked at
-    run time (``eqx.error_if``: δ ≤ 0 would give a negative cost silently); known values
-    were checked when the kernels were made, and add nothing here."""
-    factors = tuple(f if f.kernel is None else eqx.tree_at(lambda f: f.kernel, f,
-                                                            f.kernel._checked())
-                    for f in graph.factors)
-    return eqx.tree_at(lambda g: g.factors, graph, factors)
 
 
 def _option(value: Any, cls: type, name: str) -> Any:

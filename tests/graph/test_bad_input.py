@@ -259,6 +259,33 @@ def test_traced_kernel_parameter_outside_its_domain_raises_in_solve():
             jax.block_until_ready(jax.jit(fn)(jnp.asarray(-0.5)))
 
 
+def test_graph_cost_checks_kernel_parameters():
+    # graph.cost evaluated a learned Huber scale that became negative without a check:
+    # a negative cost, silently (solve, marginals and deletion statistics checked it)
+    import equinox as eqx
+    import jax
+
+    from jaxpose.graph import cost
+    from jaxpose.optim import Huber
+
+    def graph(delta):
+        f = Factor(between_residual, [("pose", np.array([0, 1])), ("pose", np.array([1, 2]))],
+                   data=SE3(jnp.asarray(random_poses(np.random.default_rng(1), "SE3", 2))),
+                   kernel=Huber(delta))
+        return FactorGraph([f], {"pose": _poses(3)}, fixed={"pose": [0]})
+
+    def at(delta):
+        g = graph(delta)
+        return cost(g, g.variables)
+
+    assert float(jax.jit(at)(jnp.asarray(0.5))) > 0.0
+    with pytest.raises(Exception, match=r"Huber\(delta\): delta has to be positive"):
+        jax.block_until_ready(jax.jit(at)(jnp.asarray(-0.5)))
+    g = eqx.tree_at(lambda g: g.factors[0].kernel.delta, graph(0.5), -0.5)  # no constructor
+    with pytest.raises(ValueError, match=r"Huber\(delta=-0.5\)"):
+        cost(g, g.variables)
+
+
 # Found by an audit (session 48)
 def test_pcg_tolerance_zero_is_refused_and_solve_pcg_does_not_stop_early():
     """rtol = 0 made the CG's absolute tolerance 0, so lineax's test was 0/0 = NaN on every
