@@ -272,22 +272,24 @@ def cholesky_solve(a: Array, b: Array) -> Array:
 
 
 def cholesky_solve_loops(a: Array, b: Array, segment: int = 8) -> Array:
-    """Solve ``a x = b`` for a symmetric positive-definite (n, n) ``a`` by Cholesky
-    (Crout, one column per step) and a back substitution, each a ``fori_loop`` of vector
-    operations: no LAPACK call, so a solver loop around it can compile into one XLA:CPU
-    function (:func:`jaxpose._compile.loops_compile_whole`). The factorisation runs on
-    ``a`` with ``bᵀ`` appended as a last row, so its last row is ``y = L⁻¹ b`` (the forward
-    substitution, without a loop of its own). The columns go in segments of ``segment``:
-    a segment's steps read only the rows and columns of L it can reach (about n³/3
-    multiply-adds in all, as LAPACK's, instead of n³). Not positive definite (a pivot ≤
-    0): NaN, as JAX's LAPACK Cholesky. Small systems only (:data:`SMALL_DENSE`)."""
+    """Solve ``a x = b`` for a symmetric positive-definite (n, n) ``a`` and b (n,) or
+    (n, k) by Cholesky (Crout, one column per step) and a back substitution, each a
+    ``fori_loop`` of vector operations: no LAPACK call, so a solver loop around it can
+    compile into one XLA:CPU function (:func:`jaxpose._compile.loops_compile_whole`). The
+    factorisation runs on ``a`` with ``bᵀ`` appended as last rows, so they end as
+    ``(L⁻¹ b)ᵀ`` (the forward substitution, without a loop of its own). The columns go in
+    segments of ``segment``: a segment's steps read only the rows and columns of L it can
+    reach (about n³/3 multiply-adds in all, as LAPACK's, instead of n³). Not positive
+    definite (a pivot ≤ 0): NaN, as JAX's LAPACK Cholesky. Small systems only
+    (:data:`SMALL_DENSE`)."""
     a, b = jnp.asarray(a), jnp.asarray(b)
     n = a.shape[0]
-    ab = jnp.concatenate([a, b[None, :].astype(a.dtype)], 0)  # (n + 1, n)
+    rhs = b[:, None] if b.ndim == 1 else b  # (n, k)
+    ab = jnp.concatenate([a, rhs.T.astype(a.dtype)], 0)  # (n + k, n)
     low = jnp.zeros_like(ab)
     for start in range(0, n, segment):
         stop = min(start + segment, n)
-        row = jnp.arange(start, n + 1)
+        row = jnp.arange(start, ab.shape[0])
 
         def column(j: Array, low: Array, start: int = start, stop: int = stop,
                    row: Array = row) -> Array:
@@ -297,10 +299,11 @@ def cholesky_solve_loops(a: Array, b: Array, segment: int = 8) -> Array:
             return jax.lax.dynamic_update_slice(low, col[:, None], (start, j))
 
         low = jax.lax.fori_loop(start, stop, column, low)
-    y = low[n]
+    y = low[n:]  # (k, n)
 
     def backward(k: Array, x: Array) -> Array:
         i = n - 1 - k
-        return x.at[i].set((y[i] - low[:n, i] @ x) / low[i, i])
+        return x.at[i].set((y[:, i] - low[:n, i] @ x) / low[i, i])
 
-    return jax.lax.fori_loop(0, n, backward, jnp.zeros_like(b))
+    x = jax.lax.fori_loop(0, n, backward, jnp.zeros_like(rhs))
+    return x[:, 0] if b.ndim == 1 else x

@@ -43,6 +43,12 @@ def test_cholesky_solve_loops_matches_numpy(n):
                                    atol=1e-12 * np.abs(want).max())
 
 
+def test_cholesky_solve_loops_matrix_right_hand_side():
+    a, b = _spd(20, 3), np.random.default_rng(4).normal(size=(20, 3))
+    np.testing.assert_allclose(jax.jit(linear.cholesky_solve_loops)(a, b),
+                               np.linalg.solve(a, b), rtol=0, atol=1e-10)
+
+
 def test_cholesky_solve_loops_float32_and_vmap():
     a = np.stack([_spd(12, s, np.float32) for s in range(3)])
     b = np.random.default_rng(7).normal(size=(3, 12)).astype(np.float32)
