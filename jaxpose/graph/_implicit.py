@@ -45,7 +45,6 @@ from ._analysis import tangent_dim
 from ._factor import between_residual
 from ._linear import (
     block_jacobi,
-    csr_norm_bound,
     pcg_spd,
     solve_dense,
     solve_sparse_direct,
@@ -440,10 +439,8 @@ def open_gauge(graph: FactorGraph) -> tuple[str, str] | None:
 
 
 BACKWARD_RTOL = {"float64": 1e-10, "float32": 1e-5}
-"""Relative residual the backward's CG aims for (``linear_solver="pcg"``) whatever the
-forward's ``PCG.rtol``; an answer short of it is accepted where backward stable
-(:data:`~jaxpose.graph._linear.STABLE_FACTOR`): derivatives are as exact as the dtype
-allows."""
+"""Relative residual the backward's CG reaches (``linear_solver="pcg"``) whatever the
+forward's ``PCG.rtol``: derivatives are as exact as the dtype allows."""
 
 
 def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
@@ -462,10 +459,8 @@ def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
     idx, ptr = st.csr_indices, st.csr_indptr
     if method == "pcg":
         rtol = BACKWARD_RTOL.get(jnp.dtype(hess.dtype).name, 1e-10)
-        # fixed variables' identity rows: ‖·‖ at least 1
-        h_norm = jnp.maximum(csr_norm_bound(hess, ptr), 1.0)
         inner = pcg_spd(block_jacobi(_diagonal_blocks(graph, hess)), rtol,
-                        options["cg"].max_iters, h_norm)
+                        options["cg"].max_iters)
     else:
         direct = solve_dense if method == "dense" else solve_sparse_direct
         inner = lambda _, b: direct(hess, idx, ptr, b)  # noqa: E731
@@ -476,8 +471,7 @@ def _tangent_solve(graph: FactorGraph, options: dict[str, Any], xs: Variables,
 def _backward_failure(method: str, dtype: Any) -> str:
     """The error of a failed backward solve by ``method`` in ``dtype``: cause, remedies."""
     name = jnp.dtype(dtype).name
-    why = ("CG reached neither its tolerance nor a backward-stable answer in PCG.max_iters "
-           "iterations, or H is not "
+    why = ("CG did not reach its tolerance in PCG.max_iters iterations, or H is not "
            "positive definite" if method == "pcg" else
            f"H is not positive definite to {name} precision")
     fixes = ["tighten the stopping rule", "add priors on weakly determined variables"]

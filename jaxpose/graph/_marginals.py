@@ -50,7 +50,6 @@ from . import _selinv as selinv
 from ._implicit import open_gauge
 from ._problem import (
     FactorGraph,
-    GraphLinearization,
     check_structure,
     check_variables,
     csr_values,
@@ -210,8 +209,7 @@ def marginals(
         method: ``"auto"``, ``"dense"``, ``"sparse"``, ``"pcg"`` or ``"schur"`` (module
             docstring).
         cg_rtol, cg_max_iters: tolerance and budget of each CG solve (``"pcg"``; in
-            float32 at least :data:`FLOAT32_CG_RTOL`; a column short of it is accepted
-            where backward stable, :data:`~jaxpose.graph._linear.STABLE_FACTOR`).
+            float32 at least :data:`FLOAT32_CG_RTOL`).
         batch_size: columns solved at once by ``"pcg"`` (``lax.map`` batches).
 
     Returns:
@@ -438,12 +436,7 @@ def _pcg_entries(graph: FactorGraph, lin: Any, free: Array, i: np.ndarray, j: np
 
     if jnp.dtype(add.dtype).itemsize < 8:  # float32 cannot reach the float64 default
         rtol = max(rtol, FLOAT32_CG_RTOL)
-    # ‖JᵀJ + diag(add)‖∞ ≤ max row of |J|ᵀ|J|·1 + add: short of rtol, a backward-stable
-    # column is accepted (float32 CG stalls above rtol where H is ill-conditioned)
-    magnitudes = GraphLinearization(lin.residuals, jax.tree.map(jnp.abs, lin.jacobians),
-                                    lin.cost)
-    h_norm = jnp.max(hessian_vector(graph, magnitudes, jnp.ones((n,), add.dtype)) + add)
-    inner = linear.pcg_spd(precond, rtol, max_iters, h_norm)  # NaN where not reached
+    inner = linear.pcg_spd(precond, rtol, max_iters)  # NaN where rtol is not reached
 
     def column(c: Array) -> Array:
         e = jnp.zeros((n,), add.dtype).at[c].set(1.0)
@@ -455,8 +448,7 @@ def _pcg_entries(graph: FactorGraph, lin: Any, free: Array, i: np.ndarray, j: np
     solved = jax.lax.map(column, jnp.asarray(cols), batch_size=batch_size)  # (k, n)
     return eqx.error_if(
         solved[inv, i], ~jnp.all(jnp.isfinite(solved)),
-        f"marginals(method='pcg'): conjugate gradients did not reach cg_rtol={rtol} (nor a "
-        f"backward-stable answer) within cg_max_iters={max_iters} iterations for some "
-        "columns (H ill-conditioned for its "
+        f"marginals(method='pcg'): conjugate gradients did not reach cg_rtol={rtol} within "
+        f"cg_max_iters={max_iters} iterations for some columns (H ill-conditioned for its "
         "block-Jacobi preconditioner, or singular: no gauge fixed); raise cg_max_iters, or "
         "use method='sparse' or 'dense'")

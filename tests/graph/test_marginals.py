@@ -92,8 +92,7 @@ def test_pcg_that_does_not_converge_raises():
 
     pg, _ = synthetic_pose_graph("SE2", n_poses=8, noise=(0.05, 0.05), seed=0)
     graph = pgo.pose_graph_problem(pg)
-    with pytest.raises(Exception, match=r"did not reach cg_rtol=1e-12 \(nor a "
-                       r"backward-stable answer\) within cg_max_iters=2"):
+    with pytest.raises(Exception, match=r"did not reach cg_rtol=1e-12 within cg_max_iters=2"):
         jax.block_until_ready(marginals(graph, None, method="pcg", cg_max_iters=2).covariances)
     run = jax.jit(lambda g: marginals(g, None, method="pcg", cg_max_iters=2).covariances,
                   compiler_options=FAST_COMPILE)
@@ -199,20 +198,6 @@ def test_float32_marginals_of_a_stiff_graph_are_factorised_in_float64():
     for c in c32:
         assert c.dtype == jnp.float32
         np.testing.assert_allclose(c, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
-
-
-@pytest.mark.slow  # 750 CG solves of up to 2 000 float32 iterations (~30 s)
-def test_float32_pcg_marginals_of_an_ill_conditioned_graph():
-    """smallGrid3D in float32 (κ ≈ 1.5e4): CG's float32 residual stalls above the 1e-5
-    floor (FLOAT32_CG_RTOL), so marginals(method="pcg") raised; backward-stable columns
-    are now accepted, as close to float64's covariances as float32 allows (κ·eps ≈ 2e-3)."""
-    graph = read_g2o(data_file("smallGrid3D.g2o"))
-    g64 = pgo.pose_graph_problem(graph)
-    ref = np.asarray(marginals(g64, None, "pose", method="sparse").covariances["pose"])
-    g32 = pgo.pose_graph_problem(graph, dtype=jnp.float32)
-    c32 = marginals(g32, None, "pose", method="pcg").covariances["pose"]
-    assert c32.dtype == jnp.float32
-    np.testing.assert_allclose(c32, ref, rtol=0, atol=2e-3 * np.abs(ref).max())
 
 
 def test_gradient_through_dense_marginals():
