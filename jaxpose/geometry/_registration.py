@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
+from .. import _small_linalg as small_linalg
 from .._precision import full_precision
 from .._safe import safe_div
 from ..lie import SE3, SO3, Sim3
@@ -85,14 +86,15 @@ float64: Newton at least as accurate as the SVD (tests)."""
 def _polar_rotation(h: Array) -> tuple[Array, Array]:
     """(R, ok): the orthogonal polar factor of H (..., 3, 3) by Newton's iteration
     X ← (γX + (γX)⁻ᵀ)/2 from X = H/‖H‖, γ = (‖X⁻¹‖/‖X‖)^½ (Frobenius norms; Higham 1986),
-    X⁻ᵀ = cof(X)/det(X); ok where det(H)/‖H‖³ ≥ :data:`POLAR_MIN_DET`·eps (so det H > 0:
-    then the polar factor is the maximiser) and it converged (|XᵀX − I| ≤ 64·eps, det X >
-    0). Not ok: H singular or nearly (two small singular values), a reflection, NaN."""
+    X⁻¹ by the adjugate (:func:`jaxpose._small_linalg.inv`); ok where det(H)/‖H‖³ ≥
+    :data:`POLAR_MIN_DET`·eps (so det H > 0: then the polar factor is the maximiser) and
+    it converged (|XᵀX − I| ≤ 64·eps, det X > 0). Not ok: H singular or nearly (two small
+    singular values), a reflection, NaN."""
     def frobenius_sq(m: Array) -> Array:
         return jnp.sum(m * m, axis=(-2, -1))
 
     def newton(_: Any, x: Array) -> Array:
-        inv_t = _cofactor(x) / _det3(x)[..., None, None]
+        inv_t = jnp.swapaxes(small_linalg.inv(x), -1, -2)
         gamma = jnp.sqrt(jnp.sqrt(frobenius_sq(inv_t) / frobenius_sq(x)))[..., None, None]
         return 0.5 * (gamma * x + inv_t / gamma)
 
@@ -105,13 +107,6 @@ def _polar_rotation(h: Array) -> tuple[Array, Array]:
     ok = ((_det3(x0) >= POLAR_MIN_DET * eps) & (err <= 64 * eps)
           & (_det3(x) > 0))  # NaN: not ok
     return x, ok
-
-
-def _cofactor(m: Array) -> Array:
-    """Cofactor matrices of (..., 3, 3) ``m``: cof(M) = det(M)·M⁻ᵀ."""
-    rows = [m[..., i, :] for i in range(3)]
-    return jnp.stack([jnp.cross(rows[1], rows[2]), jnp.cross(rows[2], rows[0]),
-                      jnp.cross(rows[0], rows[1])], -2)
 
 
 def _svd_rotation(h: Array) -> Array:
